@@ -1,0 +1,115 @@
+"""The zenoh key space of agos, built in one place (DESIGN.md §3, a contract).
+
+No other module writes a key literal: every publisher, subscriber, queryable and liveliness
+token asks this module for its key, so the layout can be read (and changed) here alone.
+
+Layout::
+
+    agos/<run>/ctl/manifest                  run description and status
+    agos/<run>/ctl/jobs                      queryable: claim the next episode
+    agos/<run>/ep/<ep>/obs/<role>            world -> agent observation
+    agos/<run>/ep/<ep>/act/<role>            agent -> world action
+    agos/<run>/ep/<ep>/coord/truth           authoritative coordination state
+    agos/<run>/ep/<ep>/coord/view/<role>     coordination state as <role> received it
+    agos/<run>/ep/<ep>/msg/<from>/<to>       inter-agent messages, as delivered
+    agos/<run>/ep/<ep>/events                step records
+    agos/<run>/ep/<ep>/result                the episode record
+    agos/<run>/ep/<ep>/ack                   evaluator -> world: the record is stored
+    agos/<run>/live/<kind>/<id>              liveliness tokens
+    agos/assets/<sha256>                     queryable: frozen town assets
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Literal
+
+ROOT = "agos"
+Role = Literal["uav", "ugv"]
+ROLES: tuple[Role, Role] = ("uav", "ugv")
+LiveKind = Literal["world", "agent", "evaluator", "orchestrator"]
+
+# A chunk is one key segment: no '/', no zenoh wildcards or reserved characters.
+_CHUNK = re.compile(r"^[A-Za-z0-9_.\-]+$")
+
+
+def check_chunk(value: str, *, what: str) -> str:
+    """Return ``value`` if it is a legal single key segment, else raise ``ValueError``."""
+    if not _CHUNK.match(value):
+        raise ValueError(
+            f"{what} {value!r} is not a valid key segment (letters, digits, '_', '-', '.' only)"
+        )
+    return value
+
+
+def _run(run: str) -> str:
+    return f"{ROOT}/{run if run == '*' else check_chunk(run, what='run id')}"
+
+
+def _ep(run: str, episode: str) -> str:
+    ep = episode if episode == "*" else check_chunk(episode, what="episode id")
+    return f"{_run(run)}/ep/{ep}"
+
+
+def manifest(run: str) -> str:
+    return f"{_run(run)}/ctl/manifest"
+
+
+def jobs(run: str) -> str:
+    return f"{_run(run)}/ctl/jobs"
+
+
+def obs(run: str, episode: str, role: str) -> str:
+    return f"{_ep(run, episode)}/obs/{role}"
+
+
+def act(run: str, episode: str, role: str) -> str:
+    return f"{_ep(run, episode)}/act/{role}"
+
+
+def coord_truth(run: str, episode: str) -> str:
+    return f"{_ep(run, episode)}/coord/truth"
+
+
+def coord_view(run: str, episode: str, role: str) -> str:
+    return f"{_ep(run, episode)}/coord/view/{role}"
+
+
+def message(run: str, episode: str, sender: str, receiver: str) -> str:
+    return f"{_ep(run, episode)}/msg/{sender}/{receiver}"
+
+
+def events(run: str, episode: str) -> str:
+    return f"{_ep(run, episode)}/events"
+
+
+def result(run: str, episode: str) -> str:
+    return f"{_ep(run, episode)}/result"
+
+
+def result_ack(run: str, episode: str) -> str:
+    return f"{_ep(run, episode)}/ack"
+
+
+def live(run: str, kind: LiveKind, ident: str) -> str:
+    return f"{_run(run)}/live/{kind}/{ident if ident == '*' else check_chunk(ident, what='id')}"
+
+
+def asset(sha256: str) -> str:
+    return f"{ROOT}/assets/{sha256}"
+
+
+def episode_of(key: str) -> str:
+    """The episode id inside a key under ``agos/<run>/ep/<ep>/...``."""
+    parts = key.split("/")
+    if len(parts) < 4 or parts[0] != ROOT or parts[2] != "ep":
+        raise ValueError(f"key {key!r} is not an episode key")
+    return parts[3]
+
+
+def run_of(key: str) -> str:
+    """The run id of any key under ``agos/<run>/...``."""
+    parts = key.split("/")
+    if len(parts) < 2 or parts[0] != ROOT:
+        raise ValueError(f"key {key!r} is not an agos key")
+    return parts[1]

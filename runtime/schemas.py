@@ -1,0 +1,364 @@
+"""Wire messages of agos: one pydantic model per message type (DESIGN.md §4, a contract).
+
+Every payload on the bus is a msgpack map with ``v`` (schema version) and ``type``. Models here
+are plain data: numbers, strings, lists, maps and raw bytes, so any msgpack decoder in any
+language reads them. Positions are world-frame metres (x east, y north, z up); yaw is radians,
+counter-clockwise from +x. Times are simulated seconds unless a name says ``wall``.
+
+Decode any payload with :func:`agos.runtime.codec.decode`, which dispatches on ``type`` through
+one discriminated union.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+SCHEMA_VERSION = 1
+
+Role = Literal["uav", "ugv"]
+Difficulty = Literal["easy", "mid", "hard"]
+Vec2 = tuple[float, float]
+Vec3 = tuple[float, float, float]
+
+UavActionName = Literal["MOVE_TO_UAV_WAYPOINT", "ANNOTATE_CANDIDATE", "NO_RELIABLE_CANDIDATE", "WAIT"]
+UgvActionName = Literal[
+    "MOVE_TO_ROAD_WAYPOINT", "GO_TO_CANDIDATE", "STOP_OBSERVE", "CONFIRM", "REJECT", "WAIT"
+]
+ActionName = Literal[
+    "MOVE_TO_UAV_WAYPOINT",
+    "ANNOTATE_CANDIDATE",
+    "NO_RELIABLE_CANDIDATE",
+    "MOVE_TO_ROAD_WAYPOINT",
+    "GO_TO_CANDIDATE",
+    "STOP_OBSERVE",
+    "CONFIRM",
+    "REJECT",
+    "WAIT",
+]
+EpisodeStatus = Literal["finished", "agent_crashed", "world_crashed", "timeout", "invalid"]
+"""Closed status vocabulary: only ``finished`` episodes say anything about the agents."""
+
+Termination = Literal["confirmed", "false_confirm", "budget_exhausted", "sim_time_limit", "error"]
+
+
+class Model(BaseModel):
+    """Base of every data model: strict field names, field docstrings become descriptions."""
+
+    model_config = ConfigDict(extra="forbid", use_attribute_docstrings=True, frozen=False)
+
+
+class Pose(Model):
+    position_world_m: Vec3
+    """Position in the world frame, metres."""
+    yaw_rad: float
+    """Heading, radians counter-clockwise from world +x."""
+
+
+class CameraIntrinsics(Model):
+    width_px: int
+    height_px: int
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+
+
+class ImageFrame(Model):
+    """One encoded image with the camera that took it."""
+
+    name: str
+    """Camera name: ``nadir``, ``forward``, ``front_left`` ... ``back_right``, ``ref_<view>``."""
+    kind: Literal["rgb", "depth", "semantic", "rgb_grid", "map"]
+    """``depth`` is uint16 PNG in units of ``depth_scale_m``; ``semantic`` is a uint8 class map."""
+    encoding: Literal["png", "jpeg"]
+    data: bytes
+    intrinsics: CameraIntrinsics | None = None
+    world_from_camera: list[float] | None = None
+    """Row-major 4x4 pose of the camera (OpenCV frame: x right, y down, z forward)."""
+    depth_scale_m: float | None = None
+    """Metres per depth unit (depth images only)."""
+    metres_per_px: float | None = None
+    """Ground or object scale, where the image has one (reference views, maps)."""
+
+
+class Waypoint(Model):
+    waypoint_id: str
+    position_world_m: Vec3
+    kind: str
+    """``uav_grid``, ``cruise``, ``junction_entry``, ``junction_exit``, ``dead_end`` ..."""
+    path_length_m: float | None = None
+    """Road distance from the agent's current node (UGV options only)."""
+
+
+CandidateStatus = Literal["pending", "arrived", "rejected", "confirmed", "false_confirm"]
+
+
+class Candidate(Model):
+    candidate_id: str
+    """``C001``, ``C002`` ... in order of annotation (1-based rank for ACG)."""
+    cell: str
+    """Grid cell label of the UAV image, ``A1`` (top-left) to ``E5`` (bottom-right)."""
+    polygon_world_m: list[Vec2]
+    """The cell projected onto the ground plane (Ego-to-Allo projection)."""
+    center_world_m: Vec2
+    status: CandidateStatus
+    created_sim_time_s: float
+    approach_waypoint_id: str | None = None
+    """Road decision anchor chosen by road-graph path planning, if reachable."""
+
+
+class MessageRecord(Model):
+    sender: Role
+    receiver: Role
+    text: str
+    sent_sim_time_s: float
+    delivered_sim_time_s: float
+
+
+class CoordinationState(Model):
+    """C_t: what the roles share (candidates, messages, poses, budget)."""
+
+    v: int = SCHEMA_VERSION
+    type: Literal["coordination_state"] = "coordination_state"
+    run_id: str
+    episode_id: str
+    sim_time_s: float
+    candidates: list[Candidate] = Field(default_factory=list)
+    messages: list[MessageRecord] = Field(default_factory=list)
+    """Most recent delivered messages, oldest first."""
+    poses: dict[str, Pose] = Field(default_factory=dict)
+    decisions_used: int = 0
+    decision_budget: int = 80
+    annotations_used: int = 0
+    max_annotations: int = 5
+
+
+class Observation(Model):
+    """World -> agent: everything a role may know at its decision ``decision_index``."""
+
+    v: int = SCHEMA_VERSION
+    type: Literal["observation"] = "observation"
+    run_id: str
+    episode_id: str
+    role: Role
+    decision_index: int
+    """1-based index of this role's decision in the episode."""
+    sim_time_s: float
+    pose: Pose
+    mode: Literal["aerial", "driving", "stop_6view"]
+    images: list[ImageFrame]
+    references: list[ImageFrame]
+    """Target reference views, background removed (black, alpha in the PNG)."""
+    legal_actions: list[ActionName]
+    waypoint_options: list[Waypoint]
+    region_world_m: tuple[float, float, float, float]
+    """Episode region (x_min, y_min, x_max, y_max)."""
+    active_uav_waypoints: list[Waypoint] = Field(default_factory=list)
+    """All active UAV grid nodes of the episode (UAV only): the searchable area."""
+    coordination: CoordinationState
+    grid_rows: str = "ABCDE"
+    grid_cols: int = 5
+    fresh_stop_observe: bool = False
+    """True right after STOP_OBSERVE, before any movement (UGV)."""
+
+
+class Action(Model):
+    """Agent -> world: one decision."""
+
+    v: int = SCHEMA_VERSION
+    type: Literal["action"] = "action"
+    run_id: str
+    episode_id: str
+    role: Role
+    decision_index: int
+    action: ActionName
+    waypoint_id: str | None = None
+    cell: str | None = None
+    candidate_id: str | None = None
+    message: str | None = None
+    """Optional short text to the teammate, delivered through the link model."""
+    rationale: str | None = None
+    agent_wall_latency_s: float | None = None
+
+
+class AgentMessage(Model):
+    v: int = SCHEMA_VERSION
+    type: Literal["agent_message"] = "agent_message"
+    run_id: str
+    episode_id: str
+    sender: Role
+    receiver: Role
+    text: str
+    sent_sim_time_s: float
+    delivered_sim_time_s: float
+
+
+class VehicleSpec(Model):
+    model: str
+    """Body type from the catalog (``sedan``, ``suv`` ...)."""
+    colour: str
+    position_world_m: Vec3
+    yaw_rad: float
+
+
+class TownRef(Model):
+    generator: str
+    """``procedural-grid`` (more generators and OpenDRIVE import come later)."""
+    seed: int
+    town_id: str
+
+
+class EpisodeSpec(Model):
+    """One episode (DESIGN.md §6, a contract). JSON, one per line in a split file."""
+
+    v: int = SCHEMA_VERSION
+    type: Literal["episode_spec"] = "episode_spec"
+    episode_id: str
+    """Versioned id, e.g. ``grid-s7-easy-000-v1``."""
+    town: TownRef
+    asset_sha256: str
+    difficulty: Difficulty
+    region_world_m: tuple[float, float, float, float]
+    target: VehicleSpec
+    distractors: list[VehicleSpec] = Field(default_factory=list)
+    uav_start_waypoint: str
+    ugv_start_waypoint: str
+    active_uav_waypoints: list[str]
+    decision_budget: int = 80
+    seed: int
+
+
+class CandidateOutcome(Model):
+    candidate_id: str
+    cell: str
+    center_world_m: Vec2
+    status: CandidateStatus
+    distance_to_polygon_m: float
+    """d_{e,j}: distance from the target centre to the candidate polygon (0 inside)."""
+    center_error_m: float
+    """Distance from the candidate centre to the target centre (CErr)."""
+
+
+class EpisodeRecord(Model):
+    """World -> evaluator: the episode summary (DESIGN.md §7 fields plus provenance)."""
+
+    v: int = SCHEMA_VERSION
+    type: Literal["episode_record"] = "episode_record"
+    run_id: str
+    episode_id: str
+    difficulty: Difficulty
+    status: EpisodeStatus
+    termination: Termination
+    success: bool
+    """C_e: ended with a CONFIRM accepted by the checker."""
+    ground_observed: bool
+    """O_e: a STOP_OBSERVE at some point would have passed the checker."""
+    n_confirm: int
+    ugv_path_length_m: float
+    shortest_path_length_m: float | None
+    """Road distance from the UGV start to the nearest pose where CONFIRM succeeds."""
+    final_distance_m: float
+    uav_budget: int
+    """T_e: the episode's decision budget."""
+    uav_first_visible_step: int | None
+    """tau_e: first UAV decision (1-based) whose nadir view had the target oracle-visible."""
+    candidates: list[CandidateOutcome]
+    decisions_uav: int
+    decisions_ugv: int
+    fallbacks: int = 0
+    """Decisions whose action was illegal, unparseable or late and became WAIT."""
+    sim_time_s: float
+    wall_time_s: float
+    worker_id: str
+    town_id: str
+    asset_sha256: str
+    seed: int
+    renderer: str
+    error: str | None = None
+
+
+class StepEvent(Model):
+    """World -> observers and evaluator: one applied decision, with oracle facts."""
+
+    v: int = SCHEMA_VERSION
+    type: Literal["step"] = "step"
+    run_id: str
+    episode_id: str
+    role: Role
+    decision_index: int
+    episode_step: int
+    sim_time_s: float
+    requested: Action | None
+    applied: ActionName
+    fallback_reason: str | None = None
+    pose_after: Pose
+    target_visible_uav: bool | None = None
+    """Oracle (never shown to agents): target pixels in the nadir view above the threshold."""
+    target_visible_ugv: bool | None = None
+    """Oracle: the six views would pass the CONFIRM checker (after STOP_OBSERVE)."""
+    candidate_id: str | None = None
+
+
+class EpisodeStarted(Model):
+    v: int = SCHEMA_VERSION
+    type: Literal["episode_started"] = "episode_started"
+    run_id: str
+    episode_id: str
+    difficulty: Difficulty
+    worker_id: str
+    town_id: str
+    asset_sha256: str
+
+
+class ResultAck(Model):
+    v: int = SCHEMA_VERSION
+    type: Literal["result_ack"] = "result_ack"
+    run_id: str
+    episode_id: str
+    newly_stored: bool
+    """False when the record was already stored (a duplicate submission)."""
+
+
+class RunManifest(Model):
+    v: int = SCHEMA_VERSION
+    type: Literal["run_manifest"] = "run_manifest"
+    run_id: str
+    status: Literal["running", "finished", "interrupted"]
+    policies: dict[str, str]
+    comm_profile: str = "ideal"
+    timing_mode: Literal["lockstep", "realtime"] = "lockstep"
+    n_episodes: int
+    created_utc: str
+
+
+class JobRequest(Model):
+    v: int = SCHEMA_VERSION
+    type: Literal["job_request"] = "job_request"
+    worker_id: str
+
+
+class JobGrant(Model):
+    v: int = SCHEMA_VERSION
+    type: Literal["job_grant"] = "job_grant"
+    episode: EpisodeSpec | None
+    """The leased episode, or None when there is nothing left."""
+    run_finished: bool = False
+
+
+WireMessage = Annotated[
+    CoordinationState
+    | Observation
+    | Action
+    | AgentMessage
+    | EpisodeSpec
+    | EpisodeRecord
+    | StepEvent
+    | EpisodeStarted
+    | ResultAck
+    | RunManifest
+    | JobRequest
+    | JobGrant,
+    Field(discriminator="type"),
+]

@@ -1,0 +1,204 @@
+"""The PyBullet scene: the only module of agos that imports pybullet (STYLE.md item 5).
+
+It builds a town's static geometry, adds and removes episode vehicles, renders camera images
+(RGB, metric depth, instance ids) and answers line-of-sight ray queries. Everything else in
+the world talks to it through these small named queries.
+
+Each process opens its own DIRECT client (never share one across a fork).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pybullet as pb
+
+from agos.world.catalog import CARGO_WHITE, GLASS, TYRE, body_type, colour_rgb
+from agos.world.town import (
+    LANE_WIDTH_M,
+    PARKING_WIDTH_M,
+    ROAD_HALF_WIDTH_M,
+    SIDEWALK_WIDTH_M,
+    TownLayout,
+)
+
+# Semantic classes of the uint8 semantic map.
+SEM_NONE, SEM_GROUND, SEM_ROAD, SEM_SIDEWALK, SEM_BUILDING, SEM_VEHICLE, SEM_MARKING = range(7)
+SEMANTIC_NAMES = ("none", "ground", "road", "sidewalk", "building", "vehicle", "marking")
+SKY_RGB = np.array([178, 204, 230], dtype=np.uint8)
+STUDIO_OFFSET_M = np.array([10_000.0, 10_000.0, 0.0])
+"""Where a vehicle is moved, alone, to render its reference views."""
+
+_PAINTS = {"glass": GLASS, "tyre": TYRE, "cargo": CARGO_WHITE}
+
+
+@dataclass
+class RenderResult:
+    rgb: np.ndarray
+    """(H, W, 3) uint8."""
+    depth_m: np.ndarray
+    """(H, W) float32 metric depth along the optical axis."""
+    instance: np.ndarray
+    """(H, W) int32 body ids, -1 where nothing was hit."""
+
+
+class Scene:
+    """A town in a private PyBullet DIRECT client."""
+
+    def __init__(self, layout: TownLayout, *, renderer: str = "tiny") -> None:
+        self.client = pb.connect(pb.DIRECT)
+        self.renderer = renderer
+        self._renderer_flag = pb.ER_TINY_RENDERER
+        if renderer == "egl":
+            # The plugin must be loaded before any body exists, or renders come back empty.
+            import pkgutil
+
+            egl = pkgutil.get_loader("eglRenderer")
+            if egl is None or pb.loadPlugin(egl.get_filename(), "_eglRendererPlugin",
+                                            physicsClientId=self.client) < 0:
+                raise RuntimeError("EGL renderer plugin could not be loaded")
+            self._renderer_flag = pb.ER_BULLET_HARDWARE_OPENGL
+        self._semantic: dict[int, int] = {}
+        self._shape_cache: dict[tuple, int] = {}
+        self._build_static(layout)
+
+    # ----- construction -------------------------------------------------------------------
+    def _visual_box(self, half_extents: tuple[float, float, float], rgb: tuple[float, float, float]) -> int:
+        key = ("v", *(round(h, 4) for h in half_extents), *(round(c, 4) for c in rgb))
+        if key not in self._shape_cache:
+            self._shape_cache[key] = pb.createVisualShape(
+                pb.GEOM_BOX, halfExtents=list(half_extents), rgbaColor=[*rgb, 1.0],
+                specularColor=[0.05, 0.05, 0.05], physicsClientId=self.client)
+        return self._shape_cache[key]
+
+    def _collision_box(self, half_extents: tuple[float, float, float]) -> int:
+        key = ("c", *(round(h, 4) for h in half_extents))
+        if key not in self._shape_cache:
+            self._shape_cache[key] = pb.createCollisionShape(
+                pb.GEOM_BOX, halfExtents=list(half_extents), physicsClientId=self.client)
+        return self._shape_cache[key]
+
+    def _static_box(self, center: tuple[float, float, float], half: tuple[float, float, float],
+                    rgb: tuple[float, float, float], semantic: int, *, yaw: float = 0.0,
+                    solid: bool = False) -> int:
+        uid = pb.createMultiBody(
+            baseMass=0, baseVisualShapeIndex=self._visual_box(half, rgb),
+            baseCollisionShapeIndex=self._collision_box(half) if solid else -1,
+            basePosition=list(center), baseOrientation=pb.getQuaternionFromEuler([0, 0, yaw]),
+            physicsClientId=self.client)
+        self._semantic[uid] = semantic
+        return uid
+
+    def _build_static(self, layout: TownLayout) -> None:
+        x0, y0, x1, y1 = layout.bounds_world_m()
+        pad = 150.0
+        self._static_box(((x0 + x1) / 2, (y0 + y1) / 2, -0.05),
+                         ((x1 - x0) / 2 + pad, (y1 - y0) / 2 + pad, 0.05), (0.55, 0.53, 0.48), SEM_GROUND)
+        half_w = ROAD_HALF_WIDTH_M
+        for a, b in layout.segments:
+            pa, pb_ = np.asarray(layout.junctions[a]), np.asarray(layout.junctions[b])
+            mid, d = (pa + pb_) / 2, pb_ - pa
+            length, yaw = float(np.linalg.norm(d)), math.atan2(d[1], d[0])
+            self._static_box((mid[0], mid[1], 0.01), (length / 2, half_w, 0.01), (0.22, 0.22, 0.23),
+                             SEM_ROAD, yaw=yaw)
+            # dashed yellow centre line and white parking-strip lines, kept short of the junctions
+            inner = length / 2 - half_w - 2.0
+            if inner > 0:
+                self._static_box((mid[0], mid[1], 0.025), (inner, 0.08, 0.005), (0.85, 0.72, 0.15),
+                                 SEM_MARKING, yaw=yaw)
+                normal = np.array([-math.sin(yaw), math.cos(yaw)])
+                for side in (-1, 1):
+                    c = mid + normal * side * LANE_WIDTH_M
+                    self._static_box((c[0], c[1], 0.025), (inner, 0.06, 0.005), (0.85, 0.85, 0.85),
+                                     SEM_MARKING, yaw=yaw)
+                for side in (-1, 1):
+                    c = mid + normal * side * (half_w + SIDEWALK_WIDTH_M / 2)
+                    self._static_box((c[0], c[1], 0.08), (inner + PARKING_WIDTH_M, SIDEWALK_WIDTH_M / 2, 0.08),
+                                     (0.68, 0.68, 0.66), SEM_SIDEWALK, yaw=yaw)
+        for jx, jy in layout.junctions:
+            self._static_box((jx, jy, 0.012), (half_w, half_w, 0.012), (0.24, 0.24, 0.25), SEM_ROAD)
+        for bld in layout.buildings:
+            sx, sy, sz = bld.size_m
+            self._static_box((bld.center_world_m[0], bld.center_world_m[1], sz / 2),
+                             (sx / 2, sy / 2, sz / 2), bld.colour, SEM_BUILDING, solid=True)
+        slots = {s.slot_id: s for s in layout.slots}
+        for car in layout.parked:
+            s = slots[car.slot_id]
+            self.add_vehicle(car.model, car.colour, (*s.position_world_m, 0.0), s.yaw_rad)
+
+    def add_vehicle(self, model: str, colour: str, position_world_m: tuple[float, float, float],
+                    yaw_rad: float) -> int:
+        """Place a vehicle of a catalog body type and paint; return its body id."""
+        body = body_type(model)
+        paint = colour_rgb(colour)
+        visuals, collisions, centres = [], [], []
+        for part in body.parts:
+            rgb = paint if part.paint == "body" else _PAINTS[part.paint]
+            visuals.append(self._visual_box(part.half_extents_m, rgb))
+            collisions.append(self._collision_box(part.half_extents_m))
+            centres.append(list(part.center_m))
+        n = len(body.parts) - 1
+        uid = pb.createMultiBody(
+            baseMass=0, baseVisualShapeIndex=visuals[0], baseCollisionShapeIndex=collisions[0],
+            basePosition=[position_world_m[0], position_world_m[1], position_world_m[2] + centres[0][2]],
+            baseOrientation=pb.getQuaternionFromEuler([0, 0, yaw_rad]),
+            linkMasses=[0] * n, linkCollisionShapeIndices=collisions[1:], linkVisualShapeIndices=visuals[1:],
+            linkPositions=[[c[0] - centres[0][0], c[1] - centres[0][1], c[2] - centres[0][2]] for c in centres[1:]],
+            linkOrientations=[[0, 0, 0, 1]] * n, linkInertialFramePositions=[[0, 0, 0]] * n,
+            linkInertialFrameOrientations=[[0, 0, 0, 1]] * n, linkParentIndices=[0] * n,
+            linkJointTypes=[pb.JOINT_FIXED] * n, linkJointAxis=[[0, 0, 1]] * n,
+            physicsClientId=self.client)
+        self._semantic[uid] = SEM_VEHICLE
+        return uid
+
+    def remove(self, uid: int) -> None:
+        pb.removeBody(uid, physicsClientId=self.client)
+        self._semantic.pop(uid, None)
+
+    def move(self, uid: int, offset_world_m: np.ndarray) -> None:
+        """Translate a body by an offset (used to carry a vehicle to the studio and back)."""
+        pos, orn = pb.getBasePositionAndOrientation(uid, physicsClientId=self.client)
+        pb.resetBasePositionAndOrientation(uid, (np.asarray(pos) + offset_world_m).tolist(), orn,
+                                           physicsClientId=self.client)
+
+    # ----- queries --------------------------------------------------------------------------
+    def render(self, eye_world_m: np.ndarray, forward: np.ndarray, up: np.ndarray, *, fov_deg: float,
+               width_px: int, height_px: int, near_m: float = 0.3, far_m: float = 400.0) -> RenderResult:
+        view = pb.computeViewMatrix(eye_world_m.tolist(), (eye_world_m + forward).tolist(), up.tolist())
+        proj = pb.computeProjectionMatrixFOV(fov_deg, width_px / height_px, near_m, far_m)
+        _, _, rgba, depth, seg = pb.getCameraImage(
+            width_px, height_px, view, proj, renderer=self._renderer_flag, shadow=0,
+            lightDirection=[0.35, 0.25, 1.0], lightAmbientCoeff=0.55, lightDiffuseCoeff=0.45,
+            lightSpecularCoeff=0.05, physicsClientId=self.client)
+        rgb = np.asarray(rgba, dtype=np.uint8).reshape(height_px, width_px, 4)[:, :, :3].copy()
+        instance = np.asarray(seg, dtype=np.int64).reshape(height_px, width_px)
+        instance = np.where(instance < 0, -1, instance & ((1 << 24) - 1)).astype(np.int32)
+        rgb[instance < 0] = SKY_RGB
+        zbuf = np.asarray(depth, dtype=np.float32).reshape(height_px, width_px)
+        depth_m = far_m * near_m / (far_m - (far_m - near_m) * zbuf)
+        return RenderResult(rgb, depth_m.astype(np.float32), instance)
+
+    def semantic(self, instance: np.ndarray) -> np.ndarray:
+        """uint8 class map (SEMANTIC_NAMES) of an instance image."""
+        lut = np.zeros(max(self._semantic, default=0) + 2, dtype=np.uint8)
+        for uid, cls in self._semantic.items():
+            lut[uid] = cls
+        out = lut[np.clip(instance, 0, len(lut) - 1)]
+        out[instance < 0] = SEM_NONE
+        return out
+
+    def line_of_sight(self, eye_world_m: np.ndarray, target_uid: int, targets_world_m: np.ndarray) -> bool:
+        """True if at least one ray from the eye to the given points first hits ``target_uid``."""
+        starts = [eye_world_m.tolist()] * len(targets_world_m)
+        hits = pb.rayTestBatch(starts, targets_world_m.tolist(), physicsClientId=self.client)
+        return any(hit[0] == target_uid for hit in hits)
+
+    def renderer_name(self) -> str:
+        return "pybullet-egl" if self.renderer == "egl" else "pybullet-tiny"
+
+    def close(self) -> None:
+        if self.client >= 0:
+            pb.disconnect(physicsClientId=self.client)
+            self.client = -1

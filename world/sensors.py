@@ -1,0 +1,206 @@
+"""Cameras of the UAV and UGV, their intrinsics and poses, the grid overlay and reference views.
+
+Camera frames follow OpenCV (x right, y down, z forward). The UAV's nadir camera looks straight
+down (pitch -90 deg) with image up = world +y (north). UGV cameras sit 1.7 m above the road;
+the six STOP_OBSERVE views are at yaw offsets of +60 (front-left), 0, -60 (front-right),
++120 (back-left), 180 and -120 (back-right) degrees from the heading, 70 deg wide each, so
+neighbouring views overlap by 10 deg.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from agos.runtime.codec import encode_jpeg, encode_png
+from agos.runtime.schemas import CameraIntrinsics, ImageFrame
+from agos.world.scene import STUDIO_OFFSET_M, RenderResult, Scene
+
+UGV_CAMERA_HEIGHT_M = 1.7
+SIX_VIEWS: tuple[tuple[str, float], ...] = (
+    ("front_left", 60.0), ("front", 0.0), ("front_right", -60.0),
+    ("back_left", 120.0), ("back", 180.0), ("back_right", -120.0),
+)
+DEPTH_SCALE_M = 0.005
+"""Depth PNGs store uint16 units of 5 mm (0 to 327 m)."""
+GRID_ROWS = "ABCDE"
+GRID_COLS = 5
+
+
+@dataclass(frozen=True)
+class CameraSettings:
+    nadir_px: int = 512
+    nadir_fov_deg: float = 60.0
+    ground_px: int = 256
+    ground_fov_deg: float = 70.0
+    reference_px: int = 160
+    rgb_encoding: str = "jpeg"
+
+
+@dataclass
+class Shot:
+    """A rendered view and the camera that took it."""
+
+    name: str
+    render: RenderResult
+    intrinsics: CameraIntrinsics
+    world_from_camera: np.ndarray
+    """4x4 camera pose, OpenCV axes."""
+
+
+def intrinsics_for(width_px: int, height_px: int, fov_deg: float) -> CameraIntrinsics:
+    """Pinhole intrinsics of a camera with vertical field of view ``fov_deg``."""
+    f = (height_px / 2) / math.tan(math.radians(fov_deg) / 2)
+    return CameraIntrinsics(width_px=width_px, height_px=height_px, fx_px=f, fy_px=f,
+                            cx_px=width_px / 2, cy_px=height_px / 2)
+
+
+def _pose(eye: np.ndarray, forward: np.ndarray, up: np.ndarray) -> np.ndarray:
+    z = forward / np.linalg.norm(forward)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = x, y, z, eye
+    return pose
+
+
+def shoot(scene: Scene, name: str, eye: np.ndarray, forward: np.ndarray, up: np.ndarray,
+          fov_deg: float, size_px: int) -> Shot:
+    render = scene.render(eye, forward, up, fov_deg=fov_deg, width_px=size_px, height_px=size_px)
+    return Shot(name, render, intrinsics_for(size_px, size_px, fov_deg), _pose(eye, forward, up))
+
+
+def nadir(scene: Scene, xy: tuple[float, float], altitude_m: float, cam: CameraSettings) -> Shot:
+    # A hair above the nominal altitude: a camera level with mesh vertices can drop geometry.
+    eye = np.array([xy[0], xy[1], altitude_m + 0.013])
+    return shoot(scene, "nadir", eye, np.array([0.0, 0.0, -1.0]), np.array([0.0, 1.0, 0.0]),
+                 cam.nadir_fov_deg, cam.nadir_px)
+
+
+def ground_view(scene: Scene, name: str, xy: tuple[float, float], yaw_rad: float,
+                cam: CameraSettings) -> Shot:
+    eye = np.array([xy[0], xy[1], UGV_CAMERA_HEIGHT_M])
+    forward = np.array([math.cos(yaw_rad), math.sin(yaw_rad), -0.05])
+    return shoot(scene, name, eye, forward, np.array([0.0, 0.0, 1.0]), cam.ground_fov_deg, cam.ground_px)
+
+
+def six_views(scene: Scene, xy: tuple[float, float], heading_rad: float, cam: CameraSettings) -> list[Shot]:
+    return [ground_view(scene, name, xy, heading_rad + math.radians(offset), cam)
+            for name, offset in SIX_VIEWS]
+
+
+def target_pixels(shot: Shot, target_uid: int) -> int:
+    """Visibility oracle: pixels of the target's instance in a view (never shown to agents)."""
+    return int(np.count_nonzero(shot.render.instance == target_uid))
+
+
+def grid_overlay(rgb: np.ndarray) -> np.ndarray:
+    """The nadir image with the 5x5 grid drawn and each cell labelled A1 (top-left) ... E5."""
+    out = rgb.copy()
+    h, w = out.shape[:2]
+    for k in range(1, GRID_COLS):
+        x = round(k * w / GRID_COLS)
+        cv2.line(out, (x, 0), (x, h - 1), (255, 255, 0), 1)
+    for k in range(1, len(GRID_ROWS)):
+        y = round(k * h / len(GRID_ROWS))
+        cv2.line(out, (0, y), (w - 1, y), (255, 255, 0), 1)
+    for r, row in enumerate(GRID_ROWS):
+        for c in range(GRID_COLS):
+            org = (round(c * w / GRID_COLS) + 3, round(r * h / len(GRID_ROWS)) + 14)
+            cv2.putText(out, f"{row}{c + 1}", org, cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 3, cv2.LINE_AA)
+            cv2.putText(out, f"{row}{c + 1}", org, cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 0), 1, cv2.LINE_AA)
+    return out
+
+
+def cell_polygon_world(cell: str, shot_pose: np.ndarray, intr: CameraIntrinsics,
+                       ground_z_m: float = 0.0) -> list[tuple[float, float]]:
+    """Ego-to-Allo projection: the ground-plane polygon seen by grid cell ``cell`` of a nadir
+    image taken from ``shot_pose`` (corners in image order: top-left, top-right, bottom-right,
+    bottom-left)."""
+    row, col = parse_cell(cell)
+    u0, u1 = col * intr.width_px / GRID_COLS, (col + 1) * intr.width_px / GRID_COLS
+    v0, v1 = row * intr.height_px / len(GRID_ROWS), (row + 1) * intr.height_px / len(GRID_ROWS)
+    return [pixel_to_ground(u, v, shot_pose, intr, ground_z_m) for u, v in ((u0, v0), (u1, v0), (u1, v1), (u0, v1))]
+
+
+def pixel_to_ground(u: float, v: float, world_from_camera: np.ndarray, intr: CameraIntrinsics,
+                    ground_z_m: float = 0.0) -> tuple[float, float]:
+    """Intersect the ray through pixel (u, v) with the plane z = ground_z_m."""
+    ray_cam = np.array([(u - intr.cx_px) / intr.fx_px, (v - intr.cy_px) / intr.fy_px, 1.0])
+    ray = world_from_camera[:3, :3] @ ray_cam
+    eye = world_from_camera[:3, 3]
+    t = (ground_z_m - eye[2]) / ray[2]
+    p = eye + t * ray
+    return (float(p[0]), float(p[1]))
+
+
+def parse_cell(cell: str) -> tuple[int, int]:
+    """``"C4"`` -> (row 2, col 3); raises ValueError for anything else."""
+    if (len(cell) != 2 or cell[0].upper() not in GRID_ROWS or not cell[1].isdigit()
+            or not 1 <= int(cell[1]) <= GRID_COLS):
+        raise ValueError(f"grid cell {cell!r} is not one of A1..E5")
+    return GRID_ROWS.index(cell[0].upper()), int(cell[1]) - 1
+
+
+def cell_of_pixel(u: float, v: float, width_px: int, height_px: int) -> str:
+    col = min(GRID_COLS - 1, max(0, int(u * GRID_COLS / width_px)))
+    row = min(len(GRID_ROWS) - 1, max(0, int(v * len(GRID_ROWS) / height_px)))
+    return f"{GRID_ROWS[row]}{col + 1}"
+
+
+def reference_views(scene: Scene, uid: int, position_world_m: tuple[float, float, float], yaw_rad: float,
+                    cam: CameraSettings) -> list[ImageFrame]:
+    """Render the target alone, in the studio far from the town, from above and from four
+    ground-level sides; the background is removed (black RGB, alpha 0 in the PNG)."""
+    scene.move(uid, np.asarray(STUDIO_OFFSET_M))
+    try:
+        centre = np.asarray(position_world_m) + STUDIO_OFFSET_M
+        size = cam.reference_px
+        frames = []
+        top_fov, top_h = 30.0, 22.0
+        views = [("ref_top", centre + [0, 0, top_h], np.array([0.0, 0.0, -1.0]),
+                  np.array([math.cos(yaw_rad), math.sin(yaw_rad), 0.0]), top_fov, top_h)]
+        for name, off in (("ref_front_left", 35.0), ("ref_side", 90.0), ("ref_rear", 180.0 - 35.0),
+                          ("ref_front", 0.0)):
+            a = yaw_rad + math.radians(off)
+            dist = 11.0
+            eye = centre + [dist * math.cos(a), dist * math.sin(a), 2.2]
+            views.append((name, eye, centre + [0, 0, 1.0] - eye, np.array([0.0, 0.0, 1.0]), 40.0, dist))
+        for name, eye, forward, up, fov, dist in views:
+            shot = shoot(scene, name, eye, forward, up, fov, size)
+            mask = shot.render.instance == uid
+            rgba = np.zeros((size, size, 4), np.uint8)
+            rgba[mask, :3] = shot.render.rgb[mask]
+            rgba[mask, 3] = 255
+            frames.append(ImageFrame(
+                name=name, kind="rgb", encoding="png", data=encode_png(rgba), intrinsics=shot.intrinsics,
+                metres_per_px=2 * dist * math.tan(math.radians(fov) / 2) / size))
+        return frames
+    finally:
+        scene.move(uid, -np.asarray(STUDIO_OFFSET_M))
+
+
+def frames_of(shot: Shot, scene: Scene, cam: CameraSettings, *, with_grid: bool = False,
+              semantic: bool = True) -> list[ImageFrame]:
+    """Encode a shot as wire frames: RGB (and the grid-overlay RGB), depth PNG, semantic PNG."""
+    pose = shot.world_from_camera.flatten().tolist()
+    rgb_bytes = encode_jpeg(shot.render.rgb) if cam.rgb_encoding == "jpeg" else encode_png(shot.render.rgb)
+    frames = [ImageFrame(name=shot.name, kind="rgb", encoding=cam.rgb_encoding, data=rgb_bytes,
+                         intrinsics=shot.intrinsics, world_from_camera=pose)]
+    if with_grid:
+        grid = grid_overlay(shot.render.rgb)
+        data = encode_jpeg(grid) if cam.rgb_encoding == "jpeg" else encode_png(grid)
+        frames.append(ImageFrame(name=shot.name, kind="rgb_grid", encoding=cam.rgb_encoding, data=data,
+                                 intrinsics=shot.intrinsics, world_from_camera=pose))
+    depth = np.clip(shot.render.depth_m / DEPTH_SCALE_M, 0, 65535).astype(np.uint16)
+    frames.append(ImageFrame(name=shot.name, kind="depth", encoding="png", data=encode_png(depth),
+                             intrinsics=shot.intrinsics, world_from_camera=pose, depth_scale_m=DEPTH_SCALE_M))
+    if semantic:
+        frames.append(ImageFrame(name=shot.name, kind="semantic", encoding="png",
+                                 data=encode_png(scene.semantic(shot.render.instance)),
+                                 intrinsics=shot.intrinsics, world_from_camera=pose))
+    return frames
