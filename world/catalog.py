@@ -21,7 +21,7 @@ COLOURS: dict[str, RGB] = {
     "grey": (0.36, 0.36, 0.38),
     # vivid paints: targets and distractors
     "red": (0.82, 0.08, 0.07),
-    "maroon": (0.45, 0.04, 0.09),
+    "maroon": (0.40, 0.02, 0.13),
     "blue": (0.08, 0.28, 0.88),
     "navy": (0.06, 0.09, 0.42),
     "green": (0.08, 0.62, 0.20),
@@ -100,8 +100,8 @@ def _pickup() -> BodyType:
         # cabin right behind a 1.4 m hood
         Part((hl - 1.4 - 0.9, 0.0, top + 0.35), (0.85, hw - 0.08, 0.35), "glass"),
         Part((hl - 1.4 - 0.9, 0.0, top + 0.74), (0.75, hw - 0.1, 0.04), "body"),
-        # open bed: a dark floor recessed in the body, visible from above
-        Part((-hl + 1.05, 0.0, top + 0.005), (0.95, hw - 0.12, 0.01), "tyre"),
+        # open bed: a dark floor over the rear of the body, visible from above
+        Part((-hl + 1.05, 0.0, top + 0.005), (1.05, hw, 0.01), "tyre"),
     ]
     return BodyType("pickup", length, width, top + 0.78, tuple(parts + _tyres(length, width)))
 
@@ -124,7 +124,7 @@ def _box_truck() -> BodyType:
         Part((hl - 1.0, 0.0, clearance + 0.55), (1.0, hw - 0.05, 0.55), "body"),  # cab
         Part((hl - 1.0, 0.0, clearance + 1.45), (0.9, hw - 0.1, 0.35), "glass"),
         Part((hl - 1.0, 0.0, clearance + 1.85), (0.85, hw - 0.1, 0.05), "body"),
-        Part((-1.05, 0.0, clearance + 1.4), (hl - 2.1, hw, 1.4), "body"),  # cargo box
+        Part((-1.05, 0.0, clearance + 1.4), (2.65, hw, 1.4), "body"),  # cargo box up to the cab
     ]
     return BodyType("box_truck", length, width, clearance + 2.8, tuple(parts + _tyres(length, width)))
 
@@ -132,9 +132,9 @@ def _box_truck() -> BodyType:
 BODY_TYPES: dict[str, BodyType] = {
     b.name: b
     for b in (
-        _car("sedan", 4.6, 1.8, 0.65, hood=1.3, cabin=2.2, cabin_h=0.55),
+        _car("sedan", 4.6, 1.8, 0.6, hood=1.3, cabin=2.2, cabin_h=0.5),
         _car("hatchback", 3.9, 1.75, 0.65, hood=0.9, cabin=2.3, cabin_h=0.65),
-        _car("suv", 4.8, 2.0, 0.85, hood=1.0, cabin=3.2, cabin_h=0.75, clearance=0.4),
+        _car("suv", 4.9, 2.0, 1.0, hood=1.0, cabin=3.3, cabin_h=0.8, clearance=0.4),
         _pickup(),
         _van(),
         _box_truck(),

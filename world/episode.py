@@ -439,13 +439,16 @@ class EpisodeRunner:
         ugv.mode, ugv.fresh_stop, ugv.six = "driving", False, []
         ugv.ready_at = self.sim_time_s + max(length / self.cfg.ugv_speed_mps, self.cfg.short_action_s)
 
-    def _approach_anchor(self, centre: tuple[float, float]) -> int | None:
-        """Road-graph path planning: the decision anchor nearest the candidate centre that the
-        UGV can reach from where it is now."""
+    def _approach_anchor(self, centre: tuple[float, float], radius_m: float = 20.0) -> int | None:
+        """Road-graph path planning: of the decision anchors within ``radius_m`` of the candidate
+        centre, the one with the shortest road path from the UGV; else the nearest reachable."""
+        lengths = nx.single_source_dijkstra_path_length(self.roads.fine, self.ugv.node, weight="length_m")
         ids, xy = self.roads.anchor_array()
-        order = np.argsort(np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1]))
-        reachable = nx.descendants(self.roads.fine, self.ugv.node) | {self.ugv.node}
-        return next((int(ids[i]) for i in order[:50] if int(ids[i]) in reachable), None)
+        dist = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1])
+        near = [(lengths[int(n)], int(n)) for n, d in zip(ids, dist, strict=True) if d <= radius_m and int(n) in lengths]
+        if near:
+            return min(near)[1]
+        return next((int(ids[i]) for i in np.argsort(dist) if int(ids[i]) in lengths), None)
 
     def _deliver(self, sender: Role, text: str) -> None:
         receiver: Role = "ugv" if sender == "uav" else "uav"

@@ -161,14 +161,16 @@ def reference_views(scene: Scene, uid: int, position_world_m: tuple[float, float
         centre = np.asarray(position_world_m) + STUDIO_OFFSET_M
         size = cam.reference_px
         frames = []
-        top_fov, top_h = 30.0, 22.0
+        # Nearly orthographic top view (high and narrow), so roof height does not change scale.
+        top_fov, top_h = 4.0, 150.0
         views = [("ref_top", centre + [0, 0, top_h], np.array([0.0, 0.0, -1.0]),
                   np.array([math.cos(yaw_rad), math.sin(yaw_rad), 0.0]), top_fov, top_h)]
+        # Side views from the UGV camera height, so painted heights compare with ground views.
         for name, off in (("ref_front_left", 35.0), ("ref_side", 90.0), ("ref_rear", 180.0 - 35.0),
                           ("ref_front", 0.0)):
             a = yaw_rad + math.radians(off)
             dist = 11.0
-            eye = centre + [dist * math.cos(a), dist * math.sin(a), 2.2]
+            eye = centre + [dist * math.cos(a), dist * math.sin(a), UGV_CAMERA_HEIGHT_M]
             views.append((name, eye, centre + [0, 0, 1.0] - eye, np.array([0.0, 0.0, 1.0]), 40.0, dist))
         for name, eye, forward, up, fov, dist in views:
             shot = shoot(scene, name, eye, forward, up, fov, size)
@@ -176,12 +178,21 @@ def reference_views(scene: Scene, uid: int, position_world_m: tuple[float, float
             rgba = np.zeros((size, size, 4), np.uint8)
             rgba[mask, :3] = shot.render.rgb[mask]
             rgba[mask, 3] = 255
+            # Camera pose in the vehicle's frame (origin on the road under its centre, x forward).
+            object_from_world = _object_frame(centre, yaw_rad)
             frames.append(ImageFrame(
                 name=name, kind="rgb", encoding="png", data=encode_png(rgba), intrinsics=shot.intrinsics,
+                world_from_camera=(object_from_world @ shot.world_from_camera).flatten().tolist(),
                 metres_per_px=2 * dist * math.tan(math.radians(fov) / 2) / size))
         return frames
     finally:
         scene.move(uid, -np.asarray(STUDIO_OFFSET_M))
+
+
+def _object_frame(centre: np.ndarray, yaw_rad: float) -> np.ndarray:
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    world_from_object = np.array([[c, -s, 0, centre[0]], [s, c, 0, centre[1]], [0, 0, 1, centre[2]], [0, 0, 0, 1]])
+    return np.linalg.inv(world_from_object)
 
 
 def frames_of(shot: Shot, scene: Scene, cam: CameraSettings, *, with_grid: bool = False,

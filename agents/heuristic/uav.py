@@ -1,0 +1,87 @@
+"""Heuristic UAV: cover the active grid, annotate the cell of a look-alike of the target.
+
+Coverage: every visited node also counts its four axis neighbours as seen (the 60 deg nadir
+view spans about 92 m at 80 m, so their centres are in view). The UAV flies towards the nearest
+node not yet seen, one legal neighbour move at a time. Detection: paint colour and footprint
+size against the reference top view (see :mod:`perception`). Candidates rejected by the UGV
+are remembered and not annotated again.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agos.agents.heuristic.perception import TargetProfile, detect_from_above, profile_from_references
+from agos.agents.policy import action_for
+from agos.runtime.codec import decode_image
+from agos.runtime.schemas import Action, Observation
+
+SEEN_RADIUS_M = 41.0
+REJECTED_RADIUS_M = 12.0
+
+
+@dataclass
+class _Memory:
+    profile: TargetProfile
+    seen: set[str] = field(default_factory=set)
+
+
+class HeuristicUav:
+    role = "uav"
+    name = "heuristic"
+
+    def __init__(self) -> None:
+        self._memory: dict[str, _Memory] = {}
+
+    def end_episode(self, episode_id: str) -> None:
+        self._memory.pop(episode_id, None)
+
+    def act(self, obs: Observation) -> Action:
+        mem = self._memory.get(obs.episode_id)
+        if mem is None:
+            mem = self._memory[obs.episode_id] = _Memory(profile_from_references(obs.references))
+        here = np.asarray(obs.pose.position_world_m[:2])
+        for wp in obs.active_uav_waypoints:
+            if math.dist(wp.position_world_m[:2], here) <= SEEN_RADIUS_M:
+                mem.seen.add(wp.waypoint_id)
+
+        if "ANNOTATE_CANDIDATE" in obs.legal_actions:
+            cell = self._look(obs, mem.profile)
+            if cell is not None:
+                return action_for(obs, "ANNOTATE_CANDIDATE", cell=cell,
+                                  message=f"Candidate in cell {cell}; please verify.",
+                                  rationale="paint colour and footprint match the reference")
+
+        if "MOVE_TO_UAV_WAYPOINT" in obs.legal_actions and obs.waypoint_options:
+            unseen = [w for w in obs.active_uav_waypoints if w.waypoint_id not in mem.seen]
+            if not unseen:  # everything seen once: start a second sweep
+                mem.seen = set()
+                unseen = list(obs.active_uav_waypoints)
+            goal = min(unseen, key=lambda w: (math.dist(w.position_world_m[:2], here), w.waypoint_id))
+            step = min(obs.waypoint_options,
+                       key=lambda w: (math.dist(w.position_world_m[:2], goal.position_world_m[:2]), w.waypoint_id))
+            return action_for(obs, "MOVE_TO_UAV_WAYPOINT", waypoint_id=step.waypoint_id,
+                              rationale=f"coverage towards {goal.waypoint_id}")
+        return action_for(obs, "NO_RELIABLE_CANDIDATE")
+
+    def _look(self, obs: Observation, profile: TargetProfile) -> str | None:
+        frame = next((f for f in obs.images if f.kind == "rgb" and f.name == "nadir"), None)
+        if frame is None or frame.intrinsics is None or frame.world_from_camera is None:
+            return None
+        rgb = decode_image(frame.data)
+        pose = np.asarray(frame.world_from_camera).reshape(4, 4)
+        altitude = float(pose[2, 3])
+        rejected = [c.center_world_m for c in obs.coordination.candidates if c.status in ("rejected", "false_confirm")]
+        intr = frame.intrinsics
+        for det in detect_from_above(rgb, profile, altitude_m=altitude, fy_px=intr.fy_px):
+            ray = pose[:3, :3] @ np.array([(det.u_px - intr.cx_px) / intr.fx_px, (det.v_px - intr.cy_px) / intr.fy_px, 1.0])
+            ground = pose[:3, 3] + ray * (-pose[2, 3] / ray[2])
+            if any(math.dist(ground[:2], r) <= REJECTED_RADIUS_M for r in rejected):
+                continue
+            col = min(obs.grid_cols - 1, int(det.u_px * obs.grid_cols / intr.width_px))
+            row = min(len(obs.grid_rows) - 1, int(det.v_px * len(obs.grid_rows) / intr.height_px))
+            return f"{obs.grid_rows[row]}{col + 1}"
+        return None
