@@ -1,0 +1,90 @@
+"""The evaluator process: store every episode record once, acknowledge it, report metrics.
+
+    agos evaluator --connect tcp/HOST:PORT [--runs-dir runs]
+
+It listens to the results of every run (``agos/*/ep/*/result``), writes them to
+``<runs_dir>/<run>/results.sqlite`` and acknowledges each on ``.../ack``. When a run's
+manifest says ``finished`` it logs the run's results table.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from rich.console import Console
+
+from agos.evaluator.metrics import by_difficulty
+from agos.evaluator.store import ResultStore, results_path
+from agos.evaluator.table import results_table
+from agos.runtime import keys
+from agos.runtime.bus import Inbox, ZenohBus, zenoh_config
+from agos.runtime.codec import DecodeError, decode
+from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
+from agos.runtime.schemas import EpisodeRecord, ResultAck, RunManifest
+from agos.runtime.settings import AgosConfig
+
+log = logging.getLogger("agos.evaluator")
+
+
+class Evaluator:
+    def __init__(self, bus: ZenohBus, runs_dir: Path) -> None:
+        self.bus, self.runs_dir = bus, runs_dir
+        self._stores: dict[str, ResultStore] = {}
+
+    def store(self, run_id: str) -> ResultStore:
+        if run_id not in self._stores:
+            self._stores[run_id] = ResultStore(results_path(self.runs_dir, run_id))
+        return self._stores[run_id]
+
+    def handle(self, key: str, payload: bytes) -> None:
+        try:
+            message = decode(payload)
+        except DecodeError as exc:
+            log.warning("ignoring undecodable payload on %s: %s", key, exc)
+            return
+        if isinstance(message, EpisodeRecord):
+            newly = self.store(message.run_id).add(message)
+            log.info("%s %s/%s (%s, %s)", "stored" if newly else "duplicate", message.run_id, message.episode_id,
+                     message.status, "success" if message.success else "failure")
+            self.bus.publish(keys.result_ack(message.run_id, message.episode_id),
+                             ResultAck(run_id=message.run_id, episode_id=message.episode_id, newly_stored=newly))
+        elif isinstance(message, RunManifest) and message.status == "finished":
+            records = self.store(message.run_id).records(message.run_id)
+            console = Console(width=100)
+            with console.capture() as cap:
+                console.print(results_table(by_difficulty(records), title=f"run {message.run_id}"))
+            log.info("run %s finished: %d records in %s\n%s", message.run_id, len(records),
+                     results_path(self.runs_dir, message.run_id), cap.get())
+
+    def close(self) -> None:
+        for store in self._stores.values():
+            store.close()
+
+
+def serve(bus: ZenohBus, runs_dir: Path, stop: StopFlag) -> int:
+    evaluator = Evaluator(bus, runs_dir)
+    inbox = Inbox()
+    bus.subscribe(keys.result("*", "*"), inbox)
+    bus.subscribe(keys.manifest("*"), inbox)
+    bus.declare_token(keys.live("evaluator", "evaluator", "main"))
+    log.info("evaluator storing under %s", runs_dir)
+    try:
+        while not stop.is_set():
+            sample = inbox.get(timeout_s=0.5)
+            if sample is not None:
+                evaluator.handle(sample.key, sample.payload)
+    finally:
+        evaluator.close()
+    return 0
+
+
+def main(cfg: AgosConfig) -> int:
+    setup_logging("evaluator")
+    stop = install_stop_handlers()
+    bus = ZenohBus(zenoh_config(connect=[cfg.zenoh.connect], multicast_scouting=cfg.zenoh.multicast_scouting,
+                                connect_timeout_s=cfg.zenoh.connect_timeout_s))
+    try:
+        return serve(bus, cfg.run.runs_dir, stop)
+    finally:
+        bus.close()

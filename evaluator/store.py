@@ -1,0 +1,56 @@
+"""Episode records in one SQLite file per run: ``<runs_dir>/<run>/results.sqlite``.
+
+Each (run, episode) is stored exactly once: a second submission of the same episode (a retry
+after a lost ack, a re-leased episode) is recognised and ignored, so N episodes give N rows.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from datetime import UTC, datetime
+from pathlib import Path
+
+from agos.runtime.schemas import EpisodeRecord
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS episodes (
+    run_id      TEXT NOT NULL,
+    episode_id  TEXT NOT NULL,
+    difficulty  TEXT NOT NULL,
+    status      TEXT NOT NULL,
+    success     INTEGER NOT NULL,
+    record_json TEXT NOT NULL,
+    stored_utc  TEXT NOT NULL,
+    PRIMARY KEY (run_id, episode_id)
+);
+"""
+
+
+class ResultStore:
+    def __init__(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.path = path
+        self._db = sqlite3.connect(path)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.executescript(SCHEMA)
+
+    def add(self, record: EpisodeRecord) -> bool:
+        """Store a record; return False if this (run, episode) was already stored."""
+        with self._db:
+            cur = self._db.execute(
+                "INSERT OR IGNORE INTO episodes VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (record.run_id, record.episode_id, record.difficulty, record.status, int(record.success),
+                 record.model_dump_json(), datetime.now(UTC).isoformat(timespec="seconds")))
+        return cur.rowcount == 1
+
+    def records(self, run_id: str | None = None) -> list[EpisodeRecord]:
+        sql = "SELECT record_json FROM episodes" + (" WHERE run_id = ?" if run_id else "") + " ORDER BY episode_id"
+        rows = self._db.execute(sql, (run_id,) if run_id else ())
+        return [EpisodeRecord.model_validate_json(r[0]) for r in rows]
+
+    def close(self) -> None:
+        self._db.close()
+
+
+def results_path(runs_dir: Path, run_id: str) -> Path:
+    return runs_dir / run_id / "results.sqlite"

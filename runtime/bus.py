@@ -1,0 +1,218 @@
+"""The transport: a zenoh session with the few operations agos needs, and an in-memory fake.
+
+Every process is a client of a router (multicast scouting off unless asked). Control traffic
+(observations, actions, coordination, events, results, acks) is published reliable with
+congestion control BLOCK: DROP loses messages under load even over TCP (ZENOH_NOTES.md).
+Subscriber callbacks only hand ``(key, bytes)`` to a queue; all work happens in the caller's
+thread (a slow callback stalls every other key of the session).
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import zenoh
+
+from agos.runtime.codec import encode
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Sample:
+    key: str
+    payload: bytes
+
+
+class Inbox:
+    """A thread-safe queue of samples from one or more subscriptions."""
+
+    def __init__(self) -> None:
+        self._queue: queue.Queue[Sample] = queue.Queue()
+
+    def put(self, sample: Sample) -> None:
+        self._queue.put(sample)
+
+    def get(self, timeout_s: float | None = None) -> Sample | None:
+        try:
+            return self._queue.get(timeout=timeout_s)
+        except queue.Empty:
+            return None
+
+    def drain(self) -> list[Sample]:
+        out = []
+        while True:
+            try:
+                out.append(self._queue.get_nowait())
+            except queue.Empty:
+                return out
+
+
+class Query(Protocol):
+    key: str
+    payload: bytes
+
+    def reply(self, payload: bytes) -> None: ...
+
+
+class Bus(Protocol):
+    def publish(self, key: str, message: Any) -> None: ...
+    def subscribe(self, key_expr: str, inbox: Inbox) -> None: ...
+    def serve(self, key_expr: str, handler: Callable[[Query], None]) -> None: ...
+    def request(self, key: str, message: Any, timeout_s: float) -> list[bytes]: ...
+    def wait_for_subscriber(self, key: str, timeout_s: float) -> bool: ...
+    def declare_token(self, key: str) -> None: ...
+    def close(self) -> None: ...
+
+
+def zenoh_config(*, mode: str = "client", connect: list[str] | None = None, listen: list[str] | None = None,
+                 multicast_scouting: bool = False, connect_timeout_s: float = 10.0) -> zenoh.Config:
+    """A zenoh config for agos processes (JSON5 inserts; no file needed)."""
+    import json
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(multicast_scouting))
+    if connect:
+        conf.insert_json5("connect/endpoints", json.dumps(connect))
+        # A client started before its router waits this long instead of failing at once.
+        conf.insert_json5("connect/timeout_ms", json.dumps({"client": int(connect_timeout_s * 1000), "peer": -1}))
+    if listen:
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    return conf
+
+
+class _ZenohQuery:
+    def __init__(self, query: zenoh.Query) -> None:
+        self._query = query
+        self.key = str(query.key_expr)
+        self.payload = query.payload.to_bytes() if query.payload is not None else b""
+
+    def reply(self, payload: bytes) -> None:
+        self._query.reply(self._query.key_expr, payload)
+
+
+class ZenohBus:
+    """A real zenoh session (client of a router by default)."""
+
+    def __init__(self, config: zenoh.Config) -> None:
+        self.session = zenoh.open(config)
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._keep: list[Any] = []
+        self._lock = threading.Lock()
+
+    @classmethod
+    def connect(cls, endpoint: str, *, connect_timeout_s: float = 10.0) -> ZenohBus:
+        return cls(zenoh_config(connect=[endpoint], connect_timeout_s=connect_timeout_s))
+
+    def _publisher(self, key: str) -> zenoh.Publisher:
+        with self._lock:
+            pub = self._publishers.get(key)
+            if pub is None:
+                pub = self.session.declare_publisher(
+                    key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+                self._publishers[key] = pub
+            return pub
+
+    def publish(self, key: str, message: Any) -> None:
+        self._publisher(key).put(message if isinstance(message, bytes) else encode(message))
+
+    def forget(self, key_prefix: str) -> None:
+        """Undeclare the publishers under a prefix (an episode that is over)."""
+        with self._lock:
+            for key in [k for k in self._publishers if k.startswith(key_prefix)]:
+                self._publishers.pop(key).undeclare()
+
+    def subscribe(self, key_expr: str, inbox: Inbox) -> Any:
+        """Queue every sample under ``key_expr`` into ``inbox``; returns a handle for
+        :meth:`unsubscribe`."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            inbox.put(Sample(str(sample.key_expr), sample.payload.to_bytes()))
+
+        sub = self.session.declare_subscriber(key_expr, on_sample)
+        self._keep.append(sub)
+        return sub
+
+    def unsubscribe(self, handle: Any) -> None:
+        if handle in self._keep:
+            self._keep.remove(handle)
+            handle.undeclare()
+
+    def serve(self, key_expr: str, handler: Callable[[Query], None]) -> Inbox:
+        """Declare a queryable; queries are queued and answered by ``handler`` in :meth:`pump`."""
+        inbox = Inbox()
+
+        def on_query(query: zenoh.Query) -> None:
+            inbox.put(_ZenohQuery(query))  # type: ignore[arg-type]
+
+        self._keep.append(self.session.declare_queryable(key_expr, on_query))
+        return inbox
+
+    def request(self, key: str, message: Any, timeout_s: float) -> list[bytes]:
+        payload = message if isinstance(message, bytes) else encode(message)
+        replies = self.session.get(key, payload=payload, timeout=timeout_s)
+        return [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
+
+    def wait_for_subscriber(self, key: str, timeout_s: float) -> bool:
+        """Start-up race guard: wait until someone subscribes to ``key`` (ZENOH_NOTES.md)."""
+        pub = self._publisher(key)
+        deadline = time.monotonic() + timeout_s
+        while not pub.matching_status.matching:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.01)
+        return True
+
+    def declare_token(self, key: str) -> None:
+        self._keep.append(self.session.liveliness().declare_token(key))
+
+    def close(self) -> None:
+        for obj in self._keep:
+            try:
+                obj.undeclare()
+            except Exception:  # noqa: BLE001 - already gone with the session
+                pass
+        self._keep.clear()
+        self._publishers.clear()
+        self.session.close()
+
+
+class MemoryBus:
+    """In-process fake with the same surface, for unit tests (STYLE.md item 9)."""
+
+    def __init__(self) -> None:
+        self.published: list[tuple[str, Any]] = []
+        self._subs: list[tuple[str, Inbox]] = []
+
+    def publish(self, key: str, message: Any) -> None:
+        payload = message if isinstance(message, bytes) else encode(message)
+        self.published.append((key, message))
+        for expr, inbox in self._subs:
+            if _matches(expr, key):
+                inbox.put(Sample(key, payload))
+
+    def subscribe(self, key_expr: str, inbox: Inbox) -> None:
+        self._subs.append((key_expr, inbox))
+
+    def wait_for_subscriber(self, key: str, timeout_s: float) -> bool:
+        return any(_matches(expr, key) for expr, _ in self._subs)
+
+    def declare_token(self, key: str) -> None:
+        pass
+
+    def close(self) -> None:
+        self._subs.clear()
+
+
+def _matches(expr: str, key: str) -> bool:
+    """zenoh key-expression matching for '*' (one chunk) and '**' (any chunks)."""
+    pattern = expr.replace("**", "\0").replace("*", "[!/]*").replace("\0", "*")
+    return fnmatch.fnmatchcase(key, pattern)

@@ -1,0 +1,160 @@
+"""The ``agos`` command line: parses arguments and calls each process's ``main``.
+
+    agos demo                       the whole system on this machine
+    agos router --listen EP         the zenoh router
+    agos world --connect EP --run R world worker
+    agos agent --role uav|ugv ...   agent service
+    agos evaluator --connect EP     result store and metrics
+    agos episodes generate ...      write an episode file
+    agos results RUN_DIR            print a stored run's table
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from agos.runtime.settings import AgosConfig, ConfigError, load_config
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", type=Path, help="TOML settings file (see deploy/configs/demo.toml)")
+    p.add_argument("--connect", help="zenoh router endpoint, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--run", dest="run_id", help="run id (the <run> in agos/<run>/...)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="agos", description="Air-ground cooperative object search benchmark runtime")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    demo = sub.add_parser("demo", help="run router, evaluator, agents and world workers locally")
+    demo.add_argument("--config", type=Path)
+    demo.add_argument("--workers", type=int, help="world worker processes (default 1)")
+    demo.add_argument("--port", type=int, help="router port (default 7447, or a free one)")
+    demo.add_argument("--episodes", type=Path, help="JSONL episode file instead of generated episodes")
+    demo.add_argument("--per-difficulty", type=int, help="generated episodes per difficulty (default 2)")
+    demo.add_argument("--runs-dir", type=Path)
+
+    router = sub.add_parser("router", help="zenoh router")
+    router.add_argument("--config", type=Path)
+    router.add_argument("--listen", help="endpoint to listen on (default tcp/127.0.0.1:7447)")
+
+    world = sub.add_parser("world", help="world worker: simulates leased episodes")
+    _common(world)
+    world.add_argument("--worker-id")
+
+    agent = sub.add_parser("agent", help="agent service for one role")
+    _common(agent)
+    agent.add_argument("--role", choices=["uav", "ugv"], required=True)
+    agent.add_argument("--policy", help="policy name (default from config: heuristic)")
+
+    evaluator = sub.add_parser("evaluator", help="stores episode records and reports metrics")
+    _common(evaluator)
+    evaluator.add_argument("--runs-dir", type=Path)
+
+    episodes = sub.add_parser("episodes", help="episode files")
+    ep_sub = episodes.add_subparsers(dest="episodes_command", required=True)
+    gen = ep_sub.add_parser("generate", help="sample episodes on a procedural town")
+    gen.add_argument("--out", type=Path, required=True)
+    gen.add_argument("--town-seed", type=int, default=7)
+    gen.add_argument("--seed", type=int, default=1)
+    gen.add_argument("--per-difficulty", type=int, default=2)
+    check = ep_sub.add_parser("check", help="validate an episode file")
+    check.add_argument("file", type=Path)
+
+    results = sub.add_parser("results", help="print the results table of a stored run")
+    results.add_argument("run_dir", type=Path, help="runs/<run> (holding results.sqlite)")
+    return parser
+
+
+def _config(args: argparse.Namespace) -> AgosConfig:
+    overrides = {
+        "zenoh": {"connect": getattr(args, "connect", None), "listen": getattr(args, "listen", None)},
+        "run": {"run_id": getattr(args, "run_id", None), "runs_dir": getattr(args, "runs_dir", None),
+                "workers": getattr(args, "workers", None), "episodes_file": getattr(args, "episodes", None),
+                "per_difficulty": getattr(args, "per_difficulty", None)},
+    }
+    return load_config(getattr(args, "config", None), overrides=overrides)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        cfg = _config(args) if args.command not in ("episodes", "results") else None
+        return _dispatch(args, cfg)
+    except ConfigError as exc:
+        print(str(exc), file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
+    from agos.world.episodes import EpisodeFileError
+
+    try:
+        if args.command == "demo":
+            from agos.runtime import demo
+
+            return demo.main(cfg, config_path=args.config, port=args.port)
+        if args.command == "router":
+            from agos.runtime import router
+
+            return router.main(cfg.zenoh.listen, multicast_scouting=cfg.zenoh.multicast_scouting)
+        if args.command == "world":
+            from agos.world import worker
+
+            return worker.main(cfg, worker_id=args.worker_id)
+        if args.command == "agent":
+            from agos.agents import service
+
+            return service.main(cfg, role=args.role, policy_name=args.policy)
+        if args.command == "evaluator":
+            from agos.evaluator import service as evaluator_service
+
+            return evaluator_service.main(cfg)
+        if args.command == "episodes":
+            return _episodes(args)
+        if args.command == "results":
+            return _results(args.run_dir)
+    except EpisodeFileError as exc:
+        print(f"episode file error: {exc}", file=sys.stderr)
+        return 2
+    raise AssertionError(args.command)
+
+
+def _episodes(args: argparse.Namespace) -> int:
+    from agos.world.asset import build_town
+    from agos.world.episodes import generate_episodes, read_episodes, write_episodes
+
+    if args.episodes_command == "generate":
+        town = build_town("procedural-grid", args.town_seed)
+        episodes = generate_episodes(town, per_difficulty=args.per_difficulty, seed=args.seed)
+        write_episodes(args.out, episodes)
+        print(f"wrote {len(episodes)} episodes on {town.town_id} (asset {town.sha256[:12]}) to {args.out}")
+        return 0
+    episodes = read_episodes(args.file)
+    print(f"{args.file}: {len(episodes)} valid episodes")
+    return 0
+
+
+def _results(run_dir: Path) -> int:
+    from rich.console import Console
+
+    from agos.evaluator.metrics import by_difficulty
+    from agos.evaluator.store import ResultStore
+    from agos.evaluator.table import results_table
+
+    path = run_dir / "results.sqlite"
+    if not path.exists():
+        print(f"results error: {path}: no such file", file=sys.stderr)
+        return 2
+    store = ResultStore(path)
+    Console().print(results_table(by_difficulty(store.records()), title=str(run_dir)))
+    store.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

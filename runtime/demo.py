@@ -1,0 +1,104 @@
+"""``agos demo``: the whole system on one machine, as separate OS processes.
+
+Starts a zenoh router, the evaluator, the UAV and UGV agent services and world worker(s),
+leases the episodes to the workers, shows progress, then prints the results table and the
+path of the results file. Ctrl-C stops everything and still prints what was stored.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from agos.evaluator.metrics import by_difficulty
+from agos.evaluator.store import ResultStore, results_path
+from agos.evaluator.table import results_table
+from agos.runtime.bus import ZenohBus
+from agos.runtime.launcher import Launcher, free_port, wait_listening
+from agos.runtime.orchestrator import Orchestrator
+from agos.runtime.process import install_stop_handlers
+from agos.runtime.schemas import EpisodeSpec
+from agos.runtime.settings import AgosConfig
+
+log = logging.getLogger("agos.demo")
+
+
+def load_episodes(cfg: AgosConfig) -> list[EpisodeSpec]:
+    from agos.world.asset import build_town
+    from agos.world.episodes import generate_episodes, read_episodes
+
+    if cfg.run.episodes_file is not None:
+        return read_episodes(cfg.run.episodes_file)
+    town = build_town(cfg.run.town_generator, cfg.run.town_seed)
+    return generate_episodes(town, per_difficulty=cfg.run.per_difficulty, seed=cfg.run.episode_seed)
+
+
+def main(cfg: AgosConfig, *, config_path: Path | None = None, port: int | None = None,
+         console: Console | None = None) -> int:
+    console = console or Console()
+    stop = install_stop_handlers()
+    episodes = load_episodes(cfg)
+    run_id = f"{cfg.run.run_id}-{datetime.now(UTC).strftime('%Y%m%d-%H%M%S')}"
+    run_dir = cfg.run.runs_dir / run_id
+    port = port or free_port(7447)
+    endpoint = f"tcp/127.0.0.1:{port}"
+    launcher = Launcher(run_dir / "logs")
+    common = ["--connect", endpoint, "--run", run_id] + (["--config", str(config_path)] if config_path else [])
+    started = time.monotonic()
+    bus = None
+    try:
+        launcher.start("router", ["router", "--listen", endpoint])
+        if not wait_listening("127.0.0.1", port, 15.0):
+            console.print(f"[red]router did not listen on {endpoint}; see {run_dir / 'logs' / 'router.log'}")
+            return 1
+        console.print(f"zenoh endpoint: {endpoint}", highlight=False)
+        launcher.start("evaluator", ["evaluator", *common, "--runs-dir", str(cfg.run.runs_dir)])
+        launcher.start("agent-uav", ["agent", "--role", "uav", "--policy", cfg.run.policy_uav, *common])
+        launcher.start("agent-ugv", ["agent", "--role", "ugv", "--policy", cfg.run.policy_ugv, *common])
+        for k in range(cfg.run.workers):
+            launcher.start(f"world-{k}", ["world", *common, "--worker-id", f"w{k}"])
+        bus = ZenohBus.connect(endpoint)
+        orch = Orchestrator(bus, run_id, episodes, policies={"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv})
+        orch.publish_manifest("running")
+        successes = 0
+        columns = (TextColumn("[bold]episodes"), BarColumn(), MofNCompleteColumn(), TextColumn("SR so far {task.fields[sr]}"),
+                   TimeElapsedColumn())
+        with Progress(*columns, console=console, transient=False) as progress:
+            task = progress.add_task("episodes", total=orch.total, sr="-")
+            while not orch.finished and not stop.is_set():
+                for record in orch.pump(0.25):
+                    successes += record.success
+                    progress.update(task, completed=len(orch.stored),
+                                    sr=f"{100 * successes / max(1, len(orch.stored)):.0f}%")
+                dead = launcher.dead()
+                if dead:
+                    names = ", ".join(f"{n} (exit {c})" for n, c in dead.items())
+                    console.print(f"[red]process exited early: {names}; logs in {run_dir / 'logs'}")
+                    return 1
+        if stop.is_set():
+            console.print("[yellow]interrupted: stopping all processes")
+            orch.publish_manifest("interrupted")
+        else:
+            orch.publish_manifest("finished")
+            time.sleep(0.3)  # let the evaluator log its table before it is stopped
+    finally:
+        launcher.stop_all(order=[n for n in launcher.children if n.startswith("world")]
+                          + ["agent-uav", "agent-ugv", "evaluator", "router"])
+        if bus is not None:
+            bus.close()
+    path = results_path(cfg.run.runs_dir, run_id)
+    if path.exists():
+        store = ResultStore(path)
+        records = store.records(run_id)
+        store.close()
+        console.print(results_table(by_difficulty(records), title=f"agos demo: {len(records)} episodes, "
+                                    f"{cfg.run.policy_uav}/{cfg.run.policy_ugv} policies, {len(launcher.children) + 1} processes"))
+    console.print(f"results: {path}", highlight=False)
+    console.print(f"logs:    {run_dir / 'logs'}", highlight=False)
+    console.print(f"wall time: {time.monotonic() - started:.1f} s", highlight=False)
+    return 0

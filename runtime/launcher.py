@@ -1,0 +1,79 @@
+"""Starts agos processes as children (the no-Docker local launcher) and stops them all.
+
+Each child runs ``python -m agos.runtime.cli ...`` in its own session (a terminal Ctrl-C
+reaches only the launcher, which then stops the children in order) with its output in
+``<log_dir>/<name>.log``. On Linux a child also dies with its parent.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from agos.runtime.process import die_with_parent
+
+log = logging.getLogger("agos.launcher")
+
+
+class Launcher:
+    def __init__(self, log_dir: Path) -> None:
+        self.log_dir = log_dir
+        log_dir.mkdir(parents=True, exist_ok=True)
+        self.children: dict[str, subprocess.Popen] = {}
+
+    def start(self, name: str, args: list[str]) -> subprocess.Popen:
+        out = (self.log_dir / f"{name}.log").open("wb")
+        proc = subprocess.Popen([sys.executable, "-m", "agos.runtime.cli", *args], stdout=out,
+                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
+                                preexec_fn=die_with_parent)
+        out.close()
+        self.children[name] = proc
+        return proc
+
+    def dead(self) -> dict[str, int]:
+        """Children that have exited, with their exit codes."""
+        return {n: p.returncode for n, p in self.children.items() if p.poll() is not None}
+
+    def stop_all(self, order: list[str] | None = None, grace_s: float = 8.0) -> None:
+        names = order or list(reversed(self.children))
+        for name in names:
+            proc = self.children.get(name)
+            if proc is not None and proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + grace_s
+        for name in names:
+            proc = self.children[name]
+            try:
+                proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("%s did not stop in %.0f s; killing it", name, grace_s)
+                proc.kill()
+                proc.wait()
+
+
+def free_port(preferred: int = 7447, host: str = "127.0.0.1") -> int:
+    """``preferred`` if nothing listens there, else a free port chosen by the kernel."""
+    for port in (preferred, 0):
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+            try:
+                sock.bind((host, port))
+            except OSError:
+                continue
+            return sock.getsockname()[1]
+    raise RuntimeError("no free TCP port")
+
+
+def wait_listening(host: str, port: int, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+            sock.settimeout(0.2)
+            if sock.connect_ex((host, port)) == 0:
+                return True
+        time.sleep(0.05)
+    return False

@@ -1,0 +1,53 @@
+"""The one shape of every agos process: ``main(settings) -> int`` around a stop flag.
+
+SIGINT and SIGTERM set the flag; loops poll it between bounded waits, close their session and
+return. Linux children also ask the kernel to SIGTERM them if their parent dies, so a killed
+launcher leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import os
+import signal
+import sys
+import threading
+
+PR_SET_PDEATHSIG = 1
+
+
+class StopFlag:
+    def __init__(self) -> None:
+        self._event = threading.Event()
+
+    def set(self, *_: object) -> None:
+        self._event.set()
+
+    def is_set(self) -> bool:
+        return self._event.is_set()
+
+    def wait(self, timeout_s: float) -> bool:
+        return self._event.wait(timeout_s)
+
+
+def install_stop_handlers() -> StopFlag:
+    flag = StopFlag()
+    signal.signal(signal.SIGINT, flag.set)
+    signal.signal(signal.SIGTERM, flag.set)
+    return flag
+
+
+def die_with_parent() -> None:
+    """preexec hook for child processes (Linux): SIGTERM when the parent exits."""
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+        except OSError:
+            pass
+
+
+def setup_logging(name: str, level: str = "INFO") -> logging.Logger:
+    logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO),
+                        format=f"%(asctime)s {name}[{os.getpid()}] %(levelname)s %(name)s: %(message)s")
+    return logging.getLogger(f"agos.{name}")

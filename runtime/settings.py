@@ -1,0 +1,129 @@
+"""Typed settings: defaults, then a TOML file, then ``AGOS_<SECTION>__<KEY>`` environment
+variables, then command-line flags (STYLE.md item 10).
+
+A bad file or value stops the process with one line naming the file (or variable) and the
+field, e.g. ``config error: demo.toml: world.ugv_speed_mps: Input should be a valid number``.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+ENV_PREFIX = "AGOS_"
+
+
+class ConfigError(ValueError):
+    """One line naming the source (file or environment variable) and the field."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", use_attribute_docstrings=True)
+
+
+class ZenohSettings(_Section):
+    connect: str = "tcp/127.0.0.1:7447"
+    """Router endpoint every process connects to."""
+    listen: str = "tcp/127.0.0.1:7447"
+    """Where ``agos router`` listens."""
+    multicast_scouting: bool = False
+    connect_timeout_s: float = Field(10.0, gt=0)
+
+
+class RunSettings(_Section):
+    run_id: str = "demo"
+    runs_dir: Path = Path("runs")
+    town_generator: str = "procedural-grid"
+    town_seed: int = 7
+    episode_seed: int = 1
+    per_difficulty: int = Field(2, ge=1)
+    episodes_file: Path | None = None
+    """JSONL episode file; when set, it replaces the generated episodes."""
+    policy_uav: str = "heuristic"
+    policy_ugv: str = "heuristic"
+    decision_timeout_s: float = Field(60.0, gt=0)
+    """Wall-clock wait for an action before the world logs a WAIT fallback."""
+    workers: int = Field(1, ge=1)
+
+
+class WorldSettings(_Section):
+    renderer: Literal["tiny", "egl"] = "tiny"
+    nadir_px: int = Field(512, ge=64)
+    ground_px: int = Field(256, ge=64)
+    rgb_encoding: Literal["jpeg", "png"] = "jpeg"
+    uav_speed_mps: float = Field(10.0, gt=0)
+    ugv_speed_mps: float = Field(8.0, gt=0)
+    wait_max_s: float = Field(20.0, gt=0)
+    max_annotations: int = Field(5, ge=1)
+    confirm_min_pixels: int = Field(50, ge=1)
+    confirm_max_distance_m: float = Field(50.0, gt=0)
+    require_fresh_stop: bool = True
+    require_line_of_sight: bool = True
+
+    def episode_settings(self) -> Any:
+        """The world's :class:`~agos.world.episode.EpisodeSettings` (imported here: PyBullet is
+        loaded only by processes that simulate)."""
+        from agos.world.confirm import ConfirmSettings
+        from agos.world.episode import EpisodeSettings
+        from agos.world.sensors import CameraSettings
+
+        return EpisodeSettings(
+            uav_speed_mps=self.uav_speed_mps, ugv_speed_mps=self.ugv_speed_mps, wait_max_s=self.wait_max_s,
+            max_annotations=self.max_annotations,
+            confirm=ConfirmSettings(require_fresh_stop=self.require_fresh_stop,
+                                    min_target_pixels=self.confirm_min_pixels,
+                                    max_distance_m=self.confirm_max_distance_m,
+                                    require_line_of_sight=self.require_line_of_sight),
+            cameras=CameraSettings(nadir_px=self.nadir_px, ground_px=self.ground_px, rgb_encoding=self.rgb_encoding))
+
+
+class AgosConfig(_Section):
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    run: RunSettings = Field(default_factory=RunSettings)
+    world: WorldSettings = Field(default_factory=WorldSettings)
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def _validate(data: dict[str, Any], source: str) -> AgosConfig:
+    try:
+        return AgosConfig.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        field = ".".join(str(p) for p in err["loc"])
+        raise ConfigError(f"config error: {source}: {field}: {err['msg']}") from None
+
+
+def load_config(path: Path | None = None, *, overrides: dict[str, Any] | None = None,
+                environ: dict[str, str] | None = None) -> AgosConfig:
+    """Defaults < TOML file < environment < overrides (flags), each layer validated."""
+    data: dict[str, Any] = {}
+    if path is not None:
+        try:
+            data = tomllib.loads(path.read_text())
+        except FileNotFoundError:
+            raise ConfigError(f"config error: {path}: file not found") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"config error: {path}: not valid TOML ({exc})") from None
+        _validate(data, str(path))
+    env = os.environ if environ is None else environ
+    env_layer: dict[str, Any] = {}
+    for name, value in env.items():
+        if not name.startswith(ENV_PREFIX) or "__" not in name:
+            continue
+        section, _, key = name[len(ENV_PREFIX):].lower().partition("__")
+        env_layer.setdefault(section, {})[key] = value
+        _validate(_merge(data, {section: {key: value}}), f"environment {name}")
+    data = _merge(data, env_layer)
+    if overrides:
+        data = _merge(data, {s: {k: v for k, v in kv.items() if v is not None} for s, kv in overrides.items()})
+    return _validate(data, "command line" if overrides else (str(path) if path else "defaults"))

@@ -1,0 +1,207 @@
+"""The world worker process: lease an episode, simulate it, submit its record; repeat.
+
+    agos world --connect tcp/HOST:PORT --run RUN
+
+Observations go to ``.../obs/<role>`` and actions are awaited on ``.../act/<role>`` (a
+wall-clock deadline turns a missing action into a logged WAIT). The record is published on
+``.../result`` until the evaluator acknowledges it on ``.../ack``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import time
+import traceback
+
+from agos.runtime import keys
+from agos.runtime.bus import Inbox, ZenohBus, zenoh_config
+from agos.runtime.codec import DecodeError, decode
+from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
+from agos.runtime.schemas import (
+    Action,
+    AgentMessage,
+    CoordinationState,
+    EpisodeRecord,
+    EpisodeSpec,
+    EpisodeStarted,
+    JobGrant,
+    JobRequest,
+    Observation,
+    ResultAck,
+    Role,
+    StepEvent,
+)
+from agos.runtime.settings import AgosConfig
+from agos.world.asset import AssetMismatch, Town, town_for
+from agos.world.episode import EpisodeRunner
+from agos.world.scene import Scene
+
+log = logging.getLogger("agos.world")
+ACK_WAIT_S = 3.0
+SUBMIT_ATTEMPTS = 20
+AGENT_WAIT_S = 30.0
+
+
+class BusSink:
+    """Publishes the runner's reports on the episode's keys."""
+
+    def __init__(self, bus: ZenohBus, run_id: str, episode_id: str) -> None:
+        self.bus, self.run_id, self.episode_id = bus, run_id, episode_id
+
+    def step(self, event: StepEvent) -> None:
+        self.bus.publish(keys.events(self.run_id, self.episode_id), event)
+
+    def coordination(self, truth: CoordinationState, views: dict[Role, CoordinationState]) -> None:
+        self.bus.publish(keys.coord_truth(self.run_id, self.episode_id), truth)
+        for role, view in views.items():
+            self.bus.publish(keys.coord_view(self.run_id, self.episode_id, role), view)
+
+    def message(self, message: AgentMessage) -> None:
+        self.bus.publish(keys.message(self.run_id, self.episode_id, message.sender, message.receiver), message)
+
+
+class BusDecisionSource:
+    """Asks the agent services for decisions over zenoh (lockstep: the sim clock waits)."""
+
+    def __init__(self, bus: ZenohBus, run_id: str, episode_id: str, *, timeout_s: float, stop: StopFlag) -> None:
+        self.bus, self.run_id, self.episode_id = bus, run_id, episode_id
+        self.timeout_s, self.stop = timeout_s, stop
+        self.inbox = Inbox()
+        self._handle = bus.subscribe(keys.act(run_id, episode_id, "*"), self.inbox)
+
+    def close(self) -> None:
+        self.bus.unsubscribe(self._handle)
+
+    def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
+        for role, obs in observations.items():
+            key = keys.obs(self.run_id, self.episode_id, role)
+            if obs.decision_index == 1 and not self.bus.wait_for_subscriber(key, AGENT_WAIT_S):
+                log.warning("%s: no %s agent subscribed after %.0f s", self.episode_id, role, AGENT_WAIT_S)
+            self.bus.publish(key, obs)
+        pending = {role: obs.decision_index for role, obs in observations.items()}
+        actions: dict[Role, Action | None] = dict.fromkeys(observations)
+        deadline = time.monotonic() + self.timeout_s
+        while pending and not self.stop.is_set():
+            sample = self.inbox.get(timeout_s=min(0.5, max(0.0, deadline - time.monotonic())))
+            if sample is None:
+                if time.monotonic() >= deadline:
+                    break
+                continue
+            try:
+                action = decode(sample.payload)
+            except DecodeError as exc:
+                log.warning("%s: undecodable action on %s: %s", self.episode_id, sample.key, exc)
+                continue
+            if isinstance(action, Action) and pending.get(action.role) == action.decision_index:
+                actions[action.role] = action
+                del pending[action.role]
+        for role in pending:
+            log.warning("%s: no %s action for decision %d within %.0f s", self.episode_id, role,
+                        observations[role].decision_index, self.timeout_s)
+        return actions
+
+
+class WorldWorker:
+    def __init__(self, cfg: AgosConfig, bus: ZenohBus, stop: StopFlag, worker_id: str) -> None:
+        self.cfg, self.bus, self.stop, self.worker_id = cfg, bus, stop, worker_id
+        self.run_id = cfg.run.run_id
+        self._scenes: dict[tuple[str, int], tuple[Town, Scene]] = {}
+
+    def serve(self) -> int:
+        self.bus.declare_token(keys.live(self.run_id, "world", self.worker_id))
+        log.info("world worker %s serving run %s", self.worker_id, self.run_id)
+        while not self.stop.is_set():
+            replies = self.bus.request(keys.jobs(self.run_id), JobRequest(worker_id=self.worker_id), timeout_s=5.0)
+            if not replies:
+                self.stop.wait(1.0)  # no orchestrator yet
+                continue
+            grant = decode(replies[0])
+            if not isinstance(grant, JobGrant) or grant.run_finished:
+                log.info("run %s finished; worker exits", self.run_id)
+                break
+            if grant.episode is None:
+                self.stop.wait(1.0)
+                continue
+            self.run_episode(grant.episode)
+        for _, scene in self._scenes.values():
+            scene.close()
+        return 0
+
+    def _scene(self, spec: EpisodeSpec) -> tuple[Town, Scene]:
+        key = (spec.town.generator, spec.town.seed)
+        if key not in self._scenes:
+            town = town_for(spec.town.generator, spec.town.seed, spec.asset_sha256)
+            self._scenes[key] = (town, Scene(town.layout, renderer=self.cfg.world.renderer))
+        return self._scenes[key]
+
+    def run_episode(self, spec: EpisodeSpec) -> None:
+        started = time.monotonic()
+        log.info("episode %s (%s) starts", spec.episode_id, spec.difficulty)
+        source = None
+        try:
+            town, scene = self._scene(spec)
+            self.bus.publish(keys.events(self.run_id, spec.episode_id), EpisodeStarted(
+                run_id=self.run_id, episode_id=spec.episode_id, difficulty=spec.difficulty,
+                worker_id=self.worker_id, town_id=town.town_id, asset_sha256=town.sha256))
+            source = BusDecisionSource(self.bus, self.run_id, spec.episode_id,
+                                       timeout_s=self.cfg.run.decision_timeout_s, stop=self.stop)
+            runner = EpisodeRunner(scene, town, spec, run_id=self.run_id, worker_id=self.worker_id,
+                                   settings=self.cfg.world.episode_settings(),
+                                   sink=BusSink(self.bus, self.run_id, spec.episode_id))
+            record = runner.run(source)
+            if self.stop.is_set():
+                log.info("episode %s interrupted; not submitted", spec.episode_id)
+                return
+        except AssetMismatch as exc:
+            record = self._failed(spec, "invalid", str(exc), started)
+        except Exception as exc:  # noqa: BLE001 - any crash becomes a world_crashed record, never a task failure
+            log.error("episode %s crashed:\n%s", spec.episode_id, traceback.format_exc())
+            record = self._failed(spec, "world_crashed", f"{type(exc).__name__}: {exc}", started)
+        finally:
+            if source is not None:
+                source.close()
+            self.bus.forget(f"{keys.ROOT}/{self.run_id}/ep/{spec.episode_id}/")
+        self.submit(record)
+        log.info("episode %s: %s (%s) in %.1f s", spec.episode_id, record.termination,
+                 "success" if record.success else "failure", time.monotonic() - started)
+
+    def _failed(self, spec: EpisodeSpec, status: str, error: str, started: float) -> EpisodeRecord:
+        return EpisodeRecord(
+            run_id=self.run_id, episode_id=spec.episode_id, difficulty=spec.difficulty, status=status,
+            termination="error", success=False, ground_observed=False, n_confirm=0, ugv_path_length_m=0.0,
+            shortest_path_length_m=None, final_distance_m=0.0, uav_budget=spec.decision_budget,
+            uav_first_visible_step=None, candidates=[], decisions_uav=0, decisions_ugv=0, sim_time_s=0.0,
+            wall_time_s=round(time.monotonic() - started, 3), worker_id=self.worker_id, town_id=spec.town.town_id,
+            asset_sha256=spec.asset_sha256, seed=spec.seed, renderer=self.cfg.world.renderer, error=error)
+
+    def submit(self, record: EpisodeRecord) -> bool:
+        """Publish the record until the evaluator acknowledges it (it stores idempotently)."""
+        inbox = Inbox()
+        handle = self.bus.subscribe(keys.result_ack(self.run_id, record.episode_id), inbox)
+        try:
+            for attempt in range(1, SUBMIT_ATTEMPTS + 1):
+                self.bus.publish(keys.result(self.run_id, record.episode_id), record)
+                sample = inbox.get(timeout_s=ACK_WAIT_S)
+                if sample is not None and isinstance(decode(sample.payload), ResultAck):
+                    return True
+                if self.stop.is_set():
+                    break
+                log.warning("no ack for %s (attempt %d); resubmitting", record.episode_id, attempt)
+            log.error("record %s was never acknowledged", record.episode_id)
+            return False
+        finally:
+            self.bus.unsubscribe(handle)
+
+
+def main(cfg: AgosConfig, *, worker_id: str | None = None) -> int:
+    setup_logging("world")
+    stop = install_stop_handlers()
+    ident = worker_id or f"{socket.gethostname()}-{os.getpid()}".replace(".", "-")
+    bus = ZenohBus(zenoh_config(connect=[cfg.zenoh.connect], multicast_scouting=cfg.zenoh.multicast_scouting,
+                                connect_timeout_s=cfg.zenoh.connect_timeout_s))
+    try:
+        return WorldWorker(cfg, bus, stop, keys.check_chunk(ident, what="worker id")).serve()
+    finally:
+        bus.close()
