@@ -61,7 +61,7 @@ def encode_jpeg(image: np.ndarray, quality: int = 90) -> bytes:
 
 def decode_image(data: bytes) -> np.ndarray:
     """Decode PNG or JPEG bytes into RGB / RGBA uint8 or single-channel uint8/uint16 arrays."""
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
     if image is None:
         raise ValueError("image bytes could not be decoded")
     if image.ndim == 3 and image.shape[2] == 3:

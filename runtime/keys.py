@@ -35,7 +35,7 @@ _CHUNK = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 def check_chunk(value: str, *, what: str) -> str:
     """Return ``value`` if it is a legal single key segment, else raise ``ValueError``."""
-    if not _CHUNK.match(value):
+    if not _CHUNK.fullmatch(value):
         raise ValueError(
             f"{what} {value!r} is not a valid key segment (letters, digits, '_', '-', '.' only)"
         )
@@ -110,6 +110,6 @@ def episode_of(key: str) -> str:
 def run_of(key: str) -> str:
     """The run id of any key under ``agos/<run>/...``."""
     parts = key.split("/")
-    if len(parts) < 2 or parts[0] != ROOT:
-        raise ValueError(f"key {key!r} is not an agos key")
+    if len(parts) < 3 or parts[0] != ROOT or parts[1] == "assets":
+        raise ValueError(f"key {key!r} is not an agos key under a run")
     return parts[1]

@@ -440,12 +440,14 @@ class EpisodeRunner:
         ugv.ready_at = self.sim_time_s + max(length / self.cfg.ugv_speed_mps, self.cfg.short_action_s)
 
     def _approach_anchor(self, centre: tuple[float, float], radius_m: float = 20.0) -> int | None:
-        """Road-graph path planning: of the decision anchors within ``radius_m`` of the candidate
-        centre, the one with the shortest road path from the UGV; else the nearest reachable."""
+        """Road-graph path planning: the reachable decision anchor that best trades closeness to
+        the candidate centre against road distance from the UGV (1 m closer is worth 20 m of
+        driving); the nearest reachable anchor if none lies within ``radius_m``."""
         lengths = nx.single_source_dijkstra_path_length(self.roads.fine, self.ugv.node, weight="length_m")
         ids, xy = self.roads.anchor_array()
         dist = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1])
-        near = [(lengths[int(n)], int(n)) for n, d in zip(ids, dist, strict=True) if d <= radius_m and int(n) in lengths]
+        near = [(float(d) + 0.05 * lengths[int(n)], int(n)) for n, d in zip(ids, dist, strict=True)
+                if d <= radius_m and int(n) in lengths]
         if near:
             return min(near)[1]
         return next((int(ids[i]) for i in np.argsort(dist) if int(ids[i]) in lengths), None)

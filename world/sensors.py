@@ -133,6 +133,8 @@ def pixel_to_ground(u: float, v: float, world_from_camera: np.ndarray, intr: Cam
     ray_cam = np.array([(u - intr.cx_px) / intr.fx_px, (v - intr.cy_px) / intr.fy_px, 1.0])
     ray = world_from_camera[:3, :3] @ ray_cam
     eye = world_from_camera[:3, 3]
+    if abs(ray[2]) < 1e-9 or (ground_z_m - eye[2]) / ray[2] <= 0:
+        raise ValueError(f"pixel ({u:.0f}, {v:.0f}) does not look at the ground plane")
     t = (ground_z_m - eye[2]) / ray[2]
     p = eye + t * ray
     return (float(p[0]), float(p[1]))
