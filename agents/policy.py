@@ -28,8 +28,8 @@ class Policy(Protocol):
 def make_policy(name: str, role: Role) -> Policy:
     """Build a policy by name: ``heuristic`` (offline, OpenCV)."""
     if name == "heuristic":
-        from agos.agents.heuristic.ugv import HeuristicUgv
         from agos.agents.heuristic.uav import HeuristicUav
+        from agos.agents.heuristic.ugv import HeuristicUgv
 
         return HeuristicUav() if role == "uav" else HeuristicUgv()
     raise ValueError(f"unknown policy {name!r}; known: heuristic")

@@ -45,7 +45,7 @@ def serve(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag) -> int:
             started = time.monotonic()
             try:
                 action = policy.act(message)
-            except Exception:  # noqa: BLE001 - a policy bug becomes a logged, legal WAIT
+            except Exception:
                 log.exception("policy failed on %s #%d; answering WAIT", message.episode_id, message.decision_index)
                 action = action_for(message, "WAIT", rationale="policy error (see agent log)")
             action.agent_wall_latency_s = round(time.monotonic() - started, 4)

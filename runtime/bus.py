@@ -9,6 +9,7 @@ thread (a slow callback stalls every other key of the session).
 
 from __future__ import annotations
 
+import contextlib
 import fnmatch
 import logging
 import queue
@@ -176,10 +177,8 @@ class ZenohBus:
 
     def close(self) -> None:
         for obj in self._keep:
-            try:
+            with contextlib.suppress(Exception):
                 obj.undeclare()
-            except Exception:  # noqa: BLE001 - already gone with the session
-                pass
         self._keep.clear()
         self._publishers.clear()
         self.session.close()

@@ -7,6 +7,7 @@ launcher leaves nothing behind.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import logging
 import os
@@ -41,10 +42,8 @@ def install_stop_handlers() -> StopFlag:
 def die_with_parent() -> None:
     """preexec hook for child processes (Linux): SIGTERM when the parent exits."""
     if sys.platform.startswith("linux"):
-        try:
+        with contextlib.suppress(OSError):
             ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
-        except OSError:
-            pass
 
 
 def setup_logging(name: str, level: str = "INFO") -> logging.Logger:

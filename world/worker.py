@@ -156,7 +156,7 @@ class WorldWorker:
                 return
         except AssetMismatch as exc:
             record = self._failed(spec, "invalid", str(exc), started)
-        except Exception as exc:  # noqa: BLE001 - any crash becomes a world_crashed record, never a task failure
+        except Exception as exc:
             log.error("episode %s crashed:\n%s", spec.episode_id, traceback.format_exc())
             record = self._failed(spec, "world_crashed", f"{type(exc).__name__}: {exc}", started)
         finally:
