@@ -35,6 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--episodes", type=Path, help="JSONL episode file instead of generated episodes")
     demo.add_argument("--per-difficulty", type=int, help="generated episodes per difficulty (default 2)")
     demo.add_argument("--runs-dir", type=Path)
+    demo.add_argument("--connect", help="attach to this router and only orchestrate: processes were started by hand")
+    demo.add_argument("--run", dest="run_id", help="run id of the hand-started processes (with --connect)")
 
     router = sub.add_parser("router", help="zenoh router")
     router.add_argument("--config", type=Path)
@@ -97,7 +99,7 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
         if args.command == "demo":
             from agos.runtime import demo
 
-            return demo.main(cfg, config_path=args.config, port=args.port)
+            return demo.main(cfg, config_path=args.config, port=args.port, attach=args.connect is not None)
         if args.command == "router":
             from agos.runtime import router
 

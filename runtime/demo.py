@@ -38,31 +38,44 @@ def load_episodes(cfg: AgosConfig) -> list[EpisodeSpec]:
     return generate_episodes(town, per_difficulty=cfg.run.per_difficulty, seed=cfg.run.episode_seed)
 
 
-def main(cfg: AgosConfig, *, config_path: Path | None = None, port: int | None = None,
+def _launch_all(cfg: AgosConfig, launcher: Launcher, endpoint: str, port: int, run_id: str,
+                config_path: Path | None, console: Console) -> bool:
+    common = ["--connect", endpoint, "--run", run_id] + (["--config", str(config_path)] if config_path else [])
+    launcher.start("router", ["router", "--listen", endpoint])
+    if not wait_listening("127.0.0.1", port, 15.0):
+        console.print(f"[red]router did not listen on {endpoint}; see {launcher.log_dir / 'router.log'}")
+        return False
+    console.print(f"zenoh endpoint: {endpoint}", highlight=False)
+    launcher.start("evaluator", ["evaluator", *common, "--runs-dir", str(cfg.run.runs_dir)])
+    launcher.start("agent-uav", ["agent", "--role", "uav", "--policy", cfg.run.policy_uav, *common])
+    launcher.start("agent-ugv", ["agent", "--role", "ugv", "--policy", cfg.run.policy_ugv, *common])
+    for k in range(cfg.run.workers):
+        launcher.start(f"world-{k}", ["world", *common, "--worker-id", f"w{k}"])
+    return True
+
+
+def main(cfg: AgosConfig, *, config_path: Path | None = None, port: int | None = None, attach: bool = False,
          console: Console | None = None) -> int:
+    """Launch everything locally; with ``attach``, only orchestrate the run on ``cfg.zenoh.connect``
+    for processes started by hand (router, evaluator, agents, workers with the same ``--run``)."""
     console = console or Console()
     stop = install_stop_handlers()
     episodes = load_episodes(cfg)
-    run_id = f"{cfg.run.run_id}-{datetime.now(UTC).strftime('%Y%m%d-%H%M%S')}"
+    run_id = cfg.run.run_id if attach else f"{cfg.run.run_id}-{datetime.now(UTC).strftime('%Y%m%d-%H%M%S')}"
     run_dir = cfg.run.runs_dir / run_id
-    port = port or free_port(7447)
-    endpoint = f"tcp/127.0.0.1:{port}"
     launcher = Launcher(run_dir / "logs")
-    common = ["--connect", endpoint, "--run", run_id] + (["--config", str(config_path)] if config_path else [])
     started = time.monotonic()
     bus = None
     try:
-        launcher.start("router", ["router", "--listen", endpoint])
-        if not wait_listening("127.0.0.1", port, 15.0):
-            console.print(f"[red]router did not listen on {endpoint}; see {run_dir / 'logs' / 'router.log'}")
-            return 1
-        console.print(f"zenoh endpoint: {endpoint}", highlight=False)
-        launcher.start("evaluator", ["evaluator", *common, "--runs-dir", str(cfg.run.runs_dir)])
-        launcher.start("agent-uav", ["agent", "--role", "uav", "--policy", cfg.run.policy_uav, *common])
-        launcher.start("agent-ugv", ["agent", "--role", "ugv", "--policy", cfg.run.policy_ugv, *common])
-        for k in range(cfg.run.workers):
-            launcher.start(f"world-{k}", ["world", *common, "--worker-id", f"w{k}"])
-        bus = ZenohBus.connect(endpoint)
+        if attach:
+            endpoint = cfg.zenoh.connect
+            console.print(f"zenoh endpoint: {endpoint} (attached; run {run_id})", highlight=False)
+        else:
+            port = port or free_port(7447)
+            endpoint = f"tcp/127.0.0.1:{port}"
+            if not _launch_all(cfg, launcher, endpoint, port, run_id, config_path, console):
+                return 1
+        bus = ZenohBus.connect(endpoint, connect_timeout_s=cfg.zenoh.connect_timeout_s)
         orch = Orchestrator(bus, run_id, episodes, policies={"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv})
         orch.publish_manifest("running")
         successes = 0
@@ -87,15 +100,19 @@ def main(cfg: AgosConfig, *, config_path: Path | None = None, port: int | None =
             orch.publish_manifest("finished")
             time.sleep(0.3)  # let the evaluator log its table before it is stopped
     finally:
-        launcher.stop_all(order=[n for n in launcher.children if n.startswith("world")]
-                          + ["agent-uav", "agent-ugv", "evaluator", "router"])
+        if launcher.children:
+            launcher.stop_all(order=[n for n in launcher.children if n.startswith("world")]
+                              + ["agent-uav", "agent-ugv", "evaluator", "router"])
         if bus is not None:
             bus.close()
     path = results_path(cfg.run.runs_dir, run_id)
-    if path.exists():
-        store = ResultStore(path)
-        records = store.records(run_id)
-        store.close()
+    if path.exists() or attach:
+        if path.exists():
+            store = ResultStore(path)
+            records = store.records(run_id)
+            store.close()
+        else:  # the evaluator stores elsewhere: show what was acknowledged
+            records = [orch.records[e] for e in sorted(orch.stored) if e in orch.records]
         console.print(results_table(by_difficulty(records), title=f"agos demo: {len(records)} episodes, "
                                     f"{cfg.run.policy_uav}/{cfg.run.policy_ugv} policies, {len(launcher.children) + 1} processes"))
     console.print(f"results: {path}", highlight=False)

@@ -111,8 +111,13 @@ class WorldWorker:
 
     def serve(self) -> int:
         self.bus.declare_token(keys.live(self.run_id, "world", self.worker_id))
+        manifests = Inbox()
+        self.bus.subscribe(keys.manifest(self.run_id), manifests)
         log.info("world worker %s serving run %s", self.worker_id, self.run_id)
         while not self.stop.is_set():
+            if any(getattr(decode(m.payload), "status", "") in ("finished", "interrupted") for m in manifests.drain()):
+                log.info("run %s is over; worker exits", self.run_id)
+                break
             replies = self.bus.request(keys.jobs(self.run_id), JobRequest(worker_id=self.worker_id), timeout_s=5.0)
             if not replies:
                 self.stop.wait(1.0)  # no orchestrator yet
