@@ -10,9 +10,9 @@ thread (a slow callback stalls every other key of the session).
 from __future__ import annotations
 
 import contextlib
-import fnmatch
 import logging
 import queue
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -212,6 +212,7 @@ class MemoryBus:
 
 
 def _matches(expr: str, key: str) -> bool:
-    """zenoh key-expression matching for '*' (one chunk) and '**' (any chunks)."""
-    pattern = expr.replace("**", "\0").replace("*", "[!/]*").replace("\0", "*")
-    return fnmatch.fnmatchcase(key, pattern)
+    """zenoh key-expression matching for '*' (one chunk) and '**' (any number of chunks)."""
+    parts = [".*" if chunk == "**" else re.escape(chunk).replace(r"\*", "[^/]+") for chunk in expr.split("/")]
+    pattern = "/".join(parts).replace("/.*", "(/.*)?") if parts[-1] == ".*" else "/".join(parts)
+    return re.fullmatch(pattern, key) is not None

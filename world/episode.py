@@ -150,6 +150,9 @@ class EpisodeRunner:
         self.ground_observed = False
         self.termination: Termination | None = None
         self.active_uav = set(spec.active_uav_waypoints)
+        self.confirm_failure: str | None = None
+        self._uav_target_px = 0
+        self._ground_visible: bool | None = None
         self._added: list[int] = []
 
     # ----- set-up ---------------------------------------------------------------------------
@@ -213,7 +216,8 @@ class EpisodeRunner:
             self.uav.decisions += 1
             shot = sensors.nadir(self.scene, self.uav.position[:2], self.uav.position[2], cam)
             self.uav.last_nadir = shot
-            if self.tau is None and sensors.target_pixels(shot, self.target_uid) >= self.cfg.uav_visible_min_px:
+            self._uav_target_px = sensors.target_pixels(shot, self.target_uid)
+            if self.tau is None and self._uav_target_px >= self.cfg.uav_visible_min_px:
                 self.tau = self.uav.decisions
             images = sensors.frames_of(shot, self.scene, cam, with_grid=True)
             options = [self._uav_waypoint(n) for n in self._uav_options()]
@@ -313,11 +317,9 @@ class EpisodeRunner:
             run_id=self.run_id, episode_id=self.spec.episode_id, role=role, decision_index=obs.decision_index,
             episode_step=self.decisions_used, sim_time_s=self.sim_time_s, requested=action, applied=applied,
             fallback_reason=fallback, pose_after=self._uav_pose() if role == "uav" else self._ugv_pose(),
-            target_visible_uav=(self.tau == obs.decision_index) or None if role == "uav" else None,
-            target_visible_ugv=self._last_ground_visible if role == "ugv" and applied == "STOP_OBSERVE" else None,
+            target_visible_uav=self._uav_target_px >= self.cfg.uav_visible_min_px if role == "uav" else None,
+            target_visible_ugv=self._ground_visible if role == "ugv" and applied == "STOP_OBSERVE" else None,
             candidate_id=candidate_id))
-
-    _last_ground_visible: bool | None = None
 
     def _wait(self, role: Role) -> None:
         agent = self.uav if role == "uav" else self.ugv
@@ -387,8 +389,8 @@ class EpisodeRunner:
         if kind == "STOP_OBSERVE":
             ugv.mode, ugv.fresh_stop = "stop_6view", True
             ugv.six = sensors.six_views(self.scene, self._ugv_xy(), ugv.heading_rad, self.cfg.cameras)
-            self._last_ground_visible = not check_confirm(self._evidence(), self._oracle_confirm())
-            self.ground_observed |= self._last_ground_visible
+            self._ground_visible = not check_confirm(self._evidence(), self.cfg.confirm)
+            self.ground_observed |= self._ground_visible
             ugv.ready_at = now + self.cfg.stop_observe_s
             return None
         if kind == "CONFIRM":
@@ -472,9 +474,6 @@ class EpisodeRunner:
             distance_m=math.dist(xy, self.target_xy),
             line_of_sight=self._line_of_sight((float(xy[0]), float(xy[1]))))
 
-    def _oracle_confirm(self) -> ConfirmSettings:
-        return self.cfg.confirm
-
     def _line_of_sight(self, xy: tuple[float, float]) -> bool:
         eye = np.array([xy[0], xy[1], sensors.UGV_CAMERA_HEIGHT_M])
         t = self.spec.target
@@ -545,4 +544,4 @@ class EpisodeRunner:
             decisions_uav=self.uav.decisions, decisions_ugv=self.ugv.decisions, fallbacks=self.fallbacks,
             sim_time_s=round(self.sim_time_s, 3), wall_time_s=round(wall_time_s, 3), worker_id=self.worker_id,
             town_id=self.town.town_id, asset_sha256=self.town.sha256, seed=self.spec.seed,
-            renderer=self.scene.renderer_name(), error=getattr(self, "confirm_failure", None))
+            renderer=self.scene.renderer_name(), error=self.confirm_failure)

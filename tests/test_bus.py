@@ -1,0 +1,27 @@
+"""The in-memory bus fake matches zenoh key expressions like the real one."""
+
+from agos.runtime import keys
+from agos.runtime.bus import Inbox, MemoryBus, _matches
+from agos.runtime.codec import decode
+from agos.runtime.schemas import ResultAck
+
+
+def test_key_expression_matching() -> None:
+    assert _matches("agos/*/ep/*/obs/uav", "agos/r1/ep/e1/obs/uav")
+    assert not _matches("agos/*/ep/*/obs/uav", "agos/r1/ep/e1/obs/ugv")
+    assert not _matches("agos/*/ep/*/obs/uav", "agos/r1/x/ep/e1/obs/uav")
+    assert _matches("agos/**", "agos/r1/ep/e1/coord/view/ugv")
+    assert _matches("agos/r1/**", "agos/r1/ctl/manifest")
+
+
+def test_memory_bus_delivers_encoded_messages() -> None:
+    bus = MemoryBus()
+    inbox = Inbox()
+    bus.subscribe(keys.result_ack("*", "*"), inbox)
+    assert bus.wait_for_subscriber(keys.result_ack("r", "e"), 0.0)
+    bus.publish(keys.result_ack("r", "e"), ResultAck(run_id="r", episode_id="e", newly_stored=True))
+    bus.publish(keys.result("r", "e"), b"ignored")
+    sample = inbox.get(0.1)
+    assert sample is not None and sample.key == "agos/r/ep/e/ack"
+    assert decode(sample.payload) == ResultAck(run_id="r", episode_id="e", newly_stored=True)
+    assert inbox.get(0.0) is None

@@ -1,0 +1,126 @@
+"""The episode engine in-process, with the real PyBullet scene and scripted decision sources."""
+
+from __future__ import annotations
+
+import pytest
+
+from agos.agents.inprocess import InProcessAgents
+from agos.agents.policy import action_for, make_policy
+from agos.runtime.schemas import Action, EpisodeRecord, EpisodeSpec, Observation, Role, StepEvent
+from agos.world.asset import build_town
+from agos.world.episode import EpisodeRunner, NullSink
+from agos.world.episodes import generate_episodes
+from agos.world.scene import Scene
+
+
+@pytest.fixture(scope="module")
+def world():
+    town = build_town("procedural-grid", 7)
+    scene = Scene(town.layout)
+    episodes = {e.difficulty + e.episode_id[-6:-3]: e for e in generate_episodes(town, per_difficulty=2, seed=1)}
+    yield town, scene, episodes
+    scene.close()
+
+
+class Recorder(NullSink):
+    def __init__(self) -> None:
+        self.steps: list[StepEvent] = []
+
+    def step(self, event: StepEvent) -> None:
+        self.steps.append(event)
+
+
+class Scripted:
+    """Answers each role with ``choose(obs)``."""
+
+    def __init__(self, choose) -> None:
+        self.choose = choose
+
+    def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
+        return {role: self.choose(obs) for role, obs in observations.items()}
+
+
+def run(world, key: str, source, sink=None) -> EpisodeRecord:
+    town, scene, episodes = world
+    return EpisodeRunner(scene, town, episodes[key], run_id="t", worker_id="w", sink=sink).run(source)
+
+
+def heuristic() -> InProcessAgents:
+    return InProcessAgents({r: make_policy("heuristic", r) for r in ("uav", "ugv")})
+
+
+def without_wall_time(record: EpisodeRecord) -> dict:
+    return record.model_dump(exclude={"wall_time_s"})
+
+
+def test_heuristic_confirms_an_easy_target(world) -> None:
+    record = run(world, "easy000", heuristic())
+    assert record.status == "finished" and record.termination == "confirmed" and record.success
+    assert record.ground_observed and record.n_confirm == 1
+    assert record.candidates[0].distance_to_polygon_m == 0.0  # the annotated cell contains the target
+    assert record.uav_first_visible_step is not None and record.uav_first_visible_step <= record.decisions_uav
+    assert record.shortest_path_length_m is not None and record.final_distance_m <= 50.0
+
+
+def test_same_episode_and_policy_give_identical_records(world) -> None:
+    first = run(world, "mid000", heuristic())
+    second = run(world, "mid000", heuristic())
+    assert without_wall_time(first) == without_wall_time(second)
+
+
+def test_budget_is_shared_and_ends_the_episode(world) -> None:
+    record = run(world, "easy001", Scripted(lambda obs: action_for(obs, "WAIT")))
+    assert record.termination == "budget_exhausted" and not record.success
+    assert record.decisions_uav + record.decisions_ugv == 80
+
+
+def test_illegal_and_missing_actions_become_counted_waits(world) -> None:
+    def choose(obs: Observation) -> Action | None:
+        if obs.role == "uav":
+            return action_for(obs, "CONFIRM")  # not a UAV action
+        return None if obs.decision_index % 2 else action_for(obs, "MOVE_TO_ROAD_WAYPOINT", waypoint_id="R-1")
+
+    sink = Recorder()
+    record = run(world, "easy001", Scripted(choose), sink)
+    assert record.fallbacks == 80 and record.decisions_uav + record.decisions_ugv == 80
+    assert all(step.applied == "WAIT" and step.fallback_reason for step in sink.steps)
+    reasons = {step.fallback_reason.split(" ")[0] for step in sink.steps}
+    assert reasons == {"CONFIRM", "no", "waypoint"}  # illegal action, missing action, bad waypoint
+
+
+def test_confirm_without_stop_observe_is_a_false_confirm(world) -> None:
+    record = run(world, "easy000", Scripted(lambda obs: action_for(obs, "CONFIRM" if obs.role == "ugv" else "WAIT")))
+    assert record.termination == "false_confirm" and not record.success and record.n_confirm == 1
+    assert "no fresh STOP_OBSERVE" in (record.error or "")
+
+
+def test_reject_unfreezes_the_uav_and_records_the_candidate(world) -> None:
+    state = {"annotated": False}
+
+    def choose(obs: Observation) -> Action:
+        if obs.role == "uav":
+            if not state["annotated"]:
+                state["annotated"] = True
+                return action_for(obs, "ANNOTATE_CANDIDATE", cell="A1")
+            return action_for(obs, "NO_RELIABLE_CANDIDATE")
+        active = [c for c in obs.coordination.candidates if c.status in ("pending", "arrived")]
+        if active:
+            return action_for(obs, "REJECT", candidate_id=active[0].candidate_id)
+        return action_for(obs, "WAIT")
+
+    sink = Recorder()
+    record = run(world, "mid001", Scripted(choose), sink)
+    assert [c.status for c in record.candidates] == ["rejected"]
+    annotate = next(s for s in sink.steps if s.applied == "ANNOTATE_CANDIDATE")
+    reject = next(s for s in sink.steps if s.applied == "REJECT")
+    uav_after = [s for s in sink.steps if s.role == "uav" and s.episode_step > annotate.episode_step]
+    # frozen: no UAV decision between the annotation and the rejection
+    assert uav_after and all(s.episode_step > reject.episode_step for s in uav_after)
+
+
+def test_asset_hash_mismatch_is_refused(world) -> None:
+    from agos.world.asset import AssetMismatch, town_for
+
+    spec: EpisodeSpec = world[2]["easy000"]
+    with pytest.raises(AssetMismatch, match="grid-s7"):
+        town_for(spec.town.generator, spec.town.seed, "0" * 64)
