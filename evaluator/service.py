@@ -33,8 +33,10 @@ class Evaluator:
         self._stores: dict[str, ResultStore] = {}
 
     def store(self, run_id: str) -> ResultStore:
+        """The run's store, opened (and the run's evaluator liveliness token declared) on first use."""
         if run_id not in self._stores:
             self._stores[run_id] = ResultStore(results_path(self.runs_dir, run_id))
+            self.bus.declare_token(keys.live(run_id, "evaluator", "main"))
         return self._stores[run_id]
 
     def handle(self, key: str, payload: bytes) -> None:
@@ -49,6 +51,8 @@ class Evaluator:
                      message.status, "success" if message.success else "failure")
             self.bus.publish(keys.result_ack(message.run_id, message.episode_id),
                              ResultAck(run_id=message.run_id, episode_id=message.episode_id, newly_stored=newly))
+        elif isinstance(message, RunManifest) and message.status == "running":
+            self.store(message.run_id)
         elif isinstance(message, RunManifest) and message.status == "finished":
             records = self.store(message.run_id).records(message.run_id)
             console = Console(width=100)
@@ -67,7 +71,6 @@ def serve(bus: ZenohBus, runs_dir: Path, stop: StopFlag) -> int:
     inbox = Inbox()
     bus.subscribe(keys.result("*", "*"), inbox)
     bus.subscribe(keys.manifest("*"), inbox)
-    bus.declare_token(keys.live("evaluator", "evaluator", "main"))
     log.info("evaluator storing under %s", runs_dir)
     try:
         while not stop.is_set():

@@ -51,8 +51,9 @@ def build_parser() -> argparse.ArgumentParser:
     agent.add_argument("--role", choices=["uav", "ugv"], required=True)
     agent.add_argument("--policy", help="policy name (default from config: heuristic)")
 
-    evaluator = sub.add_parser("evaluator", help="stores episode records and reports metrics")
-    _common(evaluator)
+    evaluator = sub.add_parser("evaluator", help="stores episode records of every run and reports metrics")
+    evaluator.add_argument("--config", type=Path)
+    evaluator.add_argument("--connect", help="zenoh router endpoint, e.g. tcp/127.0.0.1:7447")
     evaluator.add_argument("--runs-dir", type=Path)
 
     episodes = sub.add_parser("episodes", help="episode files")

@@ -63,7 +63,7 @@ def main(cfg: AgosConfig, *, config_path: Path | None = None, port: int | None =
     episodes = load_episodes(cfg)
     run_id = cfg.run.run_id if attach else f"{cfg.run.run_id}-{datetime.now(UTC).strftime('%Y%m%d-%H%M%S')}"
     run_dir = cfg.run.runs_dir / run_id
-    launcher = Launcher(run_dir / "logs")
+    launcher = Launcher(None if attach else run_dir / "logs")
     started = time.monotonic()
     bus = None
     try:
@@ -113,9 +113,11 @@ def main(cfg: AgosConfig, *, config_path: Path | None = None, port: int | None =
             store.close()
         else:  # the evaluator stores elsewhere: show what was acknowledged
             records = [orch.records[e] for e in sorted(orch.stored) if e in orch.records]
+        processes = "attached" if attach else f"{len(launcher.children) + 1} processes"
         console.print(results_table(by_difficulty(records), title=f"agos demo: {len(records)} episodes, "
-                                    f"{cfg.run.policy_uav}/{cfg.run.policy_ugv} policies, {len(launcher.children) + 1} processes"))
+                                    f"{cfg.run.policy_uav}/{cfg.run.policy_ugv} policies, {processes}"))
     console.print(f"results: {path}", highlight=False)
-    console.print(f"logs:    {run_dir / 'logs'}", highlight=False)
+    if not attach:
+        console.print(f"logs:    {run_dir / 'logs'}", highlight=False)
     console.print(f"wall time: {time.monotonic() - started:.1f} s", highlight=False)
     return 0

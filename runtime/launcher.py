@@ -21,9 +21,11 @@ log = logging.getLogger("agos.launcher")
 
 
 class Launcher:
-    def __init__(self, log_dir: Path) -> None:
-        self.log_dir = log_dir
-        log_dir.mkdir(parents=True, exist_ok=True)
+    def __init__(self, log_dir: Path | None) -> None:
+        """``log_dir`` None: a launcher that will start nothing (attach mode)."""
+        self.log_dir = log_dir or Path(".")
+        if log_dir is not None:
+            log_dir.mkdir(parents=True, exist_ok=True)
         self.children: dict[str, subprocess.Popen] = {}
 
     def start(self, name: str, args: list[str]) -> subprocess.Popen:

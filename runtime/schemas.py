@@ -276,7 +276,10 @@ class EpisodeRecord(Model):
     asset_sha256: str
     seed: int
     renderer: str
+    confirm_rejection: str | None = None
+    """Why the checker refused the final CONFIRM (a false confirm), else None."""
     error: str | None = None
+    """What went wrong in the infrastructure (status other than finished), else None."""
 
 
 class StepEvent(Model):

@@ -59,7 +59,10 @@ class WorldSettings(_Section):
     ugv_speed_mps: float = Field(8.0, gt=0)
     wait_max_s: float = Field(20.0, gt=0)
     max_annotations: int = Field(5, ge=1)
+    uav_visible_min_pixels: int = Field(30, ge=1)
+    """Oracle: target pixels for "visible from the air", at 512 x 512 (scaled with nadir_px²)."""
     confirm_min_pixels: int = Field(50, ge=1)
+    """CONFIRM checker: target pixels in one of the six views, at 256 x 256 (scaled with ground_px²)."""
     confirm_max_distance_m: float = Field(50.0, gt=0)
     require_fresh_stop: bool = True
     require_line_of_sight: bool = True
@@ -74,8 +77,9 @@ class WorldSettings(_Section):
         return EpisodeSettings(
             uav_speed_mps=self.uav_speed_mps, ugv_speed_mps=self.ugv_speed_mps, wait_max_s=self.wait_max_s,
             max_annotations=self.max_annotations,
+            uav_visible_min_px=max(1, round(self.uav_visible_min_pixels * (self.nadir_px / 512) ** 2)),
             confirm=ConfirmSettings(require_fresh_stop=self.require_fresh_stop,
-                                    min_target_pixels=self.confirm_min_pixels,
+                                    min_target_pixels=max(1, round(self.confirm_min_pixels * (self.ground_px / 256) ** 2)),
                                     max_distance_m=self.confirm_max_distance_m,
                                     require_line_of_sight=self.require_line_of_sight),
             cameras=CameraSettings(nadir_px=self.nadir_px, ground_px=self.ground_px, rgb_encoding=self.rgb_encoding))

@@ -91,7 +91,7 @@ def test_illegal_and_missing_actions_become_counted_waits(world) -> None:
 def test_confirm_without_stop_observe_is_a_false_confirm(world) -> None:
     record = run(world, "easy000", Scripted(lambda obs: action_for(obs, "CONFIRM" if obs.role == "ugv" else "WAIT")))
     assert record.termination == "false_confirm" and not record.success and record.n_confirm == 1
-    assert "no fresh STOP_OBSERVE" in (record.error or "")
+    assert "no fresh STOP_OBSERVE" in (record.confirm_rejection or "") and record.error is None
 
 
 def test_reject_unfreezes_the_uav_and_records_the_candidate(world) -> None:

@@ -544,4 +544,4 @@ class EpisodeRunner:
             decisions_uav=self.uav.decisions, decisions_ugv=self.ugv.decisions, fallbacks=self.fallbacks,
             sim_time_s=round(self.sim_time_s, 3), wall_time_s=round(wall_time_s, 3), worker_id=self.worker_id,
             town_id=self.town.town_id, asset_sha256=self.town.sha256, seed=self.spec.seed,
-            renderer=self.scene.renderer_name(), error=self.confirm_failure)
+            renderer=self.scene.renderer_name(), confirm_rejection=self.confirm_failure)
