@@ -1,92 +1,201 @@
-"""Task metrics over episode records (paper §4.3, computed from the UGV trajectory and the
-ground verification only). Pure functions; aggregation is a mean over episodes.
+"""Every metric of the paper as a pure function of one episode summary, and their aggregation.
 
-Only episodes whose status is ``finished`` are scored: infrastructure failures
-(``world_crashed``, ``agent_crashed``, ``timeout``, ``invalid``) are counted apart and never
-as agent failures (STYLE.md item 7).
+Notation (paper §4.3 and Appendix B): for episode e, C_e = success, O_e = ground_observed,
+P_e = UGV path length, L_e = shortest path to a verifying pose, T_e = UAV budget,
+tau_e = first oracle-visible UAV step (1-based), d_{e,j} = target-to-candidate-polygon
+distance of the j-th candidate, K_e = decisions. R = 50 m.
+
+Undefined values are ``None``, never 0. Only episodes with status ``finished`` are scored;
+infrastructure failures are counted apart (``excluded``). See docs/METRICS.md for every
+decision where the paper is silent.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from typing import Any, Protocol
 
-from agos.runtime.schemas import EpisodeRecord
-
+R_M = 50.0
+"""Benchmark spatial scale R of ACG (metres)."""
 DIFFICULTY_ORDER = ("easy", "mid", "hard")
+METRIC_KEYS = ("SR", "OSR", "SPL", "NE", "ASE", "ACG", "GVA", "GVA_support", "DS", "DS_UAV", "DS_UGV", "CErr")
 
 
-def success(r: EpisodeRecord) -> float:
-    """SR_e = C_e: the episode ended with a CONFIRM accepted by the checker."""
-    return 1.0 if r.success else 0.0
+class _Candidate(Protocol):
+    distance_to_polygon_m: float
+    center_error_m: float
 
 
-def oracle_success(r: EpisodeRecord) -> float:
-    """OSR_e = O_e: at some STOP_OBSERVE the checker would have accepted a CONFIRM."""
-    return 1.0 if r.ground_observed else 0.0
+class Episode(Protocol):
+    """What the metrics read: :class:`EpisodeSummary` and :class:`EpisodeRecord` both fit."""
+
+    difficulty: str
+    status: str
+    success: bool
+    ground_observed: bool
+    n_confirm: int
+    ugv_path_length_m: float
+    shortest_path_length_m: float | None
+    final_distance_m: float | None
+    uav_budget: int
+    uav_first_visible_step: int | None
+    candidates: Sequence[_Candidate]
+    decisions_uav: int
+    decisions_ugv: int
 
 
-def spl(r: EpisodeRecord) -> float:
-    """SPL_e = S_e * L_e / max(P_e, L_e), with L_e the road distance from the UGV start to the
-    nearest pose where CONFIRM succeeds and P_e the UGV's driven path length.
+# ----- episode-level metrics -------------------------------------------------------------------
+def success(e: Episode) -> float:
+    """SR_e = C_e in {0, 1}: the episode ended with a CONFIRM accepted by the checker."""
+    return 1.0 if e.success else 0.0
 
-    Edge cases: a failed episode scores 0; L_e = P_e = 0 (start already verifying) scores 1;
-    a success whose L_e could not be found (the world's search gave up) uses L_e = P_e.
+
+def oracle_success(e: Episode) -> float:
+    """OSR_e = O_e in {0, 1}: at some STOP_OBSERVE the checker would have accepted a CONFIRM."""
+    return 1.0 if e.ground_observed else 0.0
+
+
+def spl(e: Episode) -> float:
+    """SPL_e = C_e * L_e / max(P_e, L_e).
+
+    Edge cases: a failure scores 0; L_e = P_e = 0 (the start already verifies) scores 1;
+    a success whose L_e is unknown (null) uses L_e = P_e, i.e. scores 1.
     """
-    if not r.success:
+    if not e.success:
         return 0.0
-    shortest = r.shortest_path_length_m if r.shortest_path_length_m is not None else r.ugv_path_length_m
-    longest = max(r.ugv_path_length_m, shortest)
+    shortest = e.shortest_path_length_m if e.shortest_path_length_m is not None else e.ugv_path_length_m
+    longest = max(e.ugv_path_length_m, shortest)
     return 1.0 if longest == 0 else shortest / longest
 
 
-def navigation_error(r: EpisodeRecord) -> float:
-    """NE_e: horizontal distance (m) from the UGV's final position to the target."""
-    return r.final_distance_m
+def navigation_error(e: Episode) -> float | None:
+    """NE_e: horizontal distance (m) from the UGV's final position to the target; None if unknown."""
+    return e.final_distance_m
 
 
-def decision_steps(r: EpisodeRecord) -> float:
-    """DS_e = K_e^UAV + K_e^UGV: logical decisions of both roles (fallbacks included)."""
-    return float(r.decisions_uav + r.decisions_ugv)
+def ase(e: Episode) -> float:
+    """ASE_e = (T_e - tau_e + 1) / T_e if the target became oracle-visible from the air, else 0.
+
+    tau_e is 1-based, so seeing the target at the first UAV step scores 1. A tau_e beyond T_e
+    (not possible with a shared budget) is clamped to score 0.
+    """
+    if e.uav_first_visible_step is None:
+        return 0.0
+    return max(0.0, (e.uav_budget - e.uav_first_visible_step + 1) / e.uav_budget)
 
 
+def acg(e: Episode, r_m: float = R_M) -> float:
+    """ACG_e = max_j [ 1/log2(j+1) * R/(R + d_{e,j}) ] over the candidates in order (j = 1, 2, ...);
+    0 without candidates. d = 0 (target inside the polygon) and j = 1 give 1."""
+    return max((r_m / (r_m + c.distance_to_polygon_m) / math.log2(j + 1)
+                for j, c in enumerate(e.candidates, start=1)), default=0.0)
+
+
+def false_confirm(e: Episode) -> bool:
+    """F_e = [C_e = 0 and n_conf_e > 0]: a CONFIRM was issued but the episode did not succeed."""
+    return not e.success and e.n_confirm > 0
+
+
+def gva_included(e: Episode) -> bool:
+    """V_e = [O_e = 1 or F_e = 1]: the episode counts in the GVA denominator."""
+    return e.ground_observed or false_confirm(e)
+
+
+def decision_steps(e: Episode) -> float:
+    """K_e = K_e^UAV + K_e^UGV (logical decisions; fallbacks count, retries and repairs do not)."""
+    return float(e.decisions_uav + e.decisions_ugv)
+
+
+def candidate_errors(e: Episode) -> list[float]:
+    """Centre errors (m) of the episode's candidates, for CErr."""
+    return [c.center_error_m for c in e.candidates]
+
+
+# ----- aggregation -----------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Summary:
+    """Dataset-level metrics of a set of episodes (rates are fractions in [0, 1])."""
+
     n: int
     SR: float | None
     OSR: float | None
     SPL: float | None
     NE: float | None
+    ASE: float | None
+    ACG: float | None
+    GVA: float | None
+    """sum V_e C_e / sum V_e; None when GVA_support is 0."""
+    GVA_support: int
     DS: float | None
+    DS_UAV: float | None
+    DS_UGV: float | None
+    CErr: float | None
+    """Mean centre error over all candidates of the episodes (candidate-level pooling)."""
     excluded: int = 0
-    """Episodes not scored because of an infrastructure status."""
+    """Episodes not scored (status other than ``finished``)."""
+
+    def as_dict(self) -> dict[str, Any]:
+        out = {k: getattr(self, k) for k in METRIC_KEYS}
+        out["n"], out["not_scored"] = self.n, self.excluded
+        return out
 
 
-def _mean(values: Sequence[float]) -> float | None:
-    return sum(values) / len(values) if values else None
+def _mean(values: Iterable[float | None]) -> float | None:
+    vals = [v for v in values if v is not None]
+    return sum(vals) / len(vals) if vals else None
 
 
-def summarize(records: Sequence[EpisodeRecord]) -> Summary:
-    scored = [r for r in records if r.status == "finished"]
+def summarize(episodes: Sequence[Episode]) -> Summary:
+    scored = [e for e in episodes if e.status == "finished"]
+    support = sum(gva_included(e) for e in scored)
+    errors = [err for e in scored for err in candidate_errors(e)]
     return Summary(
-        n=len(scored), SR=_mean([success(r) for r in scored]), OSR=_mean([oracle_success(r) for r in scored]),
-        SPL=_mean([spl(r) for r in scored]), NE=_mean([navigation_error(r) for r in scored]),
-        DS=_mean([decision_steps(r) for r in scored]), excluded=len(records) - len(scored))
+        n=len(scored),
+        SR=_mean(success(e) for e in scored), OSR=_mean(oracle_success(e) for e in scored),
+        SPL=_mean(spl(e) for e in scored),
+        NE=_mean(navigation_error(e) for e in scored) if scored else None,
+        ASE=_mean(ase(e) for e in scored), ACG=_mean(acg(e) for e in scored),
+        GVA=sum(gva_included(e) and e.success for e in scored) / support if support else None,
+        GVA_support=support,
+        DS=_mean(decision_steps(e) for e in scored),
+        DS_UAV=_mean(float(e.decisions_uav) for e in scored), DS_UGV=_mean(float(e.decisions_ugv) for e in scored),
+        CErr=_mean(errors), excluded=len(episodes) - len(scored))
 
 
-def by_difficulty(records: Sequence[EpisodeRecord]) -> dict[str, Summary]:
-    """Per difficulty, plus ``overall``: the macro mean over the difficulty levels present."""
-    out: dict[str, Summary] = {}
-    for level in DIFFICULTY_ORDER:
-        subset = [r for r in records if r.difficulty == level]
-        if subset:
-            out[level] = summarize(subset)
-    levels = [s for s in out.values() if s.n]
+def macro(groups: Sequence[Summary]) -> Summary:
+    """The paper's overall: the unweighted mean over groups of each metric (groups where it is
+    undefined are left out); GVA_support, n and excluded are summed."""
+    values = {k: _mean(getattr(g, k) for g in groups if g.n) for k in METRIC_KEYS if k != "GVA_support"}
+    return Summary(n=sum(g.n for g in groups), GVA_support=sum(g.GVA_support for g in groups),
+                   excluded=sum(g.excluded for g in groups), **values)
 
-    def macro(name: str) -> float | None:
-        vals = [getattr(s, name) for s in levels if getattr(s, name) is not None]
-        return _mean(vals)
 
-    out["overall"] = Summary(n=sum(s.n for s in out.values()), SR=macro("SR"), OSR=macro("OSR"), SPL=macro("SPL"),
-                             NE=macro("NE"), DS=macro("DS"), excluded=sum(s.excluded for s in out.values()))
+def group_key(by: str) -> Callable[[Any], str]:
+    if by == "difficulty":
+        return lambda e: e.difficulty
+    if by == "town":
+        return lambda e: getattr(e, "town_id", None) or "unknown"
+    raise ValueError(f"cannot group by {by!r}; use difficulty or town")
+
+
+def aggregate(episodes: Sequence[Episode], by: str = "difficulty") -> dict[str, Summary]:
+    """Per group (difficulty levels in easy, mid, hard order; towns sorted) plus ``overall``."""
+    key = group_key(by)
+    groups: dict[str, list[Episode]] = {}
+    for e in episodes:
+        groups.setdefault(key(e), []).append(e)
+    order = [d for d in DIFFICULTY_ORDER if d in groups] if by == "difficulty" else sorted(groups)
+    out = {name: summarize(groups[name]) for name in order}
+    out["overall"] = macro(list(out.values()))
     return out
+
+
+def by_difficulty(episodes: Sequence[Episode]) -> dict[str, Summary]:
+    return aggregate(episodes, "difficulty")
+
+
+def as_json(summaries: dict[str, Summary]) -> dict[str, dict[str, Any]]:
+    return {name: s.as_dict() for name, s in summaries.items()}
+

@@ -27,12 +27,15 @@ CREATE TABLE IF NOT EXISTS episodes (
 
 
 class ResultStore:
-    def __init__(self, path: Path) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
+    def __init__(self, path: Path, *, create: bool = True) -> None:
+        if create:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._db = sqlite3.connect(path)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.executescript(SCHEMA)
+        else:
+            self._db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
         self.path = path
-        self._db = sqlite3.connect(path)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.executescript(SCHEMA)
 
     def add(self, record: EpisodeRecord) -> bool:
         """Store a record; return False if this (run, episode) was already stored."""
@@ -47,6 +50,15 @@ class ResultStore:
         sql = "SELECT record_json FROM episodes" + (" WHERE run_id = ?" if run_id else "") + " ORDER BY episode_id"
         rows = self._db.execute(sql, (run_id,) if run_id else ())
         return [EpisodeRecord.model_validate_json(r[0]) for r in rows]
+
+    def raw_records(self) -> list[tuple[str, str]]:
+        """(episode id, record JSON) of every stored episode, in episode order."""
+        return list(self._db.execute("SELECT episode_id, record_json FROM episodes ORDER BY run_id, episode_id"))
+
+    def save_manifest(self, run_id: str, manifest_json: str) -> None:
+        with self._db:
+            self._db.execute("CREATE TABLE IF NOT EXISTS runs (run_id TEXT PRIMARY KEY, manifest_json TEXT NOT NULL)")
+            self._db.execute("INSERT OR REPLACE INTO runs VALUES (?, ?)", (run_id, manifest_json))
 
     def close(self) -> None:
         self._db.close()

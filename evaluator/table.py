@@ -25,6 +25,38 @@ def results_table(summaries: dict[str, Summary], *, title: str = "") -> Table:
     return table
 
 
+def metrics_table(summaries: dict[str, Summary], *, title: str = "", group: str = "difficulty") -> Table:
+    """Every metric per group: rates in %, NE and CErr in metres, DS in decisions."""
+    table = Table(title=title or None)
+    for col in (group, "n", "SR", "OSR", "SPL", "NE", "ASE", "ACG", "GVA (support)", "DS", "DS UAV", "DS UGV", "CErr",
+                "not scored"):
+        table.add_column(col, justify="left" if col == group else "right")
+    for name, s in summaries.items():
+        table.add_row(name, str(s.n), _pct(s.SR), _pct(s.OSR), _pct(s.SPL), _num(s.NE), _pct(s.ASE), _pct(s.ACG),
+                      f"{_pct(s.GVA)} ({s.GVA_support})", _num(s.DS), _num(s.DS_UAV), _num(s.DS_UGV), _num(s.CErr),
+                      str(s.excluded), end_section=name == list(summaries)[-2] if len(summaries) > 1 else False)
+    return table
+
+
+def comparison_table(comparison, label_a: str, label_b: str) -> Table:
+    table = Table(title=f"{label_a} vs {label_b}: {comparison.n_pairs} paired episodes "
+                        f"({', '.join(f'{k} {v}' for k, v in comparison.per_level.items())}); "
+                        f"{comparison.resamples} resamples, seed {comparison.seed}")
+    for col in ("metric", "A", "B", "A - B", "95% CI", "p (perm.)"):
+        table.add_column(col, justify="left" if col == "metric" else "right")
+    for m in comparison.metrics:
+        scale = 100.0 if m.metric in ("SR", "OSR", "SPL", "ASE", "ACG", "GVA") else 1.0
+        unit = " pp" if scale == 100.0 else ""
+
+        def f(v, s=scale):
+            return "n/a" if v is None else f"{s * v:.1f}"
+
+        ci = "n/a" if m.ci_low is None else f"[{scale * m.ci_low:.1f}, {scale * m.ci_high:.1f}]{unit}"
+        table.add_row(m.metric, f(m.a), f(m.b), f(m.diff) + (unit if m.diff is not None else ""), ci,
+                      "n/a" if m.p_value is None else f"{m.p_value:.4f}")
+    return table
+
+
 def results_markdown(summaries: dict[str, Summary]) -> str:
     lines = ["| difficulty | episodes | SR % | OSR % | SPL % | NE m | DS |", "|---|---:|---:|---:|---:|---:|---:|"]
     for level, s in summaries.items():

@@ -6,7 +6,9 @@
     agos agent --role uav|ugv ...   agent service
     agos evaluator --connect EP     result store and metrics
     agos episodes generate ...      write an episode file
-    agos results RUN_DIR            print a stored run's table
+    agos metrics PATH [--json]      every metric of a run (run dir, sqlite or JSONL summaries)
+    agos compare RUN_A RUN_B        paired differences with bootstrap intervals and tests
+    agos report RUN... --out DIR    paper-style tables and the stage-wise plot
 """
 
 from __future__ import annotations
@@ -66,8 +68,22 @@ def build_parser() -> argparse.ArgumentParser:
     check = ep_sub.add_parser("check", help="validate an episode file")
     check.add_argument("file", type=Path)
 
-    results = sub.add_parser("results", help="print the results table of a stored run")
-    results.add_argument("run_dir", type=Path, help="runs/<run> (holding results.sqlite)")
+    metrics = sub.add_parser("metrics", help="every metric of a run per difficulty (or town)")
+    metrics.add_argument("path", type=Path, help="runs/<run>, a results.sqlite, or a JSONL file of episode summaries")
+    metrics.add_argument("--json", action="store_true", help="print JSON (rates as fractions, distances in m)")
+    metrics.add_argument("--by", choices=["difficulty", "town"], default="difficulty")
+
+    comp = sub.add_parser("compare", help="paired comparison of two runs on their shared episodes")
+    comp.add_argument("run_a", type=Path)
+    comp.add_argument("run_b", type=Path)
+    comp.add_argument("--resamples", type=int, default=10_000)
+    comp.add_argument("--seed", type=int, default=0)
+    comp.add_argument("--json", action="store_true")
+
+    report = sub.add_parser("report", help="paper-style tables (md, csv, tex), outcomes and the stage-wise PNG")
+    report.add_argument("runs", type=Path, nargs="+")
+    report.add_argument("--out", type=Path, required=True)
+    report.add_argument("--labels", nargs="+", help="one label per run; a leading '+' marks an agent variant row")
     return parser
 
 
@@ -84,7 +100,7 @@ def _config(args: argparse.Namespace) -> AgosConfig:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        cfg = _config(args) if args.command not in ("episodes", "results") else None
+        cfg = _config(args) if args.command in ("demo", "router", "world", "agent", "evaluator") else None
         return _dispatch(args, cfg)
     except ConfigError as exc:
         print(str(exc), file=sys.stderr)
@@ -119,8 +135,10 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
             return evaluator_service.main(cfg)
         if args.command == "episodes":
             return _episodes(args)
-        if args.command == "results":
-            return _results(args.run_dir)
+        if args.command in ("metrics", "compare", "report"):
+            from agos.evaluator import cli as evaluator_cli
+
+            return evaluator_cli.run(args)
     except EpisodeFileError as exc:
         print(f"episode file error: {exc}", file=sys.stderr)
         return 2
@@ -139,23 +157,6 @@ def _episodes(args: argparse.Namespace) -> int:
         return 0
     episodes = read_episodes(args.file)
     print(f"{args.file}: {len(episodes)} valid episodes")
-    return 0
-
-
-def _results(run_dir: Path) -> int:
-    from rich.console import Console
-
-    from agos.evaluator.metrics import by_difficulty
-    from agos.evaluator.store import ResultStore
-    from agos.evaluator.table import results_table
-
-    path = run_dir / "results.sqlite"
-    if not path.exists():
-        print(f"results error: {path}: no such file", file=sys.stderr)
-        return 2
-    store = ResultStore(path)
-    Console().print(results_table(by_difficulty(store.records()), title=str(run_dir)))
-    store.close()
     return 0
 
 

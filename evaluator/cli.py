@@ -1,0 +1,57 @@
+"""``agos metrics``, ``agos compare`` and ``agos report``: offline analysis of stored runs."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import asdict
+
+from rich.console import Console
+
+from agos.evaluator.metrics import aggregate, as_json
+from agos.evaluator.reports import RunResults, write_report
+from agos.evaluator.stats import compare
+from agos.evaluator.summary import SummaryError, read_run
+from agos.evaluator.table import comparison_table, metrics_table
+
+
+def _console() -> Console:
+    # Wide tables stay readable when piped into a file.
+    return Console(width=None if sys.stdout.isatty() else 160)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        if args.command == "metrics":
+            summaries = aggregate(read_run(args.path), args.by)
+            if args.json:
+                print(json.dumps(as_json(summaries), indent=2))
+            else:
+                _console().print(metrics_table(summaries, title=str(args.path), group=args.by))
+            return 0
+        if args.command == "compare":
+            result = compare(read_run(args.run_a), read_run(args.run_b), resamples=args.resamples, seed=args.seed)
+            if args.json:
+                print(json.dumps(asdict(result), indent=2))
+            else:
+                console = _console()
+                console.print(comparison_table(result, str(args.run_a), str(args.run_b)))
+                o = result.outcomes
+                console.print(f"outcomes: both succeed {o['both_succeed']}, only A {o['only_a']}, only B {o['only_b']}, "
+                              f"neither {o['neither']}; exact sign test on SR p = "
+                              f"{'n/a' if result.sign_test_p is None else f'{result.sign_test_p:.4f}'}")
+            return 0
+        if args.command == "report":
+            labels = args.labels or [p.name for p in args.runs]
+            if len(labels) != len(args.runs):
+                print(f"report error: {len(labels)} labels for {len(args.runs)} runs", file=sys.stderr)
+                return 2
+            runs = [RunResults(label, read_run(path)) for label, path in zip(labels, args.runs, strict=True)]
+            for path in write_report(runs, args.out):
+                print(path)
+            return 0
+    except (SummaryError, ValueError) as exc:
+        print(f"{args.command} error: {exc}", file=sys.stderr)
+        return 2
+    raise AssertionError(args.command)

@@ -1,0 +1,182 @@
+"""Paper-style reports: the main table, the ablation table, failure outcomes, the stage-wise plot.
+
+Main table (like the paper's): one row per run, columns Easy / Mid / Hard x SR, OSR, SPL, NE,
+DS; a run labelled with a leading ``+`` (e.g. ``+AGOS-Agent``) is an agent variant of the row
+above and is indented. Ablation table: one row per run and difficulty with every metric and
+CErr. Rates are printed in %, distances in metres, DS in decisions; undefined is ``-``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from agos.evaluator.attribution import OUTCOMES, outcome_counts
+from agos.evaluator.metrics import DIFFICULTY_ORDER, Summary, aggregate
+from agos.evaluator.summary import EpisodeSummary
+
+MAIN_METRICS = ("SR", "OSR", "SPL", "NE", "DS")
+ABLATION_METRICS = ("SR", "OSR", "SPL", "NE", "ASE", "ACG", "GVA", "GVA_support", "DS", "CErr")
+PERCENT = {"SR", "OSR", "SPL", "ASE", "ACG", "GVA"}
+
+
+@dataclass
+class RunResults:
+    label: str
+    episodes: list[EpisodeSummary]
+
+    @property
+    def indented(self) -> bool:
+        return self.label.startswith("+")
+
+    @property
+    def name(self) -> str:
+        return self.label.lstrip("+").strip()
+
+    def summaries(self) -> dict[str, Summary]:
+        return aggregate(self.episodes, "difficulty")
+
+
+def fmt(metric: str, value: float | int | None) -> str:
+    if value is None:
+        return "-"
+    if metric == "GVA_support":
+        return str(int(value))
+    return f"{100 * value:.1f}" if metric in PERCENT else f"{value:.1f}"
+
+
+def _main_rows(runs: Sequence[RunResults]) -> tuple[list[str], list[list[str]]]:
+    header = ["Method"] + [f"{d.capitalize()} {m}" for d in DIFFICULTY_ORDER for m in MAIN_METRICS]
+    rows = []
+    for run in runs:
+        s = run.summaries()
+        rows.append([run.label] + [fmt(m, getattr(s[d], m)) if d in s else "-" for d in DIFFICULTY_ORDER
+                                   for m in MAIN_METRICS])
+    return header, rows
+
+
+def _ablation_rows(runs: Sequence[RunResults]) -> tuple[list[str], list[list[str]]]:
+    header = ["Condition", "Difficulty", *ABLATION_METRICS]
+    rows = []
+    for run in runs:
+        for level, s in run.summaries().items():
+            rows.append([run.name, level] + [fmt(m, getattr(s, m)) for m in ABLATION_METRICS])
+    return header, rows
+
+
+def _markdown(header: list[str], rows: list[list[str]], indent_col0: Sequence[bool] = ()) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join(["---"] + ["---:"] * (len(header) - 1)) + "|"]
+    for k, row in enumerate(rows):
+        first = ("&nbsp;&nbsp;" + row[0].lstrip("+")) if k < len(indent_col0) and indent_col0[k] else row[0]
+        lines.append("| " + " | ".join([first, *row[1:]]) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _csv(header: list[str], rows: list[list[str]]) -> str:
+    buf = io.StringIO()
+    writer = csv.writer(buf)
+    writer.writerow(header)
+    writer.writerows(rows)
+    return buf.getvalue()
+
+
+def _tex_escape(text: str) -> str:
+    return text.replace("\\", r"\textbackslash{}").replace("_", r"\_").replace("%", r"\%").replace("&", r"\&")
+
+
+def main_table_latex(runs: Sequence[RunResults]) -> str:
+    _, rows = _main_rows(runs)
+    cols = "l" + ("r" * len(MAIN_METRICS)) * len(DIFFICULTY_ORDER)
+    out = [r"\begin{tabular}{" + cols + "}", r"\toprule",
+           " & " + " & ".join(rf"\multicolumn{{{len(MAIN_METRICS)}}}{{c}}{{{d.capitalize()}}}" for d in DIFFICULTY_ORDER)
+           + r" \\",
+           " ".join(rf"\cmidrule(lr){{{2 + k * len(MAIN_METRICS)}-{1 + (k + 1) * len(MAIN_METRICS)}}}"
+                    for k in range(len(DIFFICULTY_ORDER))),
+           "Method & " + " & ".join(list(MAIN_METRICS) * len(DIFFICULTY_ORDER)) + r" \\", r"\midrule"]
+    for run, row in zip(runs, rows, strict=True):
+        name = (r"\quad " if run.indented else "") + _tex_escape(run.name)
+        out.append(name + " & " + " & ".join(row[1:]) + r" \\")
+    out += [r"\bottomrule", r"\end{tabular}"]
+    return "\n".join(out) + "\n"
+
+
+def ablation_table_latex(runs: Sequence[RunResults]) -> str:
+    header, rows = _ablation_rows(runs)
+    out = [r"\begin{tabular}{ll" + "r" * len(ABLATION_METRICS) + "}", r"\toprule",
+           " & ".join(_tex_escape(h) for h in header) + r" \\", r"\midrule"]
+    previous = None
+    for row in rows:
+        if previous is not None and row[0] != previous:
+            out.append(r"\midrule")
+        out.append(" & ".join([_tex_escape(row[0]) if row[0] != previous else "", *row[1:]]) + r" \\")
+        previous = row[0]
+    out += [r"\bottomrule", r"\end{tabular}"]
+    return "\n".join(out) + "\n"
+
+
+def outcome_rows(runs: Sequence[RunResults]) -> tuple[list[str], list[list[str]]]:
+    header = ["Run", *OUTCOMES]
+    return header, [[run.name] + [str(v) for v in outcome_counts(run.episodes).values()] for run in runs]
+
+
+def stage_chart(runs: Sequence[RunResults], path: Path) -> None:
+    """Grouped bars of ASE, ACG and GVA (overall, %) per run, with GVA support annotated."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    metrics = ("ASE", "ACG", "GVA")
+    overall = [run.summaries()["overall"] for run in runs]
+    x = np.arange(len(runs))
+    width = 0.26
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.6 * len(runs) + 2), 3.6), dpi=150)
+    for k, metric in enumerate(metrics):
+        values = [100 * (getattr(s, metric) or 0.0) for s in overall]
+        bars = ax.bar(x + (k - 1) * width, values, width, label=metric)
+        for bar, s in zip(bars, overall, strict=True):
+            value = getattr(s, metric)
+            text = "n/a" if value is None else f"{100 * value:.0f}"
+            if metric == "GVA":
+                text += f"\n(n={s.GVA_support})"
+            ax.annotate(text, (bar.get_x() + bar.get_width() / 2, bar.get_height()), ha="center", va="bottom",
+                        fontsize=7, xytext=(0, 2), textcoords="offset points")
+    ax.set_xticks(x, [run.name for run in runs])
+    ax.set_ylabel("overall (%)")
+    ax.set_ylim(0, 119)
+    ax.set_title("Stage-wise metrics: search (ASE), handoff (ACG), verify (GVA)")
+    ax.legend(ncols=3, loc="upper right", fontsize=8, frameon=False)
+    ax.spines[["top", "right"]].set_visible(False)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def write_report(runs: Sequence[RunResults], out_dir: Path) -> list[Path]:
+    """Write every table (md, csv, tex), the outcome counts and the stage-wise PNG to ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+
+    def put(name: str, text: str) -> None:
+        path = out_dir / name
+        path.write_text(text)
+        written.append(path)
+
+    header, rows = _main_rows(runs)
+    put("main.md", _markdown(header, rows, [r.indented for r in runs]))
+    put("main.csv", _csv(header, rows))
+    put("main.tex", main_table_latex(runs))
+    header, rows = _ablation_rows(runs)
+    put("ablation.md", _markdown(header, rows))
+    put("ablation.csv", _csv(header, rows))
+    put("ablation.tex", ablation_table_latex(runs))
+    header, rows = outcome_rows(runs)
+    put("outcomes.md", _markdown(header, rows))
+    put("outcomes.csv", _csv(header, rows))
+    stage_chart(runs, out_dir / "stagewise.png")
+    written.append(out_dir / "stagewise.png")
+    return written
