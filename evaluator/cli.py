@@ -36,7 +36,11 @@ def run(args: argparse.Namespace) -> int:
                 print(json.dumps(asdict(result), indent=2))
             else:
                 console = _console()
-                console.print(comparison_table(result, str(args.run_a), str(args.run_b)))
+                console.print(f"A = {args.run_a}\nB = {args.run_b}\n{result.n_pairs} paired episodes "
+                              f"({', '.join(f'{k} {v}' for k, v in result.per_level.items())}); 95% bootstrap "
+                              f"intervals within difficulty levels, {result.resamples} resamples, seed {result.seed}; "
+                              "paired permutation test", highlight=False)
+                console.print(comparison_table(result))
                 o = result.outcomes
                 console.print(f"outcomes: both succeed {o['both_succeed']}, only A {o['only_a']}, only B {o['only_b']}, "
                               f"neither {o['neither']}; exact sign test on SR p = "

@@ -148,20 +148,39 @@ def _mean(values: Iterable[float | None]) -> float | None:
 
 
 def summarize(episodes: Sequence[Episode]) -> Summary:
-    scored = [e for e in episodes if e.status == "finished"]
-    support = sum(gva_included(e) for e in scored)
-    errors = [err for e in scored for err in candidate_errors(e)]
+    """All metrics of a set of episodes in one pass (each episode-level function called once)."""
+    n = excluded = support = verified = 0
+    sr = osr = spl_sum = ase_sum = acg_sum = ds_uav = ds_ugv = ne_sum = err_sum = 0.0
+    ne_n = err_n = 0
+    for e in episodes:
+        if e.status != "finished":
+            excluded += 1
+            continue
+        n += 1
+        sr += success(e)
+        osr += oracle_success(e)
+        spl_sum += spl(e)
+        ase_sum += ase(e)
+        acg_sum += acg(e)
+        ds_uav += e.decisions_uav
+        ds_ugv += e.decisions_ugv
+        ne = navigation_error(e)
+        if ne is not None:
+            ne_sum += ne
+            ne_n += 1
+        if gva_included(e):
+            support += 1
+            verified += e.success
+        errors = candidate_errors(e)
+        err_sum += sum(errors)
+        err_n += len(errors)
+    if n == 0:
+        return Summary(0, None, None, None, None, None, None, None, 0, None, None, None, None, excluded)
     return Summary(
-        n=len(scored),
-        SR=_mean(success(e) for e in scored), OSR=_mean(oracle_success(e) for e in scored),
-        SPL=_mean(spl(e) for e in scored),
-        NE=_mean(navigation_error(e) for e in scored) if scored else None,
-        ASE=_mean(ase(e) for e in scored), ACG=_mean(acg(e) for e in scored),
-        GVA=sum(gva_included(e) and e.success for e in scored) / support if support else None,
-        GVA_support=support,
-        DS=_mean(decision_steps(e) for e in scored),
-        DS_UAV=_mean(float(e.decisions_uav) for e in scored), DS_UGV=_mean(float(e.decisions_ugv) for e in scored),
-        CErr=_mean(errors), excluded=len(episodes) - len(scored))
+        n=n, SR=sr / n, OSR=osr / n, SPL=spl_sum / n, NE=ne_sum / ne_n if ne_n else None, ASE=ase_sum / n,
+        ACG=acg_sum / n, GVA=verified / support if support else None, GVA_support=support,
+        DS=(ds_uav + ds_ugv) / n, DS_UAV=ds_uav / n, DS_UGV=ds_ugv / n, CErr=err_sum / err_n if err_n else None,
+        excluded=excluded)
 
 
 def macro(groups: Sequence[Summary]) -> Summary:

@@ -148,7 +148,7 @@ def stage_chart(runs: Sequence[RunResults], path: Path) -> None:
     ax.set_xticks(x, [run.name for run in runs])
     ax.set_ylabel("overall (%)")
     ax.set_ylim(0, 119)
-    ax.set_title("Stage-wise metrics: search (ASE), handoff (ACG), verify (GVA)")
+    ax.set_title("Stage-wise: ASE (search), ACG (handoff), GVA (verify)", fontsize=10)
     ax.legend(ncols=3, loc="upper right", fontsize=8, frameon=False)
     ax.spines[["top", "right"]].set_visible(False)
     fig.tight_layout()

@@ -38,10 +38,8 @@ def metrics_table(summaries: dict[str, Summary], *, title: str = "", group: str 
     return table
 
 
-def comparison_table(comparison, label_a: str, label_b: str) -> Table:
-    table = Table(title=f"{label_a} vs {label_b}: {comparison.n_pairs} paired episodes "
-                        f"({', '.join(f'{k} {v}' for k, v in comparison.per_level.items())}); "
-                        f"{comparison.resamples} resamples, seed {comparison.seed}")
+def comparison_table(comparison) -> Table:
+    table = Table()
     for col in ("metric", "A", "B", "A - B", "95% CI", "p (perm.)"):
         table.add_column(col, justify="left" if col == "metric" else "right")
     for m in comparison.metrics:
