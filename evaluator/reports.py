@@ -3,7 +3,7 @@
 Main table (like the paper's): one row per run, columns Easy / Mid / Hard x SR, OSR, SPL, NE,
 DS; a run labelled with a leading ``+`` (e.g. ``+AGOS-Agent``) is an agent variant of the row
 above and is indented. Ablation table: one row per run and difficulty with every metric and
-CErr. Rates are printed in %, distances in metres, DS in decisions; undefined is ``-``.
+CErr (and the overall row of each run). Rates are printed in %, distances in metres, DS in decisions; undefined is ``-``.
 """
 
 from __future__ import annotations
@@ -83,8 +83,12 @@ def _csv(header: list[str], rows: list[list[str]]) -> str:
     return buf.getvalue()
 
 
+_TEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
+                "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}"}
+
+
 def _tex_escape(text: str) -> str:
-    return text.replace("\\", r"\textbackslash{}").replace("_", r"\_").replace("%", r"\%").replace("&", r"\&")
+    return "".join(_TEX_SPECIAL.get(ch, ch) for ch in text)
 
 
 def main_table_latex(runs: Sequence[RunResults]) -> str:

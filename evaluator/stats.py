@@ -101,6 +101,8 @@ def _macro(level_values: list[np.ndarray]) -> np.ndarray:
 
 def compare(a: Sequence[EpisodeSummary], b: Sequence[EpisodeSummary], *, resamples: int = 10_000,
             seed: int = 0, chunk: int = 1000) -> Comparison:
+    if resamples < 1:
+        raise ValueError(f"resamples must be at least 1, not {resamples}")
     pairs = pair(a, b)
     if not pairs:
         raise ValueError("the two runs share no scored episode")

@@ -150,9 +150,17 @@ def read_run(path: Path) -> list[EpisodeSummary]:
     if not path.exists():
         raise SummaryError(f"{path}: no such file or run directory")
     if path.suffix in (".sqlite", ".db"):
-        store = ResultStore(path, create=False)
+        import sqlite3
+
         try:
-            return [parse_summary_line(raw, where=f"{path}:{eid}") for eid, raw in store.raw_records()]
+            store = ResultStore(path, create=False)
+        except sqlite3.Error as exc:
+            raise SummaryError(f"{path}: cannot open as a results database ({exc})") from None
+        try:
+            rows = store.raw_records()
+        except sqlite3.Error as exc:
+            raise SummaryError(f"{path}: not an agos results database ({exc})") from None
         finally:
             store.close()
+        return [parse_summary_line(raw, where=f"{path}:{eid}") for eid, raw in rows]
     return read_jsonl(path)

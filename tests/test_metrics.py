@@ -49,8 +49,8 @@ def test_success_and_oracle_success() -> None:
     assert oracle_success(ep()) == 0.0
     # SR = (1 + 0 + 0) / 3, OSR = (1 + 1 + 0) / 3
     s = summarize([ep(success=True, ground_observed=True, n_confirm=1), ep(ground_observed=True), ep()])
-    assert s.SR == pytest.approx(1 / 3)
-    assert s.OSR == pytest.approx(2 / 3)
+    assert pytest.approx(1 / 3) == s.SR
+    assert pytest.approx(2 / 3) == s.OSR
 
 
 # ----- SPL -------------------------------------------------------------------------------------
@@ -81,7 +81,7 @@ def test_navigation_error_mean_and_none() -> None:
     assert navigation_error(ep(final_distance_m=12.5)) == 12.5
     assert navigation_error(ep()) is None
     # mean over the known values only: (10 + 30) / 2 = 20
-    assert summarize([ep(final_distance_m=10.0), ep(final_distance_m=30.0), ep(final_distance_m=None)]).NE == pytest.approx(20.0)
+    assert pytest.approx(20.0) == summarize([ep(final_distance_m=10.0), ep(final_distance_m=30.0), ep(final_distance_m=None)]).NE
     # all unknown -> None, never 0
     assert summarize([ep(), ep()]).NE is None
 
@@ -166,7 +166,7 @@ def test_gva_mixed_and_zero_support() -> None:
     ]
     s = summarize(episodes)
     # sum V*C / sum V = 1 / 3
-    assert s.GVA == pytest.approx(1 / 3)
+    assert pytest.approx(1 / 3) == s.GVA
     assert s.GVA_support == 3
     none = summarize([ep(), ep()])
     assert none.GVA is None and none.GVA_support == 0
@@ -177,7 +177,7 @@ def test_decision_steps() -> None:
     assert decision_steps(ep(decisions_uav=12, decisions_ugv=7)) == 19.0
     s = summarize([ep(decisions_uav=10, decisions_ugv=4), ep(decisions_uav=30, decisions_ugv=0)])
     # DS = ((10+4) + (30+0)) / 2 = 22; DS_UAV = (10+30)/2 = 20; DS_UGV = (4+0)/2 = 2
-    assert (s.DS, s.DS_UAV, s.DS_UGV) == (pytest.approx(22.0), pytest.approx(20.0), pytest.approx(2.0))
+    assert (pytest.approx(22.0), pytest.approx(20.0), pytest.approx(2.0)) == (s.DS, s.DS_UAV, s.DS_UGV)
 
 
 # ----- CErr ------------------------------------------------------------------------------------
@@ -221,24 +221,24 @@ def test_aggregate_per_level() -> None:
     assert list(out) == ["easy", "mid", "hard", "overall"]
     easy, mid, hard = out["easy"], out["mid"], out["hard"]
     assert (easy.n, easy.excluded) == (3, 0)
-    assert easy.SR == pytest.approx(2 / 3)                 # (1 + 1 + 0) / 3
-    assert easy.OSR == pytest.approx(2 / 3)
-    assert easy.SPL == pytest.approx(0.5)                  # (50/100 + 40/40 + 0) / 3 = 1.5 / 3
-    assert easy.NE == pytest.approx(15.0)                  # (10 + 20) / 2; e3 unknown
-    assert easy.ASE == pytest.approx(27 / 80)              # (80/80 + 1/80 + 0) / 3 = (81/80) / 3
-    assert easy.ACG == pytest.approx(0.5)                  # (1 + 0.5 + 0) / 3
+    assert pytest.approx(2 / 3) == easy.SR                 # (1 + 1 + 0) / 3
+    assert pytest.approx(2 / 3) == easy.OSR
+    assert pytest.approx(0.5) == easy.SPL                  # (50/100 + 40/40 + 0) / 3 = 1.5 / 3
+    assert pytest.approx(15.0) == easy.NE                  # (10 + 20) / 2; e3 unknown
+    assert pytest.approx(27 / 80) == easy.ASE              # (80/80 + 1/80 + 0) / 3 = (81/80) / 3
+    assert pytest.approx(0.5) == easy.ACG                  # (1 + 0.5 + 0) / 3
     assert (easy.GVA, easy.GVA_support) == (1.0, 2)        # e1, e2 in V, both C
     assert (easy.DS, easy.DS_UAV, easy.DS_UGV) == (30.0, 20.0, 10.0)  # (15+30+45)/3, (10+20+30)/3, (5+10+15)/3
     assert easy.CErr == pytest.approx(15.0)                # (10 + 20) / 2
 
     assert (mid.n, mid.SR, mid.OSR, mid.SPL, mid.NE, mid.ASE) == (1, 0.0, 0.0, 0.0, None, 0.0)
-    assert mid.ACG == pytest.approx(1 / 3)                 # 50 / 150
+    assert pytest.approx(1 / 3) == mid.ACG                 # 50 / 150
     assert (mid.GVA, mid.GVA_support) == (0.0, 1)          # the false confirm
     assert (mid.DS, mid.CErr) == (60.0, 40.0)
 
     assert (hard.n, hard.excluded) == (1, 1)
     assert (hard.SR, hard.SPL, hard.NE, hard.ACG) == (0.0, 0.0, 100.0, 0.0)  # SPL: C=0
-    assert hard.ASE == pytest.approx(41 / 80)              # (80 - 40 + 1) / 80
+    assert pytest.approx(41 / 80) == hard.ASE              # (80 - 40 + 1) / 80
     assert (hard.GVA, hard.GVA_support, hard.CErr) == (None, 0, None)
     assert hard.DS == 75.0
 
@@ -246,17 +246,17 @@ def test_aggregate_per_level() -> None:
 def test_aggregate_overall_is_macro_mean() -> None:
     o = aggregate(_three_levels())["overall"]
     assert (o.n, o.excluded, o.GVA_support) == (5, 1, 3)   # 3 + 1 + 1 scored; h1 not scored; 2 + 1 + 0
-    assert o.SR == pytest.approx(2 / 9)                    # (2/3 + 0 + 0) / 3; the micro mean would be 2/5
-    assert o.SR != pytest.approx(2 / 5)
-    assert o.OSR == pytest.approx(2 / 9)
-    assert o.SPL == pytest.approx(1 / 6)                   # (0.5 + 0 + 0) / 3
-    assert o.NE == pytest.approx(57.5)                     # (15 + 100) / 2: mid (None) left out, not counted as 0
-    assert o.ASE == pytest.approx(17 / 60)                 # (27/80 + 0 + 41/80) / 3 = 68/240
-    assert o.ACG == pytest.approx(5 / 18)                  # (1/2 + 1/3 + 0) / 3
-    assert o.GVA == pytest.approx(0.5)                     # (1 + 0) / 2: hard (None) left out; micro would be 2/3
-    assert o.DS == pytest.approx(55.0)                     # (30 + 60 + 75) / 3
-    assert o.DS_UAV == pytest.approx(110 / 3)              # (20 + 40 + 50) / 3
-    assert o.DS_UGV == pytest.approx(55 / 3)               # (10 + 20 + 25) / 3
+    assert pytest.approx(2 / 9) == o.SR                    # (2/3 + 0 + 0) / 3; the micro mean would be 2/5
+    assert pytest.approx(2 / 5) != o.SR
+    assert pytest.approx(2 / 9) == o.OSR
+    assert pytest.approx(1 / 6) == o.SPL                   # (0.5 + 0 + 0) / 3
+    assert pytest.approx(57.5) == o.NE                     # (15 + 100) / 2: mid (None) left out, not counted as 0
+    assert pytest.approx(17 / 60) == o.ASE                 # (27/80 + 0 + 41/80) / 3 = 68/240
+    assert pytest.approx(5 / 18) == o.ACG                  # (1/2 + 1/3 + 0) / 3
+    assert pytest.approx(0.5) == o.GVA                     # (1 + 0) / 2: hard (None) left out; micro would be 2/3
+    assert pytest.approx(55.0) == o.DS                     # (30 + 60 + 75) / 3
+    assert pytest.approx(110 / 3) == o.DS_UAV              # (20 + 40 + 50) / 3
+    assert pytest.approx(55 / 3) == o.DS_UGV               # (10 + 20 + 25) / 3
     assert o.CErr == pytest.approx(27.5)                   # (15 + 40) / 2: hard (None) left out
 
 
@@ -298,7 +298,7 @@ def test_aggregate_by_town() -> None:
     assert (out["town-b"].n, out["town-b"].SR) == (1, 1.0)
     assert (out["unknown"].n, out["unknown"].SR) == (1, 0.0)
     # macro over towns: (2/3 + 1 + 0) / 3 = 5/9
-    assert out["overall"].SR == pytest.approx(5 / 9)
+    assert pytest.approx(5 / 9) == out["overall"].SR
     with pytest.raises(ValueError, match="group"):
         aggregate(episodes, by="weather")
 

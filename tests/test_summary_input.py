@@ -105,9 +105,9 @@ def test_run_directory_without_results(tmp_path: Path) -> None:
 
 
 def test_missing_file(tmp_path: Path) -> None:
-    with pytest.raises(SummaryError, match="nope.jsonl"):
+    with pytest.raises(SummaryError, match=r"nope\.jsonl"):
         read_run(tmp_path / "nope.jsonl")
-    with pytest.raises(SummaryError, match="nope.jsonl"):
+    with pytest.raises(SummaryError, match=r"nope\.jsonl"):
         read_jsonl(tmp_path / "nope.jsonl")
 
 
