@@ -5,7 +5,8 @@
     agos world --connect EP --run R world worker
     agos agent --role uav|ugv ...   agent service
     agos evaluator --connect EP     result store and metrics
-    agos episodes generate ...      write an episode file
+    agos episodes sample|split|check  episode files
+    agos map import|build|info|render town assets
     agos metrics PATH [--json]      every metric of a run (run dir, sqlite or JSONL summaries)
     agos compare RUN_A RUN_B        paired differences with bootstrap intervals and tests
     agos report RUN... --out DIR    paper-style tables and the stage-wise plot
@@ -58,15 +59,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluator.add_argument("--connect", help="zenoh router endpoint, e.g. tcp/127.0.0.1:7447")
     evaluator.add_argument("--runs-dir", type=Path)
 
-    episodes = sub.add_parser("episodes", help="episode files")
-    ep_sub = episodes.add_subparsers(dest="episodes_command", required=True)
-    gen = ep_sub.add_parser("generate", help="sample episodes on a procedural town")
-    gen.add_argument("--out", type=Path, required=True)
-    gen.add_argument("--town-seed", type=int, default=7)
-    gen.add_argument("--seed", type=int, default=1)
-    gen.add_argument("--per-difficulty", type=int, default=2)
-    check = ep_sub.add_parser("check", help="validate an episode file")
-    check.add_argument("file", type=Path)
+    from agos.world.cli import add_parsers as add_world_parsers
+
+    add_world_parsers(sub)
 
     metrics = sub.add_parser("metrics", help="every metric of a run per difficulty (or town)")
     metrics.add_argument("path", type=Path, help="runs/<run>, a results.sqlite, or a JSONL file of episode summaries")
@@ -133,8 +128,10 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
             from agos.evaluator import service as evaluator_service
 
             return evaluator_service.main(cfg)
-        if args.command == "episodes":
-            return _episodes(args)
+        if args.command in ("episodes", "map"):
+            from agos.world import cli as world_cli
+
+            return world_cli.run(args)
         if args.command in ("metrics", "compare", "report"):
             from agos.evaluator import cli as evaluator_cli
 
@@ -143,21 +140,6 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
         print(f"episode file error: {exc}", file=sys.stderr)
         return 2
     raise AssertionError(args.command)
-
-
-def _episodes(args: argparse.Namespace) -> int:
-    from agos.world.asset import build_town
-    from agos.world.episodes import generate_episodes, read_episodes, write_episodes
-
-    if args.episodes_command == "generate":
-        town = build_town("procedural-grid", args.town_seed)
-        episodes = generate_episodes(town, per_difficulty=args.per_difficulty, seed=args.seed)
-        write_episodes(args.out, episodes)
-        print(f"wrote {len(episodes)} episodes on {town.town_id} (asset {town.sha256[:12]}) to {args.out}")
-        return 0
-    episodes = read_episodes(args.file)
-    print(f"{args.file}: {len(episodes)} valid episodes")
-    return 0
 
 
 if __name__ == "__main__":

@@ -29,13 +29,18 @@ log = logging.getLogger("agos.demo")
 
 
 def load_episodes(cfg: AgosConfig) -> list[EpisodeSpec]:
-    from agos.world.asset import build_town
+    from agos.world.asset import open_town
     from agos.world.episodes import generate_episodes, read_episodes
+    from agos.world.scene import Scene
 
     if cfg.run.episodes_file is not None:
         return read_episodes(cfg.run.episodes_file)
-    town = build_town(cfg.run.town_generator, cfg.run.town_seed)
-    return generate_episodes(town, per_difficulty=cfg.run.per_difficulty, seed=cfg.run.episode_seed)
+    town = open_town(cfg.run.town)
+    scene = Scene(town.layout)  # episodes are checked solvable by rendering
+    try:
+        return generate_episodes(town, scene, per_difficulty=cfg.run.per_difficulty, seed=cfg.run.episode_seed)
+    finally:
+        scene.close()
 
 
 def _launch_all(cfg: AgosConfig, launcher: Launcher, endpoint: str, port: int, run_id: str,

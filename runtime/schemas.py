@@ -90,6 +90,8 @@ class Waypoint(Model):
     """``uav_grid``, ``cruise``, ``junction_entry``, ``junction_exit``, ``dead_end`` ..."""
     path_length_m: float | None = None
     """Road distance from the agent's current node (UGV options only)."""
+    option: str | None = None
+    """UGV options: ``forward`` (~10 m), ``forward_far`` (~30 m), ``junction_exit``, ``backward``."""
 
 
 CandidateStatus = Literal["pending", "arrived", "rejected", "confirmed", "false_confirm"]
@@ -205,7 +207,8 @@ class VehicleSpec(Model):
 
 class TownRef(Model):
     generator: str
-    """``procedural-grid`` (more generators and OpenDRIVE import come later)."""
+    """A procedural generator (``grid``, ``irregular``, ``curved``, ``tee``, ``deck``, ``parks``)
+    or ``opendrive`` for an imported map (found by its asset hash)."""
     seed: int
     town_id: str
 

@@ -37,8 +37,8 @@ class ZenohSettings(_Section):
 class RunSettings(_Section):
     run_id: str = "demo"
     runs_dir: Path = Path("runs")
-    town_generator: str = "procedural-grid"
-    town_seed: int = 7
+    town: str = "grid-s7"
+    """Town of generated episodes: a procedural id (grid-s7, curved-s13 ...) or an asset directory."""
     episode_seed: int = 1
     per_difficulty: int = Field(2, ge=1)
     episodes_file: Path | None = None

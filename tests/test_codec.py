@@ -75,7 +75,7 @@ def _observation() -> Observation:
 
 def _grant() -> JobGrant:
     spec = EpisodeSpec(
-        episode_id="grid-s7-easy-000-v1", town=TownRef(generator="procedural-grid", seed=7, town_id="grid-s7"),
+        episode_id="grid-s7-easy-000-v1", town=TownRef(generator="grid", seed=7, town_id="grid-s7"),
         asset_sha256="cd" * 32, difficulty="easy", region_world_m=(0.0, 0.0, 150.0, 150.0),
         target=VehicleSpec(model="sedan", colour="red", position_world_m=(1.0, 2.0, 0.0), yaw_rad=1.5),
         uav_start_waypoint="U1_1", ugv_start_waypoint="R7", active_uav_waypoints=["U1_1", "U1_2"], seed=3,

@@ -145,7 +145,7 @@ def test_bad_config_is_one_clear_line(tmp_path: Path, content: str, expected: st
 
 def test_bad_episode_file_names_file_line_and_field(tmp_path: Path) -> None:
     good = tmp_path / "eps.jsonl"
-    subprocess.run([*AGOS, "episodes", "generate", "--out", str(good), "--per-difficulty", "1"], check=True,
+    subprocess.run([*AGOS, "episodes", "sample", "--town", "grid-s7", "--out", str(good), "--per-difficulty", "1"], check=True,
                    capture_output=True, timeout=60)
     lines = good.read_text().splitlines()
     broken = json.loads(lines[1])

@@ -15,9 +15,9 @@ from agos.world.scene import Scene
 
 @pytest.fixture(scope="module")
 def world():
-    town = build_town("procedural-grid", 7)
+    town = build_town("grid", 7)
     scene = Scene(town.layout)
-    episodes = {e.difficulty + e.episode_id[-6:-3]: e for e in generate_episodes(town, per_difficulty=2, seed=1)}
+    episodes = {e.difficulty + e.episode_id[-6:-3]: e for e in generate_episodes(town, scene, per_difficulty=2, seed=1)}
     yield town, scene, episodes
     scene.close()
 

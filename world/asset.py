@@ -1,8 +1,13 @@
-"""A town asset: layout, road graphs and UAV grid, identified by a sha256 over canonical bytes.
+"""Frozen town assets: one canonical document per town, hashed, saved and served by hash.
 
-The hash covers every number an episode's outcome can depend on (rounded to the millimetre,
-serialized as sorted-key JSON), so the same generator and seed give the same hash on any
-machine, and an episode that names a hash refuses to run on a different town.
+The document holds every number an episode can depend on — lanes, fine graph, decision
+anchors and edges, UAV grid, surfaces, buildings, trees, decks, parking slots and parked
+vehicles — as integers (millimetres, micro-radians, colour per mille) and strings, packed with
+msgpack in a fixed key order. Its sha256 is the asset hash: the same inputs give the same hash
+on any machine. Every :class:`Town` in use, freshly generated or loaded, is rebuilt *from* that
+document, so all workers run on bit-identical geometry.
+
+On disk an asset is a directory with ``asset.msgpack`` and a human-readable ``manifest.json``.
 """
 
 from __future__ import annotations
@@ -10,11 +15,31 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import os
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
-from agos.world.roadgraph import RoadGraphs, build_road_graphs
-from agos.world.town import TownLayout, build_layout
-from agos.world.uavgrid import UavGrid, build_uav_grid
+import msgpack
+import networkx as nx
+import numpy as np
+
+from agos.world.lanes import Lane, LaneNetwork
+from agos.world.placement import Building, ParkingSlot, Tree
+from agos.world.roadgraph import RoadGraphs, _build_decision_graph, build_road_graphs
+from agos.world.streets import Surface
+from agos.world.town import Deck, ParkedVehicle, TownLayout
+from agos.world.uavgrid import UavGrid, UavNode, build_uav_grid
+
+ASSET_FORMAT = 1
+
+
+class AssetMismatch(ValueError):
+    """An episode names a town hash that differs from the town found here."""
+
+
+class AssetError(ValueError):
+    """A missing, corrupt or tampered asset; the message names the path and the reason."""
 
 
 @dataclass
@@ -23,55 +48,186 @@ class Town:
     roads: RoadGraphs
     uav_grid: UavGrid
     sha256: str
+    document: bytes
 
     @property
     def town_id(self) -> str:
         return self.layout.town_id
 
 
-class AssetMismatch(ValueError):
-    """An episode names a town hash that differs from the town built here."""
+# ----- encoding --------------------------------------------------------------------------------
+def _mm(a: Any) -> list:
+    return np.round(np.asarray(a, dtype=float) * 1000).astype(np.int64).ravel().tolist()
 
 
-def _mm(v: float) -> int:
-    return round(v * 1000)
+def _from_mm(v: list, cols: int = 2) -> np.ndarray:
+    return (np.asarray(v, dtype=np.int64) / 1000.0).reshape(-1, cols) if cols else np.asarray(v, np.int64) / 1000.0
 
 
-def canonical_bytes(layout: TownLayout, roads: RoadGraphs, grid: UavGrid) -> bytes:
-    doc = {
-        "town_id": layout.town_id,
-        "junctions": [[_mm(x), _mm(y)] for x, y in layout.junctions],
-        "segments": [list(s) for s in layout.segments],
-        "buildings": [[_mm(b.center_world_m[0]), _mm(b.center_world_m[1]), *map(_mm, b.size_m),
-                       *map(_mm, b.colour)] for b in layout.buildings],
-        "slots": [[s.slot_id, _mm(s.position_world_m[0]), _mm(s.position_world_m[1]), _mm(s.yaw_rad)]
+def town_document(layout: TownLayout, roads: RoadGraphs, grid: UavGrid) -> dict[str, Any]:
+    lanes = [[lid, _mm(ln.centre_m), _mm(ln.width_m), sorted(ln.successors), int(ln.in_junction), ln.road_id,
+              None if ln.parking_offset_m is None else round(ln.parking_offset_m * 1000), int(ln.covered),
+              sorted(ln.lane_changes)]
+             for lid, ln in sorted(layout.network.lanes.items())]
+    return {
+        "format": ASSET_FORMAT,
+        "town_id": layout.town_id, "generator": layout.generator, "seed": layout.seed,
+        "lanes": lanes,
+        "warnings": list(layout.network.warnings),
+        "surfaces": [[s.kind, s.shape, _mm(s.polygon_m)] for s in layout.surfaces],
+        "buildings": [[*_mm(b.center_world_m), *_mm(b.size_m), *[round(c * 1000) for c in b.colour],
+                       round(b.yaw_rad * 1e6)] for b in layout.buildings],
+        "trees": [[*_mm(t.position_world_m), *_mm([t.height_m, t.crown_radius_m])] for t in layout.trees],
+        "decks": [[_mm(d.polygon_m), *_mm([d.bottom_m, d.top_m])] for d in layout.decks],
+        "slots": [[s.slot_id, *_mm(s.position_world_m), round(s.yaw_rad * 1e6), s.lane_id, int(s.covered), int(s.plaza)]
                   for s in layout.slots],
         "parked": [[p.slot_id, p.model, p.colour] for p in layout.parked],
-        "fine_nodes": [[_mm(x), _mm(y)] for x, y in roads.positions_world_m.tolist()],
+        "fine_nodes": _mm(roads.positions_world_m),
+        "fine_lane": roads.node_lane,
         "fine_edges": sorted([u, v] for u, v in roads.fine.edges()),
         "anchors": sorted([n, k] for n, k in roads.anchors.items()),
         "decision_edges": sorted(e.fine_nodes for e in roads.decision_edges.values()),
-        "uav_nodes": sorted([n.node_id, *map(_mm, n.position_world_m)] for n in grid.nodes.values()),
+        "uav_nodes": sorted([n.node_id, n.i, n.j, *_mm(n.position_world_m)] for n in grid.nodes.values()),
+        "uav_spacing_mm": round(grid.spacing_m * 1000), "uav_altitude_mm": round(grid.altitude_m * 1000),
     }
-    return json.dumps(doc, sort_keys=True, separators=(",", ":")).encode()
+
+
+def encode_document(doc: dict[str, Any]) -> bytes:
+    return msgpack.packb(doc, use_bin_type=True)
+
+
+def town_from_document(data: bytes) -> Town:
+    doc = msgpack.unpackb(data, raw=False, strict_map_key=False)
+    if doc.get("format") != ASSET_FORMAT:
+        raise AssetError(f"asset format {doc.get('format')!r} is not {ASSET_FORMAT}")
+    lanes = {}
+    for lid, centre, width, succ, in_j, road, park, cov, changes in doc["lanes"]:
+        lanes[lid] = Lane(lid, _from_mm(centre), _from_mm(width, 0), list(succ), bool(in_j), road,
+                          None if park is None else park / 1000.0, bool(cov), list(changes))
+    network = LaneNetwork(lanes, list(doc["warnings"]))
+    layout = TownLayout(
+        doc["town_id"], doc["generator"], doc["seed"], network,
+        surfaces=[Surface(kind, _from_mm(poly), shape) for kind, shape, poly in doc["surfaces"]],
+        buildings=[Building((b[0] / 1000, b[1] / 1000), (b[2] / 1000, b[3] / 1000, b[4] / 1000),
+                            (b[5] / 1000, b[6] / 1000, b[7] / 1000), b[8] / 1e6) for b in doc["buildings"]],
+        trees=[Tree((t[0] / 1000, t[1] / 1000), t[2] / 1000, t[3] / 1000) for t in doc["trees"]],
+        decks=[Deck(_from_mm(poly), lo / 1000, hi / 1000) for poly, lo, hi in doc["decks"]],
+        slots=[ParkingSlot(s[0], (s[1] / 1000, s[2] / 1000), s[3] / 1e6, s[4], bool(s[5]), bool(s[6]))
+               for s in doc["slots"]],
+        parked=[ParkedVehicle(*p) for p in doc["parked"]])
+    pos = _from_mm(doc["fine_nodes"])
+    fine = nx.DiGraph()
+    fine.add_nodes_from(range(len(pos)))
+    for u, v in doc["fine_edges"]:
+        fine.add_edge(u, v, length_m=float(np.linalg.norm(pos[v] - pos[u])))
+    covered = np.array([lanes[lid].covered for lid in doc["fine_lane"]], dtype=bool)
+    roads = RoadGraphs(pos, fine, {n: k for n, k in doc["anchors"]}, list(doc["fine_lane"]), covered)
+    _build_decision_graph(roads)
+    if sorted(e.fine_nodes for e in roads.decision_edges.values()) != doc["decision_edges"]:
+        raise AssetError("decision edges do not follow from the stored fine graph and anchors")
+    grid = UavGrid({n[0]: UavNode(n[0], n[1], n[2], (n[3] / 1000, n[4] / 1000, n[5] / 1000)) for n in doc["uav_nodes"]},
+                   doc["uav_spacing_mm"] / 1000, doc["uav_altitude_mm"] / 1000)
+    return Town(layout, roads, grid, hashlib.sha256(data).hexdigest(), data)
+
+
+def freeze(layout: TownLayout) -> Town:
+    """Build graphs and grid for a layout and return the town rebuilt from its canonical document."""
+    roads = build_road_graphs(layout.network)
+    _, anchor_xy = roads.anchor_array()
+    grid = build_uav_grid(roads.positions_world_m, anchor_xy)
+    return town_from_document(encode_document(town_document(layout, roads, grid)))
+
+
+# ----- procedural towns, files and the local cache -----------------------------------------------
+@functools.lru_cache(maxsize=8)
+def build_town(generator: str, seed: int) -> Town:
+    from agos.world.towns import build_layout
+
+    return freeze(build_layout(generator, seed))
+
+
+def manifest(town: Town) -> dict[str, Any]:
+    roads = town.roads
+    return {"asset_id": town.town_id, "format": ASSET_FORMAT, "sha256": town.sha256, "generator": town.layout.generator,
+            "seed": town.layout.seed, "lanes": len(town.layout.network.lanes), "fine_nodes": roads.fine.number_of_nodes(),
+            "decision_nodes": roads.decision.number_of_nodes(), "uav_nodes": len(town.uav_grid.nodes),
+            "warnings": len(town.layout.network.warnings)}
+
+
+def save_town(town: Town, out_dir: Path) -> Path:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "asset.msgpack").write_bytes(town.document)
+    (out_dir / "manifest.json").write_text(json.dumps(manifest(town), indent=2) + "\n")
+    return out_dir
+
+
+def load_town(path: Path, expected_sha256: str | None = None) -> Town:
+    """Load an asset directory (or its ``asset.msgpack``); check its hash against the manifest
+    and, if given, against ``expected_sha256``."""
+    data_path = path / "asset.msgpack" if path.is_dir() else path
+    try:
+        data = data_path.read_bytes()
+    except OSError as exc:
+        raise AssetError(f"{data_path}: cannot read asset ({exc.strerror})") from None
+    try:
+        town = town_from_document(data)
+    except (ValueError, KeyError, TypeError, msgpack.ExtraData) as exc:
+        raise AssetError(f"{data_path}: not a valid agos town asset ({exc})") from None
+    manifest_path = data_path.parent / "manifest.json"
+    if manifest_path.exists():
+        recorded = json.loads(manifest_path.read_text()).get("sha256")
+        if recorded != town.sha256:
+            raise AssetError(f"{data_path}: content hash {town.sha256[:12]} differs from manifest {str(recorded)[:12]}")
+    if expected_sha256 is not None and town.sha256 != expected_sha256:
+        raise AssetMismatch(f"{data_path}: asset {town.town_id} has sha256 {town.sha256[:12]}..., "
+                            f"the episode expects {expected_sha256[:12]}...")
+    return town
+
+
+def open_town(name: str | Path) -> Town:
+    """A town by procedural id (``grid-s7``, ``curved-s99``) or by asset directory (imported map);
+    an asset directory is also put in the local cache so workers on this host find it by hash."""
+    path = Path(name)
+    if (path / "asset.msgpack").exists() or path.suffix == ".msgpack":
+        town = load_town(path)
+        cached = cache_dir() / town.sha256
+        if not (cached / "asset.msgpack").exists():
+            save_town(town, cached)
+        return town
+    from agos.world.towns import resolve
+
+    return build_town(*resolve(str(name)))
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("AGOS_ASSET_CACHE", Path.home() / ".cache" / "agos" / "assets"))
+
+
+def town_for(generator: str, seed: int, expected_sha256: str | None = None, *, town_id: str | None = None,
+             fetch=None) -> Town:
+    """The town an episode names: procedural towns are generated; imported ones come from the
+    local cache (``AGOS_ASSET_CACHE``), else from ``fetch(sha256) -> bytes`` (zenoh), which is
+    then cached. The result must match ``expected_sha256``."""
+    if generator != "opendrive":
+        town = build_town(generator, seed)
+        if expected_sha256 is not None and town.sha256 != expected_sha256:
+            raise AssetMismatch(
+                f"town {town.town_id}: episode expects asset sha256 {expected_sha256[:12]}..., "
+                f"this build gives {town.sha256[:12]}... (different agos version or generator)")
+        return town
+    if expected_sha256 is None:
+        raise AssetError(f"town {town_id}: an imported town needs its asset sha256")
+    cached = cache_dir() / expected_sha256
+    if not (cached / "asset.msgpack").exists():
+        if fetch is None:
+            raise AssetError(f"town {town_id}: asset {expected_sha256[:12]} is not in {cache_dir()} and cannot be fetched")
+        data = fetch(expected_sha256)
+        if hashlib.sha256(data).hexdigest() != expected_sha256:
+            raise AssetMismatch(f"town {town_id}: fetched asset does not hash to {expected_sha256[:12]}")
+        save_town(town_from_document(data), cached)
+    return _load_cached(str(cached), expected_sha256)
 
 
 @functools.lru_cache(maxsize=8)
-def build_town(generator: str, seed: int) -> Town:
-    layout = build_layout(generator, seed)
-    roads = build_road_graphs(layout)
-    _, anchor_xy = roads.anchor_array()
-    grid = build_uav_grid(roads.positions_world_m, anchor_xy)
-    digest = hashlib.sha256(canonical_bytes(layout, roads, grid)).hexdigest()
-    return Town(layout, roads, grid, digest)
-
-
-def town_for(generator: str, seed: int, expected_sha256: str | None = None) -> Town:
-    """Build (or reuse) a town and check it against the hash an episode recorded."""
-    town = build_town(generator, seed)
-    if expected_sha256 is not None and town.sha256 != expected_sha256:
-        raise AssetMismatch(
-            f"town {town.town_id}: episode expects asset sha256 {expected_sha256[:12]}..., "
-            f"this build gives {town.sha256[:12]}... (different agos version or generator)"
-        )
-    return town
+def _load_cached(path: str, sha: str) -> Town:
+    return load_town(Path(path), sha)

@@ -50,8 +50,10 @@ from agos.world import sensors
 from agos.world.asset import Town
 from agos.world.confirm import ConfirmEvidence, ConfirmSettings, check_confirm
 from agos.world.geometry import centroid, distance_to_polygon
+from agos.world.options import shortest_path, uav_options, ugv_options
 from agos.world.roadgraph import RoadGraphs
 from agos.world.scene import Scene
+from agos.world.solvability import ground_evidence, line_of_sight, target_points
 
 ROLE_ORDER: tuple[Role, Role] = ("uav", "ugv")
 
@@ -245,8 +247,7 @@ class EpisodeRunner:
             fresh_stop_observe=self.ugv.fresh_stop)
 
     def _uav_options(self) -> list[str]:
-        centre = self.town.uav_grid.nearest(self.uav.position[:2], sorted(self.active_uav))
-        return self.town.uav_grid.neighbours(centre, self.active_uav)
+        return uav_options(self.town.uav_grid, self.uav.position[:2], self.active_uav)
 
     def _uav_waypoint(self, node_id: str) -> Waypoint:
         return Waypoint(waypoint_id=node_id, position_world_m=self.town.uav_grid.nodes[node_id].position_world_m,
@@ -262,24 +263,11 @@ class EpisodeRunner:
         return [*legal, "NO_RELIABLE_CANDIDATE", "WAIT"]
 
     def _ugv_options(self) -> list[Waypoint]:
-        """Forward decision anchors about 10 m (next anchor, every branch) and about 30 m ahead."""
-        here = self.ugv.node
-        options: dict[int, float] = {}
-        for nxt in self.roads.decision.successors(here):
-            length = self.roads.decision.edges[here, nxt]["length_m"]
-            options.setdefault(nxt, length)
-            node, total = nxt, length
-            while total < 25.0:
-                succ = list(self.roads.decision.successors(node))
-                if len(succ) != 1:
-                    break
-                total += self.roads.decision.edges[node, succ[0]]["length_m"]
-                node = succ[0]
-            if node != nxt:
-                options.setdefault(node, total)
         pos = self.roads.positions_world_m
-        return [Waypoint(waypoint_id=RoadGraphs.anchor_id(n), position_world_m=(float(pos[n][0]), float(pos[n][1]), 0.0),
-                         kind=self.roads.anchors[n], path_length_m=round(d, 2)) for n, d in sorted(options.items())]
+        return [Waypoint(waypoint_id=RoadGraphs.anchor_id(o.anchor),
+                         position_world_m=(float(pos[o.anchor][0]), float(pos[o.anchor][1]), 0.0),
+                         kind=self.roads.anchors[o.anchor], path_length_m=o.path_length_m, option=o.option)
+                for o in ugv_options(self.roads, self.ugv.node, self.ugv.route)]
 
     def _ugv_legal(self, options: list[Waypoint]) -> list[ActionName]:
         legal: list[ActionName] = ["MOVE_TO_ROAD_WAYPOINT"] if options else []
@@ -428,7 +416,7 @@ class EpisodeRunner:
     def _drive_to(self, target: int) -> None:
         ugv = self.ugv
         try:
-            path = nx.shortest_path(self.roads.fine, ugv.node, target, weight="length_m")
+            path = shortest_path(self.roads, ugv.node, target)
         except nx.NetworkXNoPath:
             raise IllegalAction(f"no road path to {RoadGraphs.anchor_id(target)}") from None
         length = self.roads.path_length_m(path)
@@ -464,39 +452,37 @@ class EpisodeRunner:
         self._wake(receiver)
 
     # ----- checker --------------------------------------------------------------------------
-    def _evidence(self, node: int | None = None, six: list[sensors.Shot] | None = None) -> ConfirmEvidence:
-        node = self.ugv.node if node is None else node
-        six = self.ugv.six if six is None else six
-        xy = self.roads.positions_world_m[node]
+    def _evidence(self) -> ConfirmEvidence:
+        """Checker evidence for the UGV as it is now (its last six views)."""
+        xy = self._ugv_xy()
         return ConfirmEvidence(
-            fresh_stop=self.ugv.fresh_stop if six is self.ugv.six else True,
-            max_target_pixels=max((sensors.target_pixels(s, self.target_uid) for s in six), default=0),
-            distance_m=math.dist(xy, self.target_xy),
-            line_of_sight=self._line_of_sight((float(xy[0]), float(xy[1]))))
+            fresh_stop=self.ugv.fresh_stop,
+            max_target_pixels=max((sensors.target_pixels(s, self.target_uid) for s in self.ugv.six), default=0),
+            distance_m=math.dist(xy, self.target_xy), line_of_sight=self._line_of_sight(xy))
 
     def _line_of_sight(self, xy: tuple[float, float]) -> bool:
-        eye = np.array([xy[0], xy[1], sensors.UGV_CAMERA_HEIGHT_M])
         t = self.spec.target
-        c, s = math.cos(t.yaw_rad), math.sin(t.yaw_rad)
-        points = [(t.position_world_m[0] + c * dx - s * dy, t.position_world_m[1] + s * dx + c * dy, z)
-                  for dx, dy, z in ((0, 0, 0.8), (0, 0, 1.3), (1.5, 0, 0.9), (-1.5, 0, 0.9), (0, 0.7, 0.9), (0, -0.7, 0.9))]
-        return self.scene.line_of_sight(eye, self.target_uid, np.asarray(points))
+        return line_of_sight(self.scene, xy, self.target_uid, target_points(t.position_world_m, t.yaw_rad))
 
     def _shortest_confirmable_path(self, max_checks: int = 30) -> float | None:
         """SPL's shortest path: road distance from the UGV start to the nearest fine node from
-        which a STOP_OBSERVE then CONFIRM would be accepted."""
+        which a STOP_OBSERVE then CONFIRM would be accepted (nodes in Dijkstra order; distance
+        and line of sight are checked before rendering)."""
         lengths = nx.single_source_dijkstra_path_length(self.roads.fine, self.start_node, weight="length_m")
         pos = self.roads.positions_world_m
+        t = self.spec.target
+        points = target_points(t.position_world_m, t.yaw_rad)
         checks = 0
         for node, dist in sorted(lengths.items(), key=lambda kv: (kv[1], kv[0])):
-            if math.dist(pos[node], self.target_xy) > self.cfg.confirm.max_distance_m:
+            xy = (float(pos[node][0]), float(pos[node][1]))
+            if math.dist(xy, self.target_xy) > self.cfg.confirm.max_distance_m:
                 continue
-            if not self._line_of_sight((float(pos[node][0]), float(pos[node][1]))):
+            if not line_of_sight(self.scene, xy, self.target_uid, points):
                 continue
             checks += 1
-            six = sensors.six_views(self.scene, (float(pos[node][0]), float(pos[node][1])),
-                                    self.roads.heading_at(node), self.cfg.cameras)
-            if not check_confirm(self._evidence(node, six), self.cfg.confirm):
+            evidence = ground_evidence(self.scene, self.town, node, self.target_uid, points, self.target_xy,
+                                       self.cfg.cameras)
+            if not check_confirm(evidence, self.cfg.confirm):
                 return round(float(dist), 3)
             if checks >= max_checks:
                 break

@@ -9,24 +9,26 @@ Each process opens its own DIRECT client (never share one across a fork).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 import pybullet as pb
 
 from agos.world.catalog import CARGO_WHITE, GLASS, TYRE, body_type, colour_rgb
-from agos.world.town import (
-    LANE_WIDTH_M,
-    PARKING_WIDTH_M,
-    ROAD_HALF_WIDTH_M,
-    SIDEWALK_WIDTH_M,
-    TownLayout,
-)
+from agos.world.meshes import chunks, slab_mesh, strip_mesh, surface_mesh
+from agos.world.town import TownLayout
 
 # Semantic classes of the uint8 semantic map.
-SEM_NONE, SEM_GROUND, SEM_ROAD, SEM_SIDEWALK, SEM_BUILDING, SEM_VEHICLE, SEM_MARKING = range(7)
-SEMANTIC_NAMES = ("none", "ground", "road", "sidewalk", "building", "vehicle", "marking")
+SEM_NONE, SEM_GROUND, SEM_ROAD, SEM_SIDEWALK, SEM_BUILDING, SEM_VEHICLE, SEM_MARKING, SEM_VEGETATION = range(8)
+SEMANTIC_NAMES = ("none", "ground", "road", "sidewalk", "building", "vehicle", "marking", "vegetation")
+# Heights keep coplanar surfaces apart (no z-fighting) and cameras off mesh vertices.
+SURFACE_Z = {"park": 0.015, "plaza": 0.02, "road": 0.02, "junction": 0.025, "marking_white": 0.035,
+             "marking_yellow": 0.035, "sidewalk": 0.12}
+SURFACE_RGB = {"park": (0.30, 0.52, 0.26), "plaza": (0.62, 0.60, 0.56), "road": (0.22, 0.22, 0.23),
+               "junction": (0.24, 0.24, 0.25), "marking_white": (0.85, 0.85, 0.85),
+               "marking_yellow": (0.85, 0.72, 0.15), "sidewalk": (0.68, 0.68, 0.66)}
+SURFACE_SEMANTIC = {"park": SEM_VEGETATION, "plaza": SEM_SIDEWALK, "road": SEM_ROAD, "junction": SEM_ROAD,
+                    "marking_white": SEM_MARKING, "marking_yellow": SEM_MARKING, "sidewalk": SEM_SIDEWALK}
 SKY_RGB = np.array([178, 204, 230], dtype=np.uint8)
 STUDIO_OFFSET_M = np.array([10_000.0, 10_000.0, 0.0])
 """Where a vehicle is moved, alone, to render its reference views."""
@@ -91,42 +93,59 @@ class Scene:
         self._semantic[uid] = semantic
         return uid
 
+    def _mesh_body(self, parts: list, rgb: tuple[float, float, float], semantic: int) -> None:
+        for vertices, indices in chunks(parts):
+            shape = pb.createVisualShape(pb.GEOM_MESH, vertices=vertices.tolist(), indices=indices.tolist(),
+                                         rgbaColor=[*rgb, 1.0], specularColor=[0.02, 0.02, 0.02],
+                                         physicsClientId=self.client)
+            uid = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape, physicsClientId=self.client)
+            self._semantic[uid] = semantic
+
     def _build_static(self, layout: TownLayout) -> None:
-        x0, y0, x1, y1 = layout.bounds_world_m()
-        pad = 150.0
+        x0, y0, x1, y1 = layout.bounds_world_m(pad_m=0.0)
+        pad = 200.0
         self._static_box(((x0 + x1) / 2, (y0 + y1) / 2, -0.05),
                          ((x1 - x0) / 2 + pad, (y1 - y0) / 2 + pad, 0.05), (0.55, 0.53, 0.48), SEM_GROUND)
-        half_w = ROAD_HALF_WIDTH_M
-        for a, b in layout.segments:
-            pa, pb_ = np.asarray(layout.junctions[a]), np.asarray(layout.junctions[b])
-            mid, d = (pa + pb_) / 2, pb_ - pa
-            length, yaw = float(np.linalg.norm(d)), math.atan2(d[1], d[0])
-            self._static_box((mid[0], mid[1], 0.01), (length / 2, half_w, 0.01), (0.22, 0.22, 0.23),
-                             SEM_ROAD, yaw=yaw)
-            # dashed yellow centre line and white parking-strip lines, kept short of the junctions
-            inner = length / 2 - half_w - 2.0
-            if inner > 0:
-                self._static_box((mid[0], mid[1], 0.025), (inner, 0.08, 0.005), (0.85, 0.72, 0.15),
-                                 SEM_MARKING, yaw=yaw)
-                normal = np.array([-math.sin(yaw), math.cos(yaw)])
-                for side in (-1, 1):
-                    c = mid + normal * side * LANE_WIDTH_M
-                    self._static_box((c[0], c[1], 0.025), (inner, 0.06, 0.005), (0.85, 0.85, 0.85),
-                                     SEM_MARKING, yaw=yaw)
-                for side in (-1, 1):
-                    c = mid + normal * side * (half_w + SIDEWALK_WIDTH_M / 2)
-                    self._static_box((c[0], c[1], 0.08), (inner + PARKING_WIDTH_M, SIDEWALK_WIDTH_M / 2, 0.08),
-                                     (0.68, 0.68, 0.66), SEM_SIDEWALK, yaw=yaw)
-        for jx, jy in layout.junctions:
-            self._static_box((jx, jy, 0.012), (half_w, half_w, 0.012), (0.24, 0.24, 0.25), SEM_ROAD)
+        by_kind: dict[str, list] = {}
+        for surface in layout.surfaces:
+            by_kind.setdefault(surface.kind, []).append(surface_mesh(surface, SURFACE_Z[surface.kind]))
+        if "road" not in by_kind:  # imported maps: the lanes are the road surface
+            by_kind["road"] = []
+            for lane in layout.network.lanes.values():
+                left, right = lane.boundary()
+                by_kind["road"].append(strip_mesh(left[::2] if len(left) > 4 else left,
+                                                  right[::2] if len(right) > 4 else right, SURFACE_Z["road"]))
+        for kind, parts in by_kind.items():
+            self._mesh_body(parts, SURFACE_RGB[kind], SURFACE_SEMANTIC[kind])
+        if layout.decks:
+            self._mesh_body([slab_mesh(d.polygon_m, d.bottom_m, d.top_m) for d in layout.decks], (0.52, 0.50, 0.47),
+                            SEM_BUILDING)
         for bld in layout.buildings:
             sx, sy, sz = bld.size_m
             self._static_box((bld.center_world_m[0], bld.center_world_m[1], sz / 2),
-                             (sx / 2, sy / 2, sz / 2), bld.colour, SEM_BUILDING, solid=True)
+                             (sx / 2, sy / 2, sz / 2), bld.colour, SEM_BUILDING, yaw=bld.yaw_rad, solid=True)
+        self._add_trees(layout)
         slots = {s.slot_id: s for s in layout.slots}
         for car in layout.parked:
-            s = slots[car.slot_id]
-            self.add_vehicle(car.model, car.colour, (*s.position_world_m, 0.0), s.yaw_rad)
+            slot = slots[car.slot_id]
+            self.add_vehicle(car.model, car.colour, (*slot.position_world_m, 0.0), slot.yaw_rad)
+
+    def _add_trees(self, layout: TownLayout) -> None:
+        # Trees in three size classes, each created in one batched call.
+        classes: dict[tuple[float, float], list[tuple[float, float]]] = {}
+        for tree in layout.trees:
+            key = (round(tree.height_m / 2.5) * 2.5, round(tree.crown_radius_m * 2) / 2)
+            classes.setdefault(key, []).append(tree.position_world_m)
+        for (height, radius), positions in sorted(classes.items()):
+            trunk = pb.createVisualShape(pb.GEOM_CYLINDER, radius=0.25, length=height,
+                                         rgbaColor=[0.35, 0.25, 0.15, 1], physicsClientId=self.client)
+            crown = pb.createVisualShape(pb.GEOM_SPHERE, radius=radius, rgbaColor=[0.18, 0.45, 0.18, 1],
+                                         physicsClientId=self.client)
+            for shape, z in ((trunk, height / 2), (crown, height)):
+                uids = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape,
+                                          batchPositions=[[x, y, z] for x, y in positions], physicsClientId=self.client)
+                for uid in (uids if isinstance(uids, list | tuple) else [uids]):
+                    self._semantic[uid] = SEM_VEGETATION
 
     def add_vehicle(self, model: str, colour: str, position_world_m: tuple[float, float, float],
                     yaw_rad: float) -> int:

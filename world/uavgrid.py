@@ -1,8 +1,8 @@
 """The UAV waypoint grid (paper Appendix A.1): 40 m spacing at 80 m altitude.
 
-Built over the bounding box of the road nodes expanded by 50 m on each side, and kept only
-where a node lies within 40 m (horizontally) of a UGV decision anchor. Node ids are
-``U<i>_<j>`` with i along x and j along y, so neighbours are found by index arithmetic.
+Built over the bounding box of the road nodes (the spawn bounding box) expanded by 50 m on each
+side, and kept only where a node lies within 40 m (horizontally) of a UGV decision anchor. Node
+ids are ``U<i>_<j>`` with i along x and j along y, so neighbours are found by index arithmetic.
 """
 
 from __future__ import annotations
@@ -32,13 +32,14 @@ class UavGrid:
     altitude_m: float = ALTITUDE_M
 
     def inside(self, region: tuple[float, float, float, float]) -> list[str]:
+        """Ids of the nodes inside a region (the episode's active flags)."""
         x0, y0, x1, y1 = region
         return sorted(n.node_id for n in self.nodes.values()
                       if x0 <= n.position_world_m[0] <= x1 and y0 <= n.position_world_m[1] <= y1)
 
     def nearest(self, xy: tuple[float, float], among: list[str]) -> str:
         p = np.asarray(xy)
-        return min(among, key=lambda k: float(np.hypot(*(np.asarray(self.nodes[k].position_world_m[:2]) - p))))
+        return min(among, key=lambda k: (float(np.hypot(*(np.asarray(self.nodes[k].position_world_m[:2]) - p))), k))
 
     def neighbours(self, centre: str, active: set[str]) -> list[str]:
         """Active nodes of the 3x3 neighbourhood of ``centre``, excluding it (at most 8)."""
@@ -55,14 +56,17 @@ class UavGrid:
 def build_uav_grid(road_positions_m: np.ndarray, anchor_positions_m: np.ndarray) -> UavGrid:
     x_min, y_min = road_positions_m.min(axis=0) - EXPAND_M
     x_max, y_max = road_positions_m.max(axis=0) + EXPAND_M
-    nodes: dict[str, UavNode] = {}
     ni = int(np.floor((x_max - x_min) / SPACING_M)) + 1
     nj = int(np.floor((y_max - y_min) / SPACING_M)) + 1
-    for i in range(ni):
-        for j in range(nj):
-            x, y = x_min + i * SPACING_M, y_min + j * SPACING_M
-            d = np.min(np.hypot(anchor_positions_m[:, 0] - x, anchor_positions_m[:, 1] - y))
-            if d <= ROAD_PROXIMITY_M:
-                key = f"U{i}_{j}"
-                nodes[key] = UavNode(key, i, j, (round(float(x), 3), round(float(y), 3), ALTITUDE_M))
+    xs = x_min + SPACING_M * np.arange(ni)
+    ys = y_min + SPACING_M * np.arange(nj)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    near = np.zeros(gx.shape, dtype=bool)
+    for chunk in np.array_split(anchor_positions_m, max(1, len(anchor_positions_m) // 2000)):
+        d = np.hypot(gx[..., None] - chunk[:, 0], gy[..., None] - chunk[:, 1]).min(axis=-1)
+        near |= d <= ROAD_PROXIMITY_M
+    nodes = {}
+    for i, j in zip(*np.nonzero(near), strict=True):
+        key = f"U{i}_{j}"
+        nodes[key] = UavNode(key, int(i), int(j), (round(float(xs[i]), 3), round(float(ys[j]), 3), ALTITUDE_M))
     return UavGrid(nodes)

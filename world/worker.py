@@ -34,7 +34,7 @@ from agos.runtime.schemas import (
     StepEvent,
 )
 from agos.runtime.settings import AgosConfig
-from agos.world.asset import AssetMismatch, Town, town_for
+from agos.world.asset import AssetError, AssetMismatch, Town, town_for
 from agos.world.episode import EpisodeRunner
 from agos.world.scene import Scene
 
@@ -137,9 +137,17 @@ class WorldWorker:
     def _scene(self, spec: EpisodeSpec) -> tuple[Town, Scene]:
         key = (spec.town.generator, spec.town.seed)
         if key not in self._scenes:
-            town = town_for(spec.town.generator, spec.town.seed, spec.asset_sha256)
+            town = town_for(spec.town.generator, spec.town.seed, spec.asset_sha256, town_id=spec.town.town_id,
+                            fetch=self._fetch_asset)
             self._scenes[key] = (town, Scene(town.layout, renderer=self.cfg.world.renderer))
         return self._scenes[key]
+
+    def _fetch_asset(self, sha256: str) -> bytes:
+        """An imported town's asset from whoever serves ``agos/assets/<sha256>`` (the orchestrator)."""
+        replies = self.bus.request(keys.asset(sha256), b"", timeout_s=60.0)
+        if not replies:
+            raise AssetError(f"asset {sha256[:12]} is not served on this zenoh network")
+        return replies[0]
 
     def run_episode(self, spec: EpisodeSpec) -> None:
         started = time.monotonic()
@@ -159,7 +167,7 @@ class WorldWorker:
             if self.stop.is_set():
                 log.info("episode %s interrupted; not submitted", spec.episode_id)
                 return
-        except AssetMismatch as exc:
+        except (AssetMismatch, AssetError) as exc:
             record = self._failed(spec, "invalid", str(exc), started)
         except Exception as exc:
             log.error("episode %s crashed:\n%s", spec.episode_id, traceback.format_exc())

@@ -1,0 +1,179 @@
+"""``agos map ...`` and ``agos episodes ...``: town assets and episode files."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    maps = sub.add_parser("map", help="town assets: import OpenDRIVE maps, inspect, render")
+    map_sub = maps.add_subparsers(dest="map_command", required=True)
+    imp = map_sub.add_parser("import", help="build a frozen town asset from an OpenDRIVE .xodr file")
+    imp.add_argument("file", type=Path)
+    imp.add_argument("--out", type=Path, required=True, help="asset directory to write")
+    imp.add_argument("--seed", type=int, default=0, help="seed for buildings, props and parked traffic")
+    build = map_sub.add_parser("build", help="freeze a procedural town into an asset directory")
+    build.add_argument("town", help="grid-s7, curved-s13, ... or <generator>-s<seed>")
+    build.add_argument("--out", type=Path, required=True)
+    info = map_sub.add_parser("info", help="graph statistics and hash of a town")
+    info.add_argument("town", help="asset directory or procedural town id")
+    info.add_argument("--json", action="store_true")
+    render = map_sub.add_parser("render", help="top-down PNG of a town with its graphs and UAV grid")
+    render.add_argument("town")
+    render.add_argument("--out", type=Path, required=True)
+    render.add_argument("--size", type=int, default=1600)
+    render.add_argument("--region", type=float, nargs=4, metavar=("X0", "Y0", "X1", "Y1"))
+
+    episodes = sub.add_parser("episodes", help="episode files")
+    ep_sub = episodes.add_subparsers(dest="episodes_command", required=True)
+    sample = ep_sub.add_parser("sample", help="sample solvable episodes on one town")
+    sample.add_argument("--town", default="grid-s7", help="procedural town id or asset directory")
+    sample.add_argument("--difficulty", choices=["easy", "mid", "hard"], help="one difficulty (with -n)")
+    sample.add_argument("-n", type=int, default=1, help="episodes of --difficulty")
+    sample.add_argument("--per-difficulty", type=int, help="episodes of every difficulty instead")
+    sample.add_argument("--seed", type=int, default=1)
+    sample.add_argument("--out", type=Path, required=True)
+    split = ep_sub.add_parser("split", help="train/val over five towns and test on the held-out town")
+    split.add_argument("--out", type=Path, required=True, help="directory for train/val/test.jsonl")
+    split.add_argument("--train", type=int, default=5500)
+    split.add_argument("--val", type=int, default=2200)
+    split.add_argument("--test", type=int, default=210)
+    split.add_argument("--seed", type=int, default=1)
+    split.add_argument("--workers", type=int, default=2)
+    check = ep_sub.add_parser("check", help="validate an episode file")
+    check.add_argument("file", type=Path)
+
+
+def run(args: argparse.Namespace) -> int:
+    from agos.world.asset import AssetError, AssetMismatch
+
+    try:
+        if args.command == "map":
+            return _map(args)
+        return _episodes(args)
+    except (AssetError, AssetMismatch, ValueError) as exc:
+        print(f"{args.command} error: {exc}", file=sys.stderr)
+        return 2
+
+
+def map_info(town) -> dict:
+    import networkx as nx
+    import numpy as np
+
+    roads = town.roads
+    fine_len = [d["length_m"] for _, _, d in roads.fine.edges(data=True)]
+    dec_len = [e.length_m for e in roads.decision_edges.values()]
+    scc = max(nx.strongly_connected_components(roads.fine), key=len) if roads.fine.number_of_nodes() else set()
+    kinds: dict[str, int] = {}
+    for kind in roads.anchors.values():
+        kinds[kind] = kinds.get(kind, 0) + 1
+    return {
+        "asset_id": town.town_id, "sha256": town.sha256, "lanes": len(town.layout.network.lanes),
+        "fine_nodes": roads.fine.number_of_nodes(), "fine_edges": roads.fine.number_of_edges(),
+        "decision_nodes": roads.decision.number_of_nodes(), "decision_edges": roads.decision.number_of_edges(),
+        "uav_nodes": len(town.uav_grid.nodes),
+        "median_fine_edge_m": round(float(np.median(fine_len)), 3) if fine_len else None,
+        "median_decision_edge_m": round(float(np.median(dec_len)), 3) if dec_len else None,
+        "largest_scc_fraction": round(len(scc) / max(1, roads.fine.number_of_nodes()), 4),
+        "anchor_kinds": dict(sorted(kinds.items())), "buildings": len(town.layout.buildings),
+        "trees": len(town.layout.trees), "decks": len(town.layout.decks), "parking_slots": len(town.layout.slots),
+        "parked_vehicles": len(town.layout.parked), "warnings": len(town.layout.network.warnings),
+    }
+
+
+def _map(args: argparse.Namespace) -> int:
+    from agos.world.asset import freeze, open_town, save_town
+
+    if args.map_command == "import":
+        from agos.world.imported import imported_layout
+
+        started = time.monotonic()
+        layout = imported_layout(args.file, seed=args.seed)
+        town = freeze(layout)
+        save_town(town, args.out)
+        for warning in layout.network.warnings[:20]:
+            print(f"warning: {warning}", file=sys.stderr)
+        if len(layout.network.warnings) > 20:
+            print(f"warning: ... and {len(layout.network.warnings) - 20} more (see manifest)", file=sys.stderr)
+        info = map_info(town)
+        print(f"imported {args.file.name} as {town.town_id} in {time.monotonic() - started:.1f} s: {info['lanes']} lanes, "
+              f"{info['fine_nodes']} fine nodes, {info['decision_nodes']} anchors, {info['uav_nodes']} UAV nodes, "
+              f"sha256 {town.sha256[:16]} -> {args.out}")
+        return 0
+    if args.map_command == "build":
+        town = open_town(args.town)
+        save_town(town, args.out)
+        print(f"{town.town_id}: sha256 {town.sha256[:16]} -> {args.out}")
+        return 0
+    town = open_town(args.town)
+    if args.map_command == "info":
+        info = map_info(town)
+        if args.json:
+            print(json.dumps(info, indent=2))
+        else:
+            for key, value in info.items():
+                print(f"{key:24s} {value}")
+        return 0
+    if args.map_command == "render":
+        import cv2
+
+        from agos.world.topdown import debug_map
+
+        nodes = [n.position_world_m for n in town.uav_grid.nodes.values()]
+        image = debug_map(town.layout, town.roads, nodes, size_px=args.size, region=tuple(args.region) if args.region else None)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(args.out), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        print(args.out)
+        return 0
+    raise AssertionError(args.map_command)
+
+
+def _episodes(args: argparse.Namespace) -> int:
+    from agos.world.episodes import read_episodes
+
+    if args.episodes_command == "check":
+        episodes = read_episodes(args.file)
+        print(f"{args.file}: {len(episodes)} valid episodes")
+        return 0
+    if args.episodes_command == "sample":
+        from agos.world.asset import open_town
+        from agos.world.episodes import DIFFICULTIES, sample_episode, write_episodes
+        from agos.world.scene import Scene
+
+        town = open_town(args.town)
+        scene = Scene(town.layout)
+        try:
+            if args.per_difficulty:
+                plan = [(d, args.per_difficulty) for d in DIFFICULTIES]
+            elif args.difficulty:
+                plan = [(args.difficulty, args.n)]
+            else:
+                print("episodes error: give --difficulty D -n N or --per-difficulty N", file=sys.stderr)
+                return 2
+            episodes = [sample_episode(town, scene, d, i, seed=args.seed, stream=DIFFICULTIES.index(d))
+                        for d, n in plan for i in range(n)]
+        finally:
+            scene.close()
+        write_episodes(args.out, episodes)
+        print(f"wrote {len(episodes)} solvable episodes on {town.town_id} (asset {town.sha256[:12]}) to {args.out}")
+        return 0
+    if args.episodes_command == "split":
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        from agos.world.splits import build_split, plan_jobs
+        from agos.world.towns import TEST_TOWNS, TOWNS
+
+        trainval = [t for t in TOWNS if t not in TEST_TOWNS]
+        jobs = plan_jobs(train=args.train, val=args.val, test=args.test, trainval_towns=trainval,
+                         test_towns=list(TEST_TOWNS), seed=args.seed)
+        total = sum(j.count for j in jobs)
+        with Progress(TextColumn("[bold]sampling"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()) as bar:
+            task = bar.add_task("episodes", total=total)
+            manifest = build_split(args.out, jobs, workers=args.workers, progress=lambda n: bar.advance(task, n))
+        print(f"{args.out}: " + ", ".join(f"{k} {v}" for k, v in manifest["counts"].items()))
+        return 0
+    raise AssertionError(args.episodes_command)

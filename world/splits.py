@@ -1,0 +1,94 @@
+"""Dataset splits like the paper's: train and val over five towns, test on a held-out town.
+
+Defaults are the paper's proportions: 5,500 train and 2,200 val episodes spread evenly over the
+five train/val towns and the three difficulties, and 210 test episodes (70 per difficulty) on
+the held-out town. Episodes are sampled in parallel worker processes (spawned, one PyBullet
+client each); the result does not depend on the number of workers.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+from agos.runtime.schemas import EpisodeSpec
+from agos.world.episodes import DIFFICULTIES, write_episodes
+
+SPLIT_STREAMS = {"train": 0, "val": 100, "test": 200}
+"""Disjoint random streams, so train and val never share an episode."""
+
+
+@dataclass(frozen=True)
+class Job:
+    split: str
+    town: str
+    difficulty: str
+    start: int
+    count: int
+    seed: int
+
+
+def plan_jobs(*, train: int, val: int, test: int, trainval_towns: list[str], test_towns: list[str], seed: int,
+              chunk: int = 10) -> list[Job]:
+    jobs: list[Job] = []
+    for split, total, towns in (("train", train, trainval_towns), ("val", val, trainval_towns),
+                                ("test", test, test_towns)):
+        cells = [(t, d) for t in towns for d in DIFFICULTIES]
+        for k, (town, difficulty) in enumerate(cells):
+            n = total // len(cells) + (1 if k < total % len(cells) else 0)
+            for start in range(0, n, chunk):
+                jobs.append(Job(split, town, difficulty, start, min(chunk, n - start), seed))
+    return jobs
+
+
+_WORKER_TOWNS: dict = {}
+
+
+def run_job(job: Job) -> list[str]:
+    """Sample one chunk in a worker process; returns the episodes as JSON lines."""
+    from agos.world.asset import open_town
+    from agos.world.episodes import sample_episode
+    from agos.world.scene import Scene
+
+    if job.town not in _WORKER_TOWNS:
+        town = open_town(job.town)
+        _WORKER_TOWNS[job.town] = (town, Scene(town.layout))
+    town, scene = _WORKER_TOWNS[job.town]
+    stream = SPLIT_STREAMS[job.split] + DIFFICULTIES.index(job.difficulty)
+    return [sample_episode(town, scene, job.difficulty, i, seed=job.seed, stream=stream).model_dump_json()
+            for i in range(job.start, job.start + job.count)]
+
+
+def build_split(out_dir: Path, jobs: list[Job], *, workers: int, progress: Callable[[int], None] | None = None) -> dict:
+    results: dict[Job, list[str]] = {}
+    if workers <= 1:
+        for job in jobs:
+            results[job] = run_job(job)
+            if progress:
+                progress(job.count)
+    else:
+        with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+            futures = {pool.submit(run_job, job): job for job in jobs}
+            for future in _as_completed(futures):
+                results[futures[future]] = future.result()
+                if progress:
+                    progress(futures[future].count)
+    counts = {}
+    for split in ("train", "val", "test"):
+        lines = [line for job in jobs if job.split == split for line in results[job]]
+        if lines:
+            write_episodes(out_dir / f"{split}.jsonl", [EpisodeSpec.model_validate_json(x) for x in lines])
+        counts[split] = len(lines)
+    manifest = {"counts": counts, "towns": sorted({j.town for j in jobs}), "seed": jobs[0].seed if jobs else None}
+    (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    return manifest
+
+
+def _as_completed(futures):
+    from concurrent.futures import as_completed
+
+    return as_completed(futures)
