@@ -29,12 +29,14 @@ log = logging.getLogger("agos.demo")
 
 
 def load_episodes(cfg: AgosConfig) -> list[EpisodeSpec]:
-    from agos.world.asset import open_town
-    from agos.world.episodes import generate_episodes, read_episodes
-    from agos.world.scene import Scene
+    from agos.world.episodes import read_episodes
 
     if cfg.run.episodes_file is not None:
         return read_episodes(cfg.run.episodes_file)
+    from agos.world.asset import open_town
+    from agos.world.episodes import generate_episodes
+    from agos.world.scene import Scene
+
     town = open_town(cfg.run.town)
     scene = Scene(town.layout)  # episodes are checked solvable by rendering
     try:

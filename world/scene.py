@@ -12,11 +12,35 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import pybullet as pb
 
 from agos.world.catalog import CARGO_WHITE, GLASS, TYRE, body_type, colour_rgb
 from agos.world.meshes import chunks, slab_mesh, strip_mesh, surface_mesh
 from agos.world.town import TownLayout
+
+
+def _import_pybullet_quietly():
+    """pybullet prints a build banner from C on import; keep it out of user-facing output."""
+    import os
+    import sys
+
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        os.dup2(devnull, 2)
+        import pybullet
+
+        return pybullet
+    finally:
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for fd in (*saved, devnull):
+            os.close(fd)
+
+
+pb = _import_pybullet_quietly()
 
 # Semantic classes of the uint8 semantic map.
 SEM_NONE, SEM_GROUND, SEM_ROAD, SEM_SIDEWALK, SEM_BUILDING, SEM_VEHICLE, SEM_MARKING, SEM_VEGETATION = range(8)
