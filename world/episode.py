@@ -28,6 +28,7 @@ from typing import Protocol
 import networkx as nx
 import numpy as np
 
+from agos.runtime.codec import encode_png
 from agos.runtime.schemas import (
     Action,
     ActionName,
@@ -54,6 +55,7 @@ from agos.world.options import shortest_path, uav_options, ugv_options
 from agos.world.roadgraph import RoadGraphs
 from agos.world.scene import Scene
 from agos.world.solvability import ground_evidence, line_of_sight, target_points
+from agos.world.topdown import RegionMap
 
 ROLE_ORDER: tuple[Role, Role] = ("uav", "ugv")
 
@@ -165,6 +167,8 @@ class EpisodeRunner:
         self._added = [self.target_uid] + [
             self.scene.add_vehicle(d.model, d.colour, d.position_world_m, d.yaw_rad) for d in spec.distractors]
         self.target_xy = (spec.target.position_world_m[0], spec.target.position_world_m[1])
+        self.region_map = RegionMap(self.town.layout, spec.region_world_m, size_px=self.cfg.cameras.map_px) \
+            if self.cfg.cameras.map_px else None
         self.references: list[ImageFrame] = sensors.reference_views(
             self.scene, self.target_uid, spec.target.position_world_m, spec.target.yaw_rad, self.cfg.cameras)
         start_uav = self.town.uav_grid.nodes[spec.uav_start_waypoint]
@@ -221,7 +225,7 @@ class EpisodeRunner:
             self._uav_target_px = sensors.target_pixels(shot, self.target_uid)
             if self.tau is None and self._uav_target_px >= self.cfg.uav_visible_min_px:
                 self.tau = self.uav.decisions
-            images = sensors.frames_of(shot, self.scene, cam, with_grid=True)
+            images = sensors.frames_of(shot, self.scene, cam, with_grid=True) + self._map_frame()
             options = [self._uav_waypoint(n) for n in self._uav_options()]
             return Observation(
                 run_id=self.run_id, episode_id=self.spec.episode_id, role="uav",
@@ -233,10 +237,10 @@ class EpisodeRunner:
                 coordination=self._coordination(), grid_rows=sensors.GRID_ROWS, grid_cols=sensors.GRID_COLS)
         self.ugv.decisions += 1
         if self.ugv.mode == "stop_6view":
-            images = [f for shot in self.ugv.six for f in sensors.frames_of(shot, self.scene, cam)]
+            images = [f for shot in self.ugv.six for f in sensors.frames_of(shot, self.scene, cam)] + self._map_frame()
         else:
             shot = sensors.ground_view(self.scene, "forward", self._ugv_xy(), self.ugv.heading_rad, cam)
-            images = sensors.frames_of(shot, self.scene, cam)
+            images = sensors.frames_of(shot, self.scene, cam) + self._map_frame()
         options = self._ugv_options()
         return Observation(
             run_id=self.run_id, episode_id=self.spec.episode_id, role="ugv",
@@ -245,6 +249,14 @@ class EpisodeRunner:
             references=self.references, legal_actions=self._ugv_legal(options), waypoint_options=options,
             region_world_m=self.spec.region_world_m, coordination=self._coordination(),
             fresh_stop_observe=self.ugv.fresh_stop)
+
+    def _map_frame(self) -> list[ImageFrame]:
+        """M: the episode region from above with both agents' markers (north up)."""
+        if self.region_map is None:
+            return []
+        rgb = self.region_map.render(uav_xy=self.uav.position[:2], ugv_xy=self._ugv_xy(), ugv_yaw_rad=self.ugv.heading_rad)
+        return [ImageFrame(name="map", kind="map", encoding="png", data=encode_png(rgb),
+                           metres_per_px=self.region_map.metres_per_px)]
 
     def _uav_options(self) -> list[str]:
         return uav_options(self.town.uav_grid, self.uav.position[:2], self.active_uav)

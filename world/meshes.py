@@ -106,6 +106,19 @@ def merge(parts: list[Mesh]) -> Mesh:
     return np.concatenate(verts), np.concatenate(idx)
 
 
+def vertex_normals(vertices: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """Unit normals per vertex, averaged over the (counter-clockwise) triangles that use it.
+    PyBullet needs them: a mesh given without normals is lit by ambient light only."""
+    tri = indices.reshape(-1, 3)
+    a, b, c = vertices[tri[:, 0]], vertices[tri[:, 1]], vertices[tri[:, 2]]
+    face = np.cross(b - a, c - a)
+    normals = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(normals, tri[:, k], face)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return np.where(length > 0, normals / np.maximum(length, 1e-12), [0.0, 0.0, 1.0])
+
+
 def chunks(parts: list[Mesh], max_vertices: int = 30_000) -> list[Mesh]:
     """Merge meshes into groups of at most ``max_vertices`` vertices."""
     out, group, count = [], [], 0

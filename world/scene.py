@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agos.world.catalog import CARGO_WHITE, GLASS, TYRE, body_type, colour_rgb
-from agos.world.meshes import chunks, slab_mesh, strip_mesh, surface_mesh
+from agos.world.meshes import chunks, slab_mesh, strip_mesh, surface_mesh, vertex_normals
 from agos.world.town import TownLayout
 
 
@@ -120,8 +120,8 @@ class Scene:
     def _mesh_body(self, parts: list, rgb: tuple[float, float, float], semantic: int) -> None:
         for vertices, indices in chunks(parts):
             shape = pb.createVisualShape(pb.GEOM_MESH, vertices=vertices.tolist(), indices=indices.tolist(),
-                                         rgbaColor=[*rgb, 1.0], specularColor=[0.02, 0.02, 0.02],
-                                         physicsClientId=self.client)
+                                         normals=vertex_normals(vertices, indices).tolist(), rgbaColor=[*rgb, 1.0],
+                                         specularColor=[0.02, 0.02, 0.02], physicsClientId=self.client)
             uid = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape, physicsClientId=self.client)
             self._semantic[uid] = semantic
 

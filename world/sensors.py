@@ -38,6 +38,8 @@ class CameraSettings:
     ground_fov_deg: float = 70.0
     reference_px: int = 160
     rgb_encoding: str = "jpeg"
+    map_px: int = 384
+    """Side of the top-down map M of the episode region (0: no map)."""
 
 
 @dataclass

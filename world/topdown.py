@@ -73,12 +73,28 @@ def draw_layout(canvas: MapCanvas, layout: TownLayout) -> None:
         canvas.poly(deck.polygon_m, COLOURS_BGR["deck"])
 
 
-def region_map(layout: TownLayout, region: tuple[float, float, float, float], *, size_px: int = 384,
-               uav_xy: Sequence[float] | None = None, ugv_xy: Sequence[float] | None = None,
-               ugv_yaw_rad: float = 0.0) -> tuple[np.ndarray, float]:
-    """RGB map of ``region`` with agent markers, and its metres per pixel."""
-    canvas = MapCanvas(region, size_px)
-    draw_layout(canvas, layout)
+class RegionMap:
+    """The map M of an episode region: the static layout drawn once, agent markers per call."""
+
+    def __init__(self, layout: TownLayout, region: tuple[float, float, float, float], *, size_px: int = 384) -> None:
+        self.canvas = MapCanvas(region, size_px)
+        draw_layout(self.canvas, layout)
+        cv2.rectangle(self.canvas.image, (0, 0), (size_px - 1, size_px - 1), (0, 0, 0), 1)
+        self.base = self.canvas.image.copy()
+
+    @property
+    def metres_per_px(self) -> float:
+        return self.canvas.metres_per_px
+
+    def render(self, *, uav_xy: Sequence[float] | None, ugv_xy: Sequence[float] | None,
+               ugv_yaw_rad: float = 0.0) -> np.ndarray:
+        """RGB map with the UAV (cyan triangle) and the UGV (magenta dot with heading)."""
+        self.canvas.image = self.base.copy()
+        _markers(self.canvas, uav_xy, ugv_xy, ugv_yaw_rad)
+        return cv2.cvtColor(self.canvas.image, cv2.COLOR_BGR2RGB)
+
+
+def _markers(canvas: MapCanvas, uav_xy, ugv_xy, ugv_yaw_rad: float) -> None:
     if ugv_xy is not None:
         canvas.dot(ugv_xy, (200, 40, 200), 5)
         tip = np.asarray(ugv_xy) + 9.0 * np.array([np.cos(ugv_yaw_rad), np.sin(ugv_yaw_rad)])
@@ -86,8 +102,14 @@ def region_map(layout: TownLayout, region: tuple[float, float, float, float], *,
     if uav_xy is not None:
         x, y = uav_xy
         canvas.poly(np.array([(x, y + 8), (x - 6, y - 6), (x + 6, y - 6)]), (220, 200, 0))
-    cv2.rectangle(canvas.image, (0, 0), (size_px - 1, size_px - 1), (0, 0, 0), 1)
-    return cv2.cvtColor(canvas.image, cv2.COLOR_BGR2RGB), canvas.metres_per_px
+
+
+def region_map(layout: TownLayout, region: tuple[float, float, float, float], *, size_px: int = 384,
+               uav_xy: Sequence[float] | None = None, ugv_xy: Sequence[float] | None = None,
+               ugv_yaw_rad: float = 0.0) -> tuple[np.ndarray, float]:
+    """RGB map of ``region`` with agent markers, and its metres per pixel."""
+    region_map_ = RegionMap(layout, region, size_px=size_px)
+    return region_map_.render(uav_xy=uav_xy, ugv_xy=ugv_xy, ugv_yaw_rad=ugv_yaw_rad), region_map_.metres_per_px
 
 
 def debug_map(layout: TownLayout, roads, uav_nodes: Sequence[tuple[float, float]] = (), *, size_px: int = 1600,
