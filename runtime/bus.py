@@ -97,7 +97,7 @@ class _ZenohQuery:
         self.payload = query.payload.to_bytes() if query.payload is not None else b""
 
     def reply(self, payload: bytes) -> None:
-        self._query.reply(self._query.key_expr, payload)
+        self._query.reply(self.key, payload)
 
 
 class ZenohBus:

@@ -96,7 +96,7 @@ def live(run: str, kind: LiveKind, ident: str) -> str:
 
 
 def asset(sha256: str) -> str:
-    return f"{ROOT}/assets/{sha256}"
+    return f"{ROOT}/assets/{sha256 if sha256 == '*' else check_chunk(sha256, what='asset hash')}"
 
 
 def episode_of(key: str) -> str:

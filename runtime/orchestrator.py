@@ -31,6 +31,8 @@ class Orchestrator:
         self.policies = policies
         self.created_utc = datetime.now(UTC).isoformat(timespec="seconds")
         self._queries = bus.serve(keys.jobs(run_id), lambda q: None)
+        # Imported towns travel by hash: workers without the file ask agos/assets/<sha256>.
+        self._asset_queries = bus.serve(keys.asset("*"), lambda q: None)
         self._inbox = Inbox()
         bus.subscribe(keys.result(run_id, "*"), self._inbox)
         bus.subscribe(keys.result_ack(run_id, "*"), self._inbox)
@@ -66,7 +68,19 @@ class Orchestrator:
                     newly.append(self.records[message.episode_id])
         for query in self._queries.drain():
             self._answer(query)
+        for query in self._asset_queries.drain():
+            self._answer_asset(query)
         return newly
+
+    def _answer_asset(self, query) -> None:
+        """Serve a town asset from the local asset cache; unknown hashes get no reply."""
+        from agos.world.asset import cache_dir
+
+        sha = query.key.rsplit("/", 1)[-1]
+        path = cache_dir() / keys.check_chunk(sha, what="asset hash") / "asset.msgpack"
+        if path.exists():
+            log.info("serving asset %s (%d bytes)", sha[:12], path.stat().st_size)
+            query.reply(path.read_bytes())
 
     def _answer(self, query) -> None:
         try:
