@@ -1,0 +1,142 @@
+"""World benchmarks (issue 3), each printed as a ratio against a baseline measured in this run.
+
+1. Observation cost: a UAV observation (nadir render + RGB/grid/depth/semantic frames + map)
+   and a six-view observation (six renders + frames) against bare ``getCameraImage`` calls of
+   the same views. Goal: at most 1.15x.
+2. Import time of the largest CARLA town (OpenDRIVE -> frozen asset), against parsing its XML.
+3. World-process memory: peak RSS of a process holding the largest CARLA town's scene against
+   a process that imported agos and PyBullet only.
+
+    .venv/bin/python bench/bench_world.py [--repeats 15] [--carla ../shared/maps/carla/Town04.xodr]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import time
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from agos.world import sensors
+from agos.world.asset import open_town
+from agos.world.scene import Scene, pb
+
+
+def bare_render(scene: Scene, eye, forward, up, fov: float, px: int) -> None:
+    view = pb.computeViewMatrix(list(eye), list(np.add(eye, forward)), list(up))
+    proj = pb.computeProjectionMatrixFOV(fov, 1.0, 0.3, 400.0)
+    pb.getCameraImage(px, px, view, proj, renderer=pb.ER_TINY_RENDERER, shadow=0, lightDirection=[0.35, 0.25, 1.0],
+                      lightAmbientCoeff=0.55, lightDiffuseCoeff=0.45, lightSpecularCoeff=0.05,
+                      physicsClientId=scene.client)
+
+
+def paired_medians(baseline, candidate, repeats: int) -> tuple[float, float]:
+    """Median times of two functions, sampled alternately so that load changes on the machine
+    affect both alike."""
+    baseline(), candidate()
+    t_base, t_cand = [], []
+    for _ in range(repeats):
+        for fn, out in ((baseline, t_base), (candidate, t_cand)):
+            start = time.perf_counter()
+            fn()
+            out.append(time.perf_counter() - start)
+    return statistics.median(t_base), statistics.median(t_cand)
+
+
+def observation_costs(repeats: int) -> None:
+    from agos.runtime.codec import encode_png
+    from agos.world.topdown import RegionMap
+
+    town = open_town("grid-s7")
+    scene = Scene(town.layout)
+    cam = sensors.CameraSettings()
+    xy, alt, heading = (5.0, 5.0), 80.0, 0.3
+    region = (xy[0] - 150, xy[1] - 150, xy[0] + 150, xy[1] + 150)
+    region_map = RegionMap(town.layout, region, size_px=cam.map_px)
+
+    def uav_obs():
+        shot = sensors.nadir(scene, xy, alt, cam)
+        sensors.frames_of(shot, scene, cam, with_grid=True)
+        encode_png(region_map.render(uav_xy=xy, ugv_xy=xy, ugv_yaw_rad=heading))
+
+    def uav_bare():
+        bare_render(scene, (xy[0], xy[1], alt + 0.013), (0, 0, -1), (0, 1, 0), cam.nadir_fov_deg, cam.nadir_px)
+
+    def six_obs():
+        for shot in sensors.six_views(scene, xy, heading, cam):
+            sensors.frames_of(shot, scene, cam)
+        encode_png(region_map.render(uav_xy=xy, ugv_xy=xy, ugv_yaw_rad=heading))
+
+    def six_bare():
+        for _, offset in sensors.SIX_VIEWS:
+            a = heading + np.radians(offset)
+            bare_render(scene, (xy[0], xy[1], sensors.UGV_CAMERA_HEIGHT_M), (np.cos(a), np.sin(a), -0.05), (0, 0, 1),
+                        cam.ground_fov_deg, cam.ground_px)
+
+    for name, obs, bare in (("UAV observation", uav_obs, uav_bare), ("six-view observation", six_obs, six_bare)):
+        t_bare, t_obs = paired_medians(bare, obs, repeats)
+        ratio = t_obs / t_bare
+        print(f"{name:22s} {1000 * t_obs:7.1f} ms vs bare getCameraImage {1000 * t_bare:7.1f} ms: "
+              f"{ratio:.3f}x (goal <= 1.15: {'met' if ratio <= 1.15 else 'NOT met'})")
+    scene.close()
+
+
+def import_cost(path: Path) -> None:
+    from agos.world.asset import freeze
+    from agos.world.imported import imported_layout
+
+    start = time.perf_counter()
+    ET.parse(path)
+    t_xml = time.perf_counter() - start
+    start = time.perf_counter()
+    town = freeze(imported_layout(path))
+    t_import = time.perf_counter() - start
+    print(f"import {path.name:14s} {t_import:7.2f} s vs XML parse only {t_xml:.2f} s: {t_import / t_xml:.1f}x "
+          f"({len(town.layout.network.lanes)} lanes, {town.roads.fine.number_of_nodes()} fine nodes, "
+          f"{len(town.document) / 1e6:.1f} MB asset)")
+
+
+PROBE = """
+import json, resource, sys
+import agos.world.scene
+if sys.argv[1] != "-":
+    from agos.world.asset import freeze
+    from agos.world.imported import imported_layout
+    from agos.world.scene import Scene
+    town = freeze(imported_layout(__import__("pathlib").Path(sys.argv[1])))
+    scene = Scene(town.layout)
+print(json.dumps(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))
+"""
+
+
+def memory(path: Path) -> None:
+    def peak_kb(arg: str) -> int:
+        out = subprocess.run([sys.executable, "-c", PROBE, arg], capture_output=True, text=True, check=True)
+        return int(json.loads(out.stdout.strip().splitlines()[-1]))
+
+    base, loaded = peak_kb("-"), peak_kb(str(path))
+    print(f"world process memory   {loaded / 1024:7.0f} MB with {path.stem} loaded vs {base / 1024:.0f} MB "
+          f"(agos + PyBullet imported): {loaded / base:.2f}x")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--carla", type=Path, default=Path(__file__).resolve().parents[2] / "shared/maps/carla/Town04.xodr")
+    args = parser.parse_args()
+    observation_costs(args.repeats)
+    if args.carla.exists():
+        import_cost(args.carla)
+        memory(args.carla)
+    else:
+        print(f"skipped import and memory: {args.carla} not found")
+
+
+if __name__ == "__main__":
+    main()
