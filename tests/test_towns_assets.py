@@ -163,9 +163,7 @@ def test_flipped_byte_raises_asset_error_naming_the_path(saved, where):
         load_town(saved)
 
 
-@pytest.mark.xfail(strict=True, raises=IndexError,
-                   reason="BUG world/asset.py:172-175: town_from_document runs before the hash check and only "
-                          "ValueError/KeyError/TypeError are wrapped, so a tampered fine edge escapes as IndexError")
+
 def test_tampered_fine_edge_raises_asset_error(saved):
     data_path = saved / "asset.msgpack"
     doc = msgpack.unpackb(data_path.read_bytes(), raw=False, strict_map_key=False)

@@ -169,15 +169,16 @@ def load_town(path: Path, expected_sha256: str | None = None) -> Town:
         data = data_path.read_bytes()
     except OSError as exc:
         raise AssetError(f"{data_path}: cannot read asset ({exc.strerror})") from None
+    manifest_path = data_path.parent / "manifest.json"
+    if manifest_path.exists():  # a damaged file is caught by its hash before anything parses it
+        digest = hashlib.sha256(data).hexdigest()
+        recorded = json.loads(manifest_path.read_text()).get("sha256")
+        if recorded != digest:
+            raise AssetError(f"{data_path}: content hash {digest[:12]} differs from manifest {str(recorded)[:12]}")
     try:
         town = town_from_document(data)
-    except (ValueError, KeyError, TypeError, msgpack.ExtraData) as exc:
-        raise AssetError(f"{data_path}: not a valid agos town asset ({exc})") from None
-    manifest_path = data_path.parent / "manifest.json"
-    if manifest_path.exists():
-        recorded = json.loads(manifest_path.read_text()).get("sha256")
-        if recorded != town.sha256:
-            raise AssetError(f"{data_path}: content hash {town.sha256[:12]} differs from manifest {str(recorded)[:12]}")
+    except (ValueError, KeyError, TypeError, IndexError, msgpack.ExtraData, nx.NetworkXException) as exc:
+        raise AssetError(f"{data_path}: not a valid agos town asset ({type(exc).__name__}: {exc})") from None
     if expected_sha256 is not None and town.sha256 != expected_sha256:
         raise AssetMismatch(f"{data_path}: asset {town.town_id} has sha256 {town.sha256[:12]}..., "
                             f"the episode expects {expected_sha256[:12]}...")
@@ -224,7 +225,10 @@ def town_for(generator: str, seed: int, expected_sha256: str | None = None, *, t
         data = fetch(expected_sha256)
         if hashlib.sha256(data).hexdigest() != expected_sha256:
             raise AssetMismatch(f"town {town_id}: fetched asset does not hash to {expected_sha256[:12]}")
-        save_town(town_from_document(data), cached)
+        try:
+            save_town(town_from_document(data), cached)
+        except (ValueError, KeyError, TypeError, IndexError, msgpack.ExtraData, nx.NetworkXException) as exc:
+            raise AssetError(f"town {town_id}: fetched asset is not valid ({type(exc).__name__}: {exc})") from None
     return _load_cached(str(cached), expected_sha256)
 
 

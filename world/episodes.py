@@ -52,17 +52,19 @@ def generate_episodes(town: Town, scene, *, per_difficulty: int, seed: int,
     return episodes
 
 
-def sample_episode(town: Town, scene, difficulty: Difficulty, index: int, *, seed: int, stream: int = 0) -> EpisodeSpec:
-    """The ``index``-th episode of a difficulty; deterministic in (town, difficulty, index, seed)."""
+def sample_episode(town: Town, scene, difficulty: Difficulty, index: int, *, seed: int, stream: int = 0,
+                   split: str | None = None) -> EpisodeSpec:
+    """The ``index``-th episode of a difficulty; deterministic in (town, difficulty, index, seed,
+    stream). ``split`` (train, val, test) becomes part of the id, so ids are unique across splits."""
     for attempt in range(MAX_ATTEMPTS):
         ep_seed = int(np.random.SeedSequence([seed, stream, index, attempt]).generate_state(1)[0])
-        spec = _candidate(town, difficulty, index, ep_seed)
+        spec = _candidate(town, difficulty, index, ep_seed, split)
         if spec is not None and _solvable(town, scene, spec):
             return spec
     raise Unsolvable(f"town {town.town_id}: no solvable {difficulty} episode in {MAX_ATTEMPTS} attempts")
 
 
-def _candidate(town: Town, difficulty: Difficulty, index: int, seed: int) -> EpisodeSpec | None:
+def _candidate(town: Town, difficulty: Difficulty, index: int, seed: int, split: str | None) -> EpisodeSpec | None:
     rng = np.random.default_rng(seed)
     layout, roads = town.layout, town.roads
     size = REGION_SIZE_M[difficulty]
@@ -105,7 +107,8 @@ def _candidate(town: Town, difficulty: Difficulty, index: int, seed: int) -> Epi
     if not starts:
         return None
     return EpisodeSpec(
-        episode_id=f"{layout.town_id}-{difficulty}-{index:03d}-v{EPISODE_VERSION}", town=town_ref(town),
+        episode_id=f"{layout.town_id}-{split + '-' if split else ''}{difficulty}-{index:03d}-v{EPISODE_VERSION}",
+        town=town_ref(town),
         asset_sha256=town.sha256, difficulty=difficulty, region_world_m=region, target=target,
         distractors=distractors, uav_start_waypoint=str(rng.choice(active)),
         ugv_start_waypoint=roads.anchor_id(int(rng.choice(starts))), active_uav_waypoints=active,

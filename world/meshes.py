@@ -83,11 +83,13 @@ def surface_mesh(surface: Surface, z: float) -> Mesh:
 
 
 def slab_mesh(polygon: np.ndarray, bottom_m: float, top_m: float) -> Mesh:
-    """A deck: top face, underside and the two long sides of a strip polygon."""
+    """A closed deck: top face, underside, the two long sides and both end caps of a strip
+    polygon (every vertical face drawn both ways, so no view finds an open side)."""
     half = len(polygon) // 2
     a, b = polygon[:half], polygon[half:][::-1]
     parts = [strip_mesh(a, b, top_m), strip_mesh(a, b, bottom_m, up=False)]
-    for edge in (a, b):
+    caps = [np.stack([a[0], b[0]]), np.stack([a[-1], b[-1]])]
+    for edge in (a, b, *caps):
         n = len(edge)
         v = np.concatenate([np.column_stack([edge, np.full(n, bottom_m)]), np.column_stack([edge, np.full(n, top_m)])])
         i = np.arange(n - 1)

@@ -59,7 +59,7 @@ def run_job(job: Job) -> list[str]:
         _WORKER_TOWNS[job.town] = (town, Scene(town.layout))
     town, scene = _WORKER_TOWNS[job.town]
     stream = SPLIT_STREAMS[job.split] + DIFFICULTIES.index(job.difficulty)
-    return [sample_episode(town, scene, job.difficulty, i, seed=job.seed, stream=stream).model_dump_json()
+    return [sample_episode(town, scene, job.difficulty, i, seed=job.seed, stream=stream, split=job.split).model_dump_json()
             for i in range(job.start, job.start + job.count)]
 
 
