@@ -98,6 +98,8 @@ CandidateStatus = Literal["pending", "arrived", "rejected", "confirmed", "false_
 
 
 class Candidate(Model):
+    """A handoff region; each role holds its own copy, updated through the link model."""
+
     candidate_id: str
     """``C001``, ``C002`` ... in order of annotation (1-based rank for ACG)."""
     cell: str
@@ -244,6 +246,41 @@ class CandidateOutcome(Model):
     """Distance from the candidate centre to the target centre (CErr)."""
 
 
+class LedgerEntry(Model):
+    """One transmission between the roles through the link model."""
+
+    seq: int
+    kind: Literal["sync", "beacon", "message"]
+    """``sync``: coordination knowledge after a decision; ``beacon``: periodic re-broadcast;
+    ``message``: agent text."""
+    sender: Role
+    receiver: Role
+    sent_s: float
+    size_bytes: int
+    delivered: bool
+    arrive_s: float | None = None
+    delay_s: float | None = None
+    drop_reason: str | None = None
+
+
+class LinkStats(Model):
+    """Per-episode summary of the ledger (DESIGN.md §7 ``link`` field)."""
+
+    profile: str
+    sent: int
+    delivered: int
+    dropped: dict[str, int]
+    delivery_rate: float | None
+    mean_delay_s: float | None
+    max_delay_s: float | None
+    bytes_sent: int
+    mean_info_age_s: dict[str, float | None]
+    """Per role: mean age of the teammate information its decisions were based on."""
+    candidates_delivered: int
+    candidates_lost: int
+    """Candidates the UGV never learned of."""
+
+
 class EpisodeRecord(Model):
     """World -> evaluator: the episode summary (DESIGN.md §7 fields plus provenance)."""
 
@@ -279,6 +316,10 @@ class EpisodeRecord(Model):
     asset_sha256: str
     seed: int
     renderer: str
+    comm_profile: str = "ideal"
+    timing_mode: Literal["lockstep", "realtime"] = "lockstep"
+    link: LinkStats | None = None
+    ledger: list[LedgerEntry] = Field(default_factory=list)
     confirm_rejection: str | None = None
     """Why the checker refused the final CONFIRM (a false confirm), else None."""
     error: str | None = None
@@ -305,6 +346,8 @@ class StepEvent(Model):
     target_visible_ugv: bool | None = None
     """Oracle: the six views would pass the CONFIRM checker (after STOP_OBSERVE)."""
     candidate_id: str | None = None
+    info_age_s: float | None = None
+    """Age of the teammate information in this role's view when it decided."""
 
 
 class EpisodeStarted(Model):

@@ -29,6 +29,7 @@ import networkx as nx
 import numpy as np
 
 from agos.runtime.codec import encode_png
+from agos.runtime.links import IDEAL, CommProfile
 from agos.runtime.schemas import (
     Action,
     ActionName,
@@ -49,6 +50,7 @@ from agos.runtime.schemas import (
 )
 from agos.world import sensors
 from agos.world.asset import Town
+from agos.world.comms import Channel
 from agos.world.confirm import ConfirmEvidence, ConfirmSettings, check_confirm
 from agos.world.geometry import centroid, distance_to_polygon
 from agos.world.options import shortest_path, uav_options, ugv_options
@@ -72,6 +74,12 @@ class EpisodeSettings:
     max_annotations: int = 5
     sim_time_limit_s: float = 3600.0
     recent_messages: int = 6
+    max_freeze_s: float = 120.0
+    """A UAV that has not heard its candidate resolved by then is asked again (lossy links)."""
+    comm: CommProfile = field(default_factory=lambda: IDEAL)
+    timing_mode: str = "lockstep"
+    """``lockstep``: the sim clock waits for decisions; ``realtime``: a decision's wall-clock
+    latency delays its effect in sim time, while the teammate carries on."""
     confirm: ConfirmSettings = field(default_factory=ConfirmSettings)
     cameras: sensors.CameraSettings = field(default_factory=sensors.CameraSettings)
 
@@ -113,6 +121,7 @@ class _Uav:
     position: tuple[float, float, float]
     ready_at: float = 0.0
     frozen: bool = False
+    frozen_since: float = 0.0
     waiting: bool = False
     decisions: int = 0
     last_nadir: sensors.Shot | None = None
@@ -177,6 +186,8 @@ class EpisodeRunner:
         self.ugv = _Ugv(start, self.roads.heading_at(start), route=[start])
         self.start_node = start
         self.shortest_path_m = self._shortest_confirmable_path()
+        self.channel = Channel(self.cfg.comm, spec.seed, {"uav": self._uav_pose(), "ugv": self._ugv_pose()})
+        self._info_age: dict[str, float | None] = {"uav": None, "ugv": None}
 
     def teardown(self) -> None:
         for uid in self._added:
@@ -190,33 +201,71 @@ class EpisodeRunner:
         try:
             self._publish_coordination()
             while self.termination is None:
-                self._tick(source)
+                self._step(source)
         finally:
             self.teardown()
         return self._record(self._clock() - wall_start)
 
-    def _tick(self, source: DecisionSource) -> None:
+    def _step(self, source: DecisionSource) -> None:
+        """Advance to the next event: a delivery, a beacon, a freeze timeout, or decisions."""
         remaining = self.spec.decision_budget - self.decisions_used
         if remaining <= 0:
             self.termination = "budget_exhausted"
             return
         ready = {"uav": math.inf if self.uav.frozen else self.uav.ready_at, "ugv": self.ugv.ready_at}
-        now = min(ready.values())
+        t_ready = min(ready.values())
+        t_arrival, t_beacon = self.channel.next_arrival_s(), self.channel.next_beacon_s()
+        t_unfreeze = self.uav.frozen_since + self.cfg.max_freeze_s if self.uav.frozen else math.inf
+        now = min(t_ready, t_arrival, t_beacon, t_unfreeze)
         if now > self.cfg.sim_time_limit_s:
             self.termination = "sim_time_limit"
             return
-        self.sim_time_s = now
-        due = [r for r in ROLE_ORDER if ready[r] <= now + 1e-9][:remaining]
+        self.sim_time_s = max(self.sim_time_s, now)
+        if t_arrival <= now:
+            self._deliver()
+        elif t_unfreeze <= now:
+            self._unfreeze()
+        elif t_beacon <= now:
+            for role in ROLE_ORDER:
+                if self.channel.next_beacon[role] <= now:
+                    self.channel.sync(role, now, self._pose(role), self._link_geometry(), kind="beacon")
+                    self.channel.next_beacon[role] += self.cfg.comm.beacon_s
+        else:
+            self._decide(source, [r for r in ROLE_ORDER if ready[r] <= now + 1e-9][:remaining])
+
+    def _deliver(self) -> None:
+        for arrival in self.channel.deliver_until(self.sim_time_s):
+            if arrival.message is not None:
+                self.messages.append(arrival.message)
+                self.sink.message(AgentMessage(run_id=self.run_id, episode_id=self.spec.episode_id,
+                                               **arrival.message.model_dump()))
+            if arrival.changed:
+                self._wake(arrival.receiver)
+            if (arrival.receiver == "uav" and self.uav.frozen
+                    and self.channel.views["uav"].active_candidate() is None):
+                self._unfreeze()
+        self._publish_coordination()
+
+    def _unfreeze(self) -> None:
+        self.uav.frozen = False
+        self.uav.waiting = False
+        self.uav.ready_at = self.sim_time_s
+
+    def _decide(self, source: DecisionSource, due: list[Role]) -> None:
+        now = self.sim_time_s
         observations = {r: self._observe(r) for r in due}
         actions = source.decide(observations)
         for role in due:
+            self.sim_time_s = now
             self._apply(role, observations[role], actions.get(role))
             if self.termination is not None:
                 break
+        self.sim_time_s = now
         self._publish_coordination()
 
     # ----- observations ---------------------------------------------------------------------
     def _observe(self, role: Role) -> Observation:
+        self._info_age[role] = self.channel.info_age(role, self.sim_time_s)
         cam = self.cfg.cameras
         if role == "uav":
             self.uav.decisions += 1
@@ -234,7 +283,7 @@ class EpisodeRunner:
                 legal_actions=self._uav_legal(options), waypoint_options=options,
                 region_world_m=self.spec.region_world_m,
                 active_uav_waypoints=[self._uav_waypoint(n) for n in sorted(self.active_uav)],
-                coordination=self._coordination(), grid_rows=sensors.GRID_ROWS, grid_cols=sensors.GRID_COLS)
+                coordination=self._coordination("uav"), grid_rows=sensors.GRID_ROWS, grid_cols=sensors.GRID_COLS)
         self.ugv.decisions += 1
         if self.ugv.mode == "stop_6view":
             images = [f for shot in self.ugv.six for f in sensors.frames_of(shot, self.scene, cam)] + self._map_frame()
@@ -247,7 +296,7 @@ class EpisodeRunner:
             decision_index=self.ugv.decisions, sim_time_s=self.sim_time_s, pose=self._ugv_pose(),
             mode="stop_6view" if self.ugv.mode == "stop_6view" else "driving", images=images,
             references=self.references, legal_actions=self._ugv_legal(options), waypoint_options=options,
-            region_world_m=self.spec.region_world_m, coordination=self._coordination(),
+            region_world_m=self.spec.region_world_m, coordination=self._coordination("ugv"),
             fresh_stop_observe=self.ugv.fresh_stop)
 
     def _map_frame(self) -> list[ImageFrame]:
@@ -265,12 +314,13 @@ class EpisodeRunner:
         return Waypoint(waypoint_id=node_id, position_world_m=self.town.uav_grid.nodes[node_id].position_world_m,
                         kind="uav_grid")
 
-    def _active_candidate(self) -> Candidate | None:
-        return next((c for c in self.candidates if c.status in ("pending", "arrived")), None)
+    def _active_candidate(self, role: Role) -> Candidate | None:
+        """The candidate ``role`` believes is being handled (from its own view)."""
+        return self.channel.views[role].active_candidate()
 
     def _uav_legal(self, options: list[Waypoint]) -> list[ActionName]:
         legal: list[ActionName] = ["MOVE_TO_UAV_WAYPOINT"] if options else []
-        if self._active_candidate() is None and len(self.candidates) < self.cfg.max_annotations:
+        if self._active_candidate("uav") is None and len(self.candidates) < self.cfg.max_annotations:
             legal.append("ANNOTATE_CANDIDATE")
         return [*legal, "NO_RELIABLE_CANDIDATE", "WAIT"]
 
@@ -283,16 +333,19 @@ class EpisodeRunner:
 
     def _ugv_legal(self, options: list[Waypoint]) -> list[ActionName]:
         legal: list[ActionName] = ["MOVE_TO_ROAD_WAYPOINT"] if options else []
-        if self._active_candidate() is not None:
+        if self._active_candidate("ugv") is not None:
             legal.append("GO_TO_CANDIDATE")
         legal += ["STOP_OBSERVE", "CONFIRM"]
-        if self._active_candidate() is not None or self.ugv.mode == "stop_6view":
+        if self._active_candidate("ugv") is not None or self.ugv.mode == "stop_6view":
             legal.append("REJECT")
         return [*legal, "WAIT"]
 
     # ----- actions --------------------------------------------------------------------------
     def _apply(self, role: Role, obs: Observation, action: Action | None) -> None:
         self.decisions_used += 1
+        if self.cfg.timing_mode == "realtime" and action is not None and action.agent_wall_latency_s:
+            # A slow decision takes effect late; the teammate's schedule is unaffected.
+            self.sim_time_s += max(0.0, action.agent_wall_latency_s)
         fallback: str | None = None
         applied: ActionName = "WAIT"
         candidate_id: str | None = None
@@ -312,14 +365,15 @@ class EpisodeRunner:
             self.fallbacks += 1
             self._wait(role)
         if action is not None and action.message and fallback is None:
-            self._deliver(role, action.message)
+            self.channel.message(role, self.sim_time_s, action.message, self._link_geometry())
+        self.channel.sync(role, self.sim_time_s, self._pose(role), self._link_geometry())
         self.sink.step(StepEvent(
             run_id=self.run_id, episode_id=self.spec.episode_id, role=role, decision_index=obs.decision_index,
             episode_step=self.decisions_used, sim_time_s=self.sim_time_s, requested=action, applied=applied,
             fallback_reason=fallback, pose_after=self._uav_pose() if role == "uav" else self._ugv_pose(),
             target_visible_uav=self._uav_target_px >= self.cfg.uav_visible_min_px if role == "uav" else None,
             target_visible_ugv=self._ground_visible if role == "ugv" and applied == "STOP_OBSERVE" else None,
-            candidate_id=candidate_id))
+            candidate_id=candidate_id, info_age_s=self._info_age[role]))
 
     def _wait(self, role: Role) -> None:
         agent = self.uav if role == "uav" else self.ugv
@@ -360,9 +414,9 @@ class EpisodeRunner:
                              created_sim_time_s=now,
                              approach_waypoint_id=RoadGraphs.anchor_id(approach) if approach is not None else None)
             self.candidates.append(cand)
-            uav.frozen = True
+            self.channel.views["uav"].candidates[cand.candidate_id] = cand.model_copy()
+            uav.frozen, uav.frozen_since = True, now
             uav.ready_at = now + self.cfg.short_action_s
-            self._wake("ugv")
             return cand.candidate_id
         if action.action == "NO_RELIABLE_CANDIDATE":
             uav.ready_at = now + self.cfg.short_action_s
@@ -384,7 +438,7 @@ class EpisodeRunner:
             if cand.approach_waypoint_id is None:
                 raise IllegalAction(f"candidate {cand.candidate_id} has no reachable road approach")
             self._drive_to(RoadGraphs.parse_anchor_id(cand.approach_waypoint_id))
-            cand.status = "arrived"
+            self._set_status(cand.candidate_id, "arrived")
             return cand.candidate_id
         if kind == "STOP_OBSERVE":
             ugv.mode, ugv.fresh_stop = "stop_6view", True
@@ -396,34 +450,40 @@ class EpisodeRunner:
         if kind == "CONFIRM":
             self.n_confirm += 1
             reasons = check_confirm(self._evidence(), self.cfg.confirm)
-            cand = self._active_candidate()
+            cand = self._active_candidate("ugv")
             if cand is not None:
-                cand.status = "false_confirm" if reasons else "confirmed"
+                self._set_status(cand.candidate_id, "false_confirm" if reasons else "confirmed")
             self.termination = "false_confirm" if reasons else "confirmed"
             self.confirm_failure = "; ".join(reasons) or None
             return cand.candidate_id if cand else None
         if kind == "REJECT":
-            cand = self._active_candidate() if action.candidate_id is None else self._candidate(action.candidate_id)
+            cand = self._active_candidate("ugv") if action.candidate_id is None else self._candidate(action.candidate_id)
             ugv.mode, ugv.fresh_stop = "driving", False
             ugv.ready_at = now + self.cfg.short_action_s
             if cand is not None:
-                cand.status = "rejected"
-                if self.uav.frozen:
-                    self.uav.frozen = False
-                    self.uav.ready_at = now
-                    self.uav.waiting = False
+                self._set_status(cand.candidate_id, "rejected")  # the UAV learns it through the link
                 return cand.candidate_id
             return None
         self._wait("ugv")
         return None
 
     def _candidate(self, candidate_id: str | None) -> Candidate:
+        """A candidate the UGV knows of (its own view) and can still act on."""
+        cand = self.channel.views["ugv"].candidates.get(candidate_id or "")
+        if cand is None:
+            raise IllegalAction(f"no candidate {candidate_id!r} known to the UGV")
+        if cand.status not in ("pending", "arrived"):
+            raise IllegalAction(f"candidate {candidate_id} is {cand.status}")
+        return cand
+
+    def _set_status(self, candidate_id: str, status: str) -> None:
+        """A UGV status change: in the truth and in the UGV's own view at once."""
         for cand in self.candidates:
             if cand.candidate_id == candidate_id:
-                if cand.status not in ("pending", "arrived"):
-                    raise IllegalAction(f"candidate {candidate_id} is {cand.status}")
-                return cand
-        raise IllegalAction(f"no candidate {candidate_id!r}")
+                cand.status = status
+        view = self.channel.views["ugv"].candidates.get(candidate_id)
+        if view is not None:
+            view.status = status
 
     def _drive_to(self, target: int) -> None:
         ugv = self.ugv
@@ -453,15 +513,6 @@ class EpisodeRunner:
         if near:
             return min(near)[1]
         return next((int(ids[i]) for i in np.argsort(dist) if int(ids[i]) in lengths), None)
-
-    def _deliver(self, sender: Role, text: str) -> None:
-        receiver: Role = "ugv" if sender == "uav" else "uav"
-        record = MessageRecord(sender=sender, receiver=receiver, text=text[:500],
-                               sent_sim_time_s=self.sim_time_s, delivered_sim_time_s=self.sim_time_s)
-        self.messages.append(record)
-        self.sink.message(AgentMessage(run_id=self.run_id, episode_id=self.spec.episode_id,
-                                       **record.model_dump()))
-        self._wake(receiver)
 
     # ----- checker --------------------------------------------------------------------------
     def _evidence(self) -> ConfirmEvidence:
@@ -512,19 +563,40 @@ class EpisodeRunner:
     def _uav_pose(self) -> Pose:
         return Pose(position_world_m=self.uav.position, yaw_rad=math.pi / 2)
 
-    def _coordination(self) -> CoordinationState:
+    def _pose(self, role: Role) -> Pose:
+        return self._uav_pose() if role == "uav" else self._ugv_pose()
+
+    def _link_geometry(self) -> tuple[float, bool]:
+        """Distance between the two agents and, where the profile uses it, line of sight."""
+        ux, uy, uz = self.uav.position
+        gx, gy = self._ugv_xy()
+        distance = math.dist((ux, uy, uz), (gx, gy, 2.0))
+        if self.cfg.comm.range.nlos_loss == 0:
+            return distance, True
+        return distance, self.scene.clear_line(np.array([ux, uy, uz]), np.array([gx, gy, 2.0]))
+
+    def _coordination(self, role: Role | None = None) -> CoordinationState:
+        """The truth (role None) or what ``role`` knows: its view's candidates and messages, its
+        own pose and its teammate's last reported pose."""
+        if role is None:
+            candidates, messages = self.candidates, self.messages
+            poses = {"uav": self._uav_pose(), "ugv": self._ugv_pose()}
+        else:
+            view = self.channel.views[role]
+            candidates = [c for _, c in sorted(view.candidates.items())]
+            messages = view.messages
+            other = "ugv" if role == "uav" else "uav"
+            poses = {role: self._pose(role)}
+            if view.teammate_pose is not None:
+                poses[other] = view.teammate_pose
         return CoordinationState(
             run_id=self.run_id, episode_id=self.spec.episode_id, sim_time_s=self.sim_time_s,
-            candidates=[c.model_copy() for c in self.candidates],
-            messages=self.messages[-self.cfg.recent_messages:],
-            poses={"uav": self._uav_pose(), "ugv": self._ugv_pose()},
-            decisions_used=self.decisions_used, decision_budget=self.spec.decision_budget,
+            candidates=[c.model_copy() for c in candidates], messages=messages[-self.cfg.recent_messages:],
+            poses=poses, decisions_used=self.decisions_used, decision_budget=self.spec.decision_budget,
             annotations_used=len(self.candidates), max_annotations=self.cfg.max_annotations)
 
     def _publish_coordination(self) -> None:
-        truth = self._coordination()
-        # Ideal link (this issue): each role's view equals the truth.
-        self.sink.coordination(truth, {"uav": truth, "ugv": truth})
+        self.sink.coordination(self._coordination(), {"uav": self._coordination("uav"), "ugv": self._coordination("ugv")})
 
     def _record(self, wall_time_s: float) -> EpisodeRecord:
         outcomes = [CandidateOutcome(
@@ -542,4 +614,5 @@ class EpisodeRunner:
             decisions_uav=self.uav.decisions, decisions_ugv=self.ugv.decisions, fallbacks=self.fallbacks,
             sim_time_s=round(self.sim_time_s, 3), wall_time_s=round(wall_time_s, 3), worker_id=self.worker_id,
             town_id=self.town.town_id, asset_sha256=self.town.sha256, seed=self.spec.seed,
-            renderer=self.scene.renderer_name(), confirm_rejection=self.confirm_failure)
+            renderer=self.scene.renderer_name(), comm_profile=self.cfg.comm.name, timing_mode=self.cfg.timing_mode,
+            link=self.channel.stats(self.candidates), ledger=self.channel.ledger, confirm_rejection=self.confirm_failure)

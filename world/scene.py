@@ -238,6 +238,11 @@ class Scene:
         hits = pb.rayTestBatch(starts, targets_world_m.tolist(), physicsClientId=self.client)
         return any(hit[0] == target_uid for hit in hits)
 
+    def clear_line(self, a_world_m: np.ndarray, b_world_m: np.ndarray) -> bool:
+        """True if nothing solid lies between two points (radio line of sight)."""
+        hit = pb.rayTest(a_world_m.tolist(), b_world_m.tolist(), physicsClientId=self.client)[0]
+        return hit[0] < 0
+
     def renderer_name(self) -> str:
         return "pybullet-egl" if self.renderer == "egl" else "pybullet-tiny"
 

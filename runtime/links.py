@@ -1,0 +1,192 @@
+"""Link models between the UAV and the UGV (DESIGN.md §5): seeded, in simulated time.
+
+A :class:`Link` decides, for each transmission, whether and when it arrives. The stages apply
+in this order, each recording why a message was dropped:
+
+1. ``blackout``: scheduled intervals with no delivery at all;
+2. ``range``: beyond ``max_range_m`` nothing arrives; without line of sight (ray tests done by
+   the world) an extra loss probability applies;
+3. ``loss``: independent (Bernoulli) loss, or bursty loss from a two-state Gilbert-Elliott
+   chain stepped once per transmission;
+4. ``bandwidth``: serialization delay ``bytes * 8 / bits_per_s`` through a FIFO with a bounded
+   queue (in bytes); a message that does not fit is dropped;
+5. ``latency``: propagation delay ``mean_s`` plus jitter (normal, uniform, exponential or
+   lognormal; never negative).
+
+Each direction (uav->ugv, ugv->uav) has its own link and random stream, derived from the
+episode seed, so the same seed gives bit-identical deliveries. Profiles are TOML files in
+``deploy/comm/`` (see :func:`load_profile`).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+PROFILE_DIR = Path(__file__).resolve().parents[1] / "deploy" / "comm"
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class LatencySpec(_Section):
+    mean_s: float = Field(0.0, ge=0)
+    jitter_s: float = Field(0.0, ge=0)
+    """Standard deviation (normal, lognormal), half-width (uniform); exponential ignores it."""
+    distribution: Literal["normal", "uniform", "exponential", "lognormal"] = "normal"
+
+
+class LossSpec(_Section):
+    model: Literal["none", "bernoulli", "gilbert_elliott"] = "none"
+    p: float = Field(0.0, ge=0, le=1)
+    """Bernoulli loss probability."""
+    p_good_to_bad: float = Field(0.0, ge=0, le=1)
+    p_bad_to_good: float = Field(1.0, ge=0, le=1)
+    loss_good: float = Field(0.0, ge=0, le=1)
+    loss_bad: float = Field(1.0, ge=0, le=1)
+
+
+class BandwidthSpec(_Section):
+    bits_per_s: float | None = Field(None, gt=0)
+    queue_bytes: int = Field(1_000_000, ge=0)
+
+
+class RangeSpec(_Section):
+    max_range_m: float | None = Field(None, gt=0)
+    nlos_loss: float = Field(0.0, ge=0, le=1)
+    """Extra loss probability when the line of sight between the two agents is blocked."""
+
+
+class Blackout(_Section):
+    start_s: float = Field(ge=0)
+    end_s: float = Field(ge=0)
+
+
+class CommProfile(_Section):
+    name: str
+    description: str = ""
+    latency: LatencySpec = Field(default_factory=LatencySpec)
+    loss: LossSpec = Field(default_factory=LossSpec)
+    bandwidth: BandwidthSpec = Field(default_factory=BandwidthSpec)
+    range: RangeSpec = Field(default_factory=RangeSpec)
+    blackouts: list[Blackout] = Field(default_factory=list)
+    beacon_s: float = Field(5.0, gt=0)
+    """Each role re-broadcasts its coordination knowledge at least this often (sim seconds)."""
+
+    @property
+    def ideal(self) -> bool:
+        return (self.latency.mean_s == 0 and self.latency.jitter_s == 0 and self.loss.model == "none"
+                and self.bandwidth.bits_per_s is None and self.range.max_range_m is None
+                and self.range.nlos_loss == 0 and not self.blackouts)
+
+
+class ProfileError(ValueError):
+    """A bad comm profile; the message names the file and the field."""
+
+
+def load_profile(name_or_path: str | Path) -> CommProfile:
+    """A profile by name (``deploy/comm/<name>.toml``) or by file path."""
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = PROFILE_DIR / f"{name_or_path}.toml"
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        known = ", ".join(sorted(p.stem for p in PROFILE_DIR.glob("*.toml")))
+        raise ProfileError(f"comm profile {name_or_path}: no such file ({path}); known profiles: {known}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ProfileError(f"{path}: not valid TOML ({exc})") from None
+    data.setdefault("name", path.stem)
+    try:
+        return CommProfile.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        raise ProfileError(f"{path}: {'.'.join(str(p) for p in err['loc'])}: {err['msg']}") from None
+
+
+IDEAL = CommProfile(name="ideal")
+
+
+@dataclass(frozen=True)
+class Delivery:
+    delivered: bool
+    arrive_s: float | None
+    reason: str | None = None
+    """Why it was dropped: blackout, out_of_range, nlos, loss, queue_full."""
+
+
+@dataclass
+class Link:
+    """One direction of the channel between the two roles."""
+
+    profile: CommProfile
+    rng: np.random.Generator
+    _bad: bool = False
+    _busy_until_s: float = 0.0
+    _queue: list[tuple[float, int]] = field(default_factory=list)
+    """(serialization end time, bytes) of messages still in the sender's queue."""
+
+    def transmit(self, t_send: float, size_bytes: int, *, distance_m: float = 0.0, line_of_sight: bool = True) -> Delivery:
+        p = self.profile
+        # Draw every random number in a fixed order whatever happens, so one message's fate
+        # never shifts the stream of the next (bit-identical replays, comparable sweeps).
+        u_loss, u_nlos, u_state, z = self.rng.random(), self.rng.random(), self.rng.random(), self.rng.standard_normal()
+        if any(b.start_s <= t_send < b.end_s for b in p.blackouts):
+            return Delivery(False, None, "blackout")
+        if p.range.max_range_m is not None and distance_m > p.range.max_range_m:
+            return Delivery(False, None, "out_of_range")
+        if not line_of_sight and u_nlos < p.range.nlos_loss:
+            return Delivery(False, None, "nlos")
+        if self._lost(u_loss, u_state):
+            return Delivery(False, None, "loss")
+        start = t_send
+        if p.bandwidth.bits_per_s is not None:
+            self._queue = [(end, b) for end, b in self._queue if end > t_send]
+            if sum(b for _, b in self._queue) + size_bytes > p.bandwidth.queue_bytes:
+                return Delivery(False, None, "queue_full")
+            start = max(t_send, self._busy_until_s)
+            self._busy_until_s = start + size_bytes * 8 / p.bandwidth.bits_per_s
+            self._queue.append((self._busy_until_s, size_bytes))
+            start = self._busy_until_s
+        return Delivery(True, start + self._delay(z))
+
+    def _lost(self, u_loss: float, u_state: float) -> bool:
+        loss = self.profile.loss
+        if loss.model == "bernoulli":
+            return u_loss < loss.p
+        if loss.model == "gilbert_elliott":
+            lost = u_loss < (loss.loss_bad if self._bad else loss.loss_good)
+            self._bad = (u_state < loss.p_good_to_bad) if not self._bad else not (u_state < loss.p_bad_to_good)
+            return lost
+        return False
+
+    def _delay(self, z: float) -> float:
+        lat = self.profile.latency
+        if lat.distribution == "uniform":
+            u = 0.5 * (1 + math.erf(z / math.sqrt(2)))  # the normal draw mapped to [0, 1)
+            d = lat.mean_s + (2 * u - 1) * lat.jitter_s
+        elif lat.distribution == "exponential":
+            u = 0.5 * (1 + math.erf(z / math.sqrt(2)))
+            d = -lat.mean_s * math.log(max(1e-12, 1 - u))
+        elif lat.distribution == "lognormal":
+            if lat.mean_s == 0:
+                return 0.0
+            sigma2 = math.log(1 + (lat.jitter_s / lat.mean_s) ** 2)
+            d = math.exp(math.log(lat.mean_s) - sigma2 / 2 + math.sqrt(sigma2) * z)
+        else:
+            d = lat.mean_s + lat.jitter_s * z
+        return max(0.0, d)
+
+
+def links_for(profile: CommProfile, seed: int) -> dict[tuple[str, str], Link]:
+    """The two directed links of an episode, with independent seeded streams."""
+    streams = np.random.SeedSequence([seed, 0x6C696E6B]).spawn(2)
+    return {("uav", "ugv"): Link(profile, np.random.default_rng(streams[0])),
+            ("ugv", "uav"): Link(profile, np.random.default_rng(streams[1]))}
