@@ -126,6 +126,36 @@ def outcome_rows(runs: Sequence[RunResults]) -> tuple[list[str], list[list[str]]
     return header, [[run.name] + [str(v) for v in outcome_counts(run.episodes).values()] for run in runs]
 
 
+def comms_rows(runs: Sequence[RunResults]) -> tuple[list[str], list[list[str]]]:
+    """Link statistics beside SR: delivery rate, delays, information age and drops per run
+    (means over scored episodes that carry link statistics)."""
+    header = ["Run", "SR", "profile", "delivered %", "mean delay s", "max delay s", "info age UAV s", "info age UGV s",
+              "dropped", "candidates lost"]
+    rows = []
+    for run in runs:
+        scored = [e for e in run.episodes if e.status == "finished"]
+        links = [e.link for e in scored if e.link]
+
+        def mean(values: list) -> str:
+            vals = [v for v in values if v is not None]
+            return f"{sum(vals) / len(vals):.2f}" if vals else "-"
+
+        dropped: dict[str, int] = {}
+        for link in links:
+            for reason, n in (link.get("dropped") or {}).items():
+                dropped[reason] = dropped.get(reason, 0) + n
+        profiles = sorted({str(link.get("profile")) for link in links}) or ["-"]
+        sr = run.summaries()["overall"].SR
+        rows.append([run.name, fmt("SR", sr), "/".join(profiles),
+                     mean([None if link.get("delivery_rate") is None else 100 * link["delivery_rate"] for link in links]),
+                     mean([link.get("mean_delay_s") for link in links]), mean([link.get("max_delay_s") for link in links]),
+                     mean([(link.get("mean_info_age_s") or {}).get("uav") for link in links]),
+                     mean([(link.get("mean_info_age_s") or {}).get("ugv") for link in links]),
+                     ", ".join(f"{k} {v}" for k, v in sorted(dropped.items())) or "0",
+                     str(sum(int(link.get("candidates_lost", 0)) for link in links))])
+    return header, rows
+
+
 def stage_chart(runs: Sequence[RunResults], path: Path) -> None:
     """Grouped bars of ASE, ACG and GVA (overall, %) per run, with GVA support annotated."""
     import matplotlib
@@ -181,6 +211,9 @@ def write_report(runs: Sequence[RunResults], out_dir: Path) -> list[Path]:
     header, rows = outcome_rows(runs)
     put("outcomes.md", _markdown(header, rows))
     put("outcomes.csv", _csv(header, rows))
+    header, rows = comms_rows(runs)
+    put("comms.md", _markdown(header, rows))
+    put("comms.csv", _csv(header, rows))
     stage_chart(runs, out_dir / "stagewise.png")
     written.append(out_dir / "stagewise.png")
     return written
