@@ -175,6 +175,15 @@ class ZenohBus:
     def declare_token(self, key: str) -> None:
         self._keep.append(self.session.liveliness().declare_token(key))
 
+    def watch_liveliness(self, key_expr: str, inbox: Inbox) -> None:
+        """Queue ``Sample(key, b"+")`` when a token appears (also those alive now) and
+        ``Sample(key, b"-")`` when it vanishes (process gone, or its session lost)."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            inbox.put(Sample(str(sample.key_expr), b"+" if sample.kind == zenoh.SampleKind.PUT else b"-"))
+
+        self._keep.append(self.session.liveliness().declare_subscriber(key_expr, on_sample, history=True))
+
     def close(self) -> None:
         for obj in self._keep:
             with contextlib.suppress(Exception):

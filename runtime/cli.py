@@ -41,6 +41,22 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--connect", help="attach to this router and only orchestrate: processes were started by hand")
     demo.add_argument("--run", dest="run_id", help="run id of the hand-started processes (with --connect)")
 
+    ev = sub.add_parser("eval", help="evaluate policies on an episode file: leases, fault tolerance, resume")
+    ev.add_argument("--config", type=Path)
+    ev.add_argument("--split", type=Path, help="JSONL episode file (e.g. a split's val.jsonl); default: generate")
+    ev.add_argument("--policy", help="policy of both roles (default heuristic)")
+    ev.add_argument("--policy-uav")
+    ev.add_argument("--policy-ugv")
+    ev.add_argument("--comm", default="ideal", help="comm profile name (deploy/comm) or TOML file")
+    ev.add_argument("--timing", choices=["lockstep", "realtime"], default="lockstep")
+    ev.add_argument("--workers", type=int, help="local world worker processes (default 1)")
+    ev.add_argument("--run-dir", type=Path, help="run directory (default runs/<run>-<UTC time>)")
+    ev.add_argument("--resume", type=Path, metavar="DIR", help="continue a run directory, skipping stored episodes")
+    ev.add_argument("--connect", help="attach to a router and processes started by hand instead of starting them")
+    ev.add_argument("--run", dest="run_id", help="run id (with --connect; default: the run directory's name)")
+    ev.add_argument("--port", type=int)
+    ev.add_argument("--stuck-after", type=float, default=180.0, help="re-lease an episode without progress for this long (s)")
+
     router = sub.add_parser("router", help="zenoh router")
     router.add_argument("--config", type=Path)
     router.add_argument("--listen", help="endpoint to listen on (default tcp/127.0.0.1:7447)")
@@ -53,6 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
     _common(agent)
     agent.add_argument("--role", choices=["uav", "ugv"], required=True)
     agent.add_argument("--policy", help="policy name (default from config: heuristic)")
+    agent.add_argument("--concurrency", type=int, default=32, help="decisions answered at once (default 32)")
 
     evaluator = sub.add_parser("evaluator", help="stores episode records of every run and reports metrics")
     evaluator.add_argument("--config", type=Path)
@@ -86,8 +103,11 @@ def _config(args: argparse.Namespace) -> AgosConfig:
     overrides = {
         "zenoh": {"connect": getattr(args, "connect", None), "listen": getattr(args, "listen", None)},
         "run": {"run_id": getattr(args, "run_id", None), "runs_dir": getattr(args, "runs_dir", None),
-                "workers": getattr(args, "workers", None), "episodes_file": getattr(args, "episodes", None),
-                "per_difficulty": getattr(args, "per_difficulty", None)},
+                "workers": getattr(args, "workers", None),
+                "episodes_file": getattr(args, "episodes", None) or getattr(args, "split", None),
+                "per_difficulty": getattr(args, "per_difficulty", None),
+                "policy_uav": getattr(args, "policy_uav", None) or getattr(args, "policy", None),
+                "policy_ugv": getattr(args, "policy_ugv", None) or getattr(args, "policy", None)},
     }
     return load_config(getattr(args, "config", None), overrides=overrides)
 
@@ -95,7 +115,7 @@ def _config(args: argparse.Namespace) -> AgosConfig:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        cfg = _config(args) if args.command in ("demo", "router", "world", "agent", "evaluator") else None
+        cfg = _config(args) if args.command in ("demo", "eval", "router", "world", "agent", "evaluator") else None
         return _dispatch(args, cfg)
     except ConfigError as exc:
         print(str(exc), file=sys.stderr)
@@ -112,6 +132,8 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
             from agos.runtime import demo
 
             return demo.main(cfg, config_path=args.config, port=args.port, attach=args.connect is not None)
+        if args.command == "eval":
+            return _eval(args, cfg)
         if args.command == "router":
             from agos.runtime import router
 
@@ -123,7 +145,7 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
         if args.command == "agent":
             from agos.agents import service
 
-            return service.main(cfg, role=args.role, policy_name=args.policy)
+            return service.main(cfg, role=args.role, policy_name=args.policy, concurrency=args.concurrency)
         if args.command == "evaluator":
             from agos.evaluator import service as evaluator_service
 
@@ -140,6 +162,25 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
         print(f"episode file error: {exc}", file=sys.stderr)
         return 2
     raise AssertionError(args.command)
+
+
+def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
+    from agos.runtime import evaluate
+    from agos.runtime.links import ProfileError
+
+    try:
+        if args.resume:
+            plan = evaluate.resume_plan(args.resume)
+        else:
+            run_dir = args.run_dir
+            if run_dir is None and args.connect and args.run_id:
+                run_dir = cfg.run.runs_dir / args.run_id
+            plan = evaluate.new_plan(cfg, run_dir=run_dir, comm=args.comm, timing_mode=args.timing, stamp=True)
+    except (evaluate.RunDirError, ProfileError) as exc:
+        print(f"eval error: {exc}", file=sys.stderr)
+        return 2
+    return evaluate.run(cfg, plan, workers=cfg.run.workers, attach=args.connect is not None, port=args.port,
+                        config_path=args.config, stuck_after_s=args.stuck_after)
 
 
 if __name__ == "__main__":

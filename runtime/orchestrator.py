@@ -1,16 +1,26 @@
-"""The run orchestrator: leases episodes to world workers and tracks which are stored.
+"""The run orchestrator: leases episodes to world workers, notices dead and stuck ones, and
+tracks which episodes are stored.
 
-Workers ask on ``agos/<run>/ctl/jobs`` (a queryable); each query is answered with the next
-unleased episode, with ``None`` while others are still running, or with ``run_finished``.
-An episode is done when the evaluator's ack for it is seen. The manifest on
-``agos/<run>/ctl/manifest`` says what the run is and whether it is running or finished.
+* Workers ask on ``agos/<run>/ctl/jobs`` (a queryable) and get the next episode with its attempt
+  number, the run's comm profile and timing mode; ``None`` while others are still running; or
+  ``run_finished``.
+* A worker whose liveliness token (``agos/<run>/live/world/<id>``) vanishes, or whose episode
+  shows no step event for ``stuck_after_s`` of wall time, loses its leases: those episodes go back
+  to the front of the queue with attempt + 1. After ``max_attempts`` the orchestrator submits an
+  infrastructure-failure record itself (``world_crashed``), so the run still ends.
+* An episode is done when the evaluator's ack for it is seen; a late duplicate from a worker
+  thought dead is stored once (the evaluator ignores it).
+* Imported town assets are served on ``agos/assets/<sha256>`` from the local asset cache.
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from collections import deque
+from dataclasses import dataclass
 from datetime import UTC, datetime
+from typing import Any
 
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, ZenohBus
@@ -20,15 +30,31 @@ from agos.runtime.schemas import EpisodeRecord, EpisodeSpec, JobGrant, JobReques
 log = logging.getLogger("agos.orchestrator")
 
 
+@dataclass
+class Lease:
+    spec: EpisodeSpec
+    worker: str
+    attempt: int
+    leased_at: float
+    last_progress: float
+
+
 class Orchestrator:
-    def __init__(self, bus: ZenohBus, run_id: str, episodes: list[EpisodeSpec], *, policies: dict[str, str]) -> None:
+    def __init__(self, bus: ZenohBus, run_id: str, episodes: list[EpisodeSpec], *, policies: dict[str, str],
+                 comm_profile: dict[str, Any] | None = None, timing_mode: str = "lockstep",
+                 stuck_after_s: float = 180.0, max_attempts: int = 3, already_stored: set[str] | None = None,
+                 resumed: bool = False, clock=time.monotonic) -> None:
         self.bus, self.run_id = bus, run_id
+        self.policies, self.comm_profile, self.timing_mode = policies, comm_profile, timing_mode
+        self.stuck_after_s, self.max_attempts, self.resumed = stuck_after_s, max_attempts, resumed
+        self._clock = clock
+        done = already_stored or set()
         self.total = len(episodes)
-        self.pending: deque[EpisodeSpec] = deque(episodes)
-        self.leased: dict[str, str] = {}
+        self.stored: set[str] = {e.episode_id for e in episodes if e.episode_id in done}
+        self.pending: deque[tuple[EpisodeSpec, int]] = deque((e, 1) for e in episodes if e.episode_id not in done)
+        self.leases: dict[str, Lease] = {}
         self.records: dict[str, EpisodeRecord] = {}
-        self.stored: set[str] = set()
-        self.policies = policies
+        self.releases = 0
         self.created_utc = datetime.now(UTC).isoformat(timespec="seconds")
         self._queries = bus.serve(keys.jobs(run_id), lambda q: None)
         # Imported towns travel by hash: workers without the file ask agos/assets/<sha256>.
@@ -36,6 +62,10 @@ class Orchestrator:
         self._inbox = Inbox()
         bus.subscribe(keys.result(run_id, "*"), self._inbox)
         bus.subscribe(keys.result_ack(run_id, "*"), self._inbox)
+        bus.subscribe(keys.events(run_id, "*"), self._inbox)
+        self._live = Inbox()
+        bus.watch_liveliness(keys.live(run_id, "world", "*"), self._live)
+        bus.declare_token(keys.live(run_id, "orchestrator", "main"))
 
     @property
     def finished(self) -> bool:
@@ -44,33 +74,78 @@ class Orchestrator:
     def publish_manifest(self, status: str) -> None:
         self.bus.publish(keys.manifest(self.run_id), RunManifest(
             run_id=self.run_id, status=status, policies=self.policies, n_episodes=self.total,
-            created_utc=self.created_utc))
+            comm_profile=(self.comm_profile or {}).get("name", "ideal"), timing_mode=self.timing_mode,
+            created_utc=self.created_utc, resumed=self.resumed))
 
     def pump(self, timeout_s: float) -> list[EpisodeRecord]:
-        """Answer job queries and read results/acks for up to ``timeout_s``; return the records
-        whose storage was acknowledged in this call."""
+        """Answer job and asset queries, read results, acks, events and liveliness for up to
+        ``timeout_s``; return the records whose storage was acknowledged in this call."""
+        self._answer_queries()
         newly: list[EpisodeRecord] = []
-        for query in self._queries.drain():
-            self._answer(query)
         sample = self._inbox.get(timeout_s)
-        samples = ([sample] if sample else []) + self._inbox.drain()
-        for s in samples:
+        now = self._clock()
+        for s in ([sample] if sample else []) + self._inbox.drain():
+            if s.key.endswith("/events"):
+                lease = self.leases.get(keys.episode_of(s.key))
+                if lease is not None:
+                    lease.last_progress = now
+                continue
             try:
                 message = decode(s.payload)
             except DecodeError:
                 continue
             if isinstance(message, EpisodeRecord):
-                self.records[message.episode_id] = message
+                self.records.setdefault(message.episode_id, message)
             elif isinstance(message, ResultAck) and message.episode_id not in self.stored:
                 self.stored.add(message.episode_id)
-                self.leased.pop(message.episode_id, None)
+                self.leases.pop(message.episode_id, None)
                 if message.episode_id in self.records:
                     newly.append(self.records[message.episode_id])
+        for s in self._live.drain():
+            if s.payload == b"-":
+                self._release_worker(s.key.rsplit("/", 1)[-1], "its liveliness token vanished")
+        for episode_id, lease in list(self.leases.items()):
+            if now - lease.last_progress > self.stuck_after_s:
+                self._release(episode_id, f"no progress for {self.stuck_after_s:.0f} s on {lease.worker}")
+        self._answer_queries()
+        return newly
+
+    def _release_worker(self, worker: str, why: str) -> None:
+        for episode_id, lease in list(self.leases.items()):
+            if lease.worker == worker:
+                self._release(episode_id, f"worker {worker}: {why}")
+
+    def _release(self, episode_id: str, why: str) -> None:
+        lease = self.leases.pop(episode_id)
+        self.releases += 1
+        if lease.attempt >= self.max_attempts:
+            log.error("%s failed %d times (%s); recording an infrastructure failure", episode_id, lease.attempt, why)
+            self.bus.publish(keys.result(self.run_id, episode_id), _failure_record(self.run_id, lease, why))
+            return
+        log.warning("re-leasing %s (attempt %d): %s", episode_id, lease.attempt + 1, why)
+        self.pending.appendleft((lease.spec, lease.attempt + 1))
+
+    def _answer_queries(self) -> None:
         for query in self._queries.drain():
             self._answer(query)
         for query in self._asset_queries.drain():
             self._answer_asset(query)
-        return newly
+
+    def _answer(self, query) -> None:
+        try:
+            request = decode(query.payload)
+        except DecodeError:
+            request = None
+        worker = request.worker_id if isinstance(request, JobRequest) else "?"
+        if self.pending:
+            spec, attempt = self.pending.popleft()
+            now = self._clock()
+            self.leases[spec.episode_id] = Lease(spec, worker, attempt, now, now)
+            log.info("leased %s to %s (attempt %d)", spec.episode_id, worker, attempt)
+            query.reply(encode(JobGrant(episode=spec, attempt=attempt, comm_profile=self.comm_profile,
+                                        timing_mode=self.timing_mode)))
+        else:
+            query.reply(encode(JobGrant(episode=None, run_finished=self.finished)))
 
     def _answer_asset(self, query) -> None:
         """Serve a town asset from the local asset cache; unknown hashes get no reply."""
@@ -82,16 +157,13 @@ class Orchestrator:
             log.info("serving asset %s (%d bytes)", sha[:12], path.stat().st_size)
             query.reply(path.read_bytes())
 
-    def _answer(self, query) -> None:
-        try:
-            request = decode(query.payload)
-        except DecodeError:
-            request = None
-        worker = request.worker_id if isinstance(request, JobRequest) else "?"
-        if self.pending:
-            spec = self.pending.popleft()
-            self.leased[spec.episode_id] = worker
-            log.info("leased %s to %s", spec.episode_id, worker)
-            query.reply(encode(JobGrant(episode=spec)))
-        else:
-            query.reply(encode(JobGrant(episode=None, run_finished=self.finished)))
+
+def _failure_record(run_id: str, lease: Lease, why: str) -> EpisodeRecord:
+    spec = lease.spec
+    return EpisodeRecord(
+        run_id=run_id, episode_id=spec.episode_id, difficulty=spec.difficulty, status="world_crashed",
+        termination="error", success=False, ground_observed=False, n_confirm=0, ugv_path_length_m=0.0,
+        shortest_path_length_m=None, final_distance_m=0.0, uav_budget=spec.decision_budget,
+        uav_first_visible_step=None, candidates=[], decisions_uav=0, decisions_ugv=0, sim_time_s=0.0,
+        wall_time_s=0.0, worker_id=lease.worker, town_id=spec.town.town_id, asset_sha256=spec.asset_sha256,
+        seed=spec.seed, renderer="none", error=f"gave up after {lease.attempt} attempts: {why}")

@@ -11,7 +11,7 @@ one discriminated union.
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -380,6 +380,7 @@ class RunManifest(Model):
     timing_mode: Literal["lockstep", "realtime"] = "lockstep"
     n_episodes: int
     created_utc: str
+    resumed: bool = False
 
 
 class JobRequest(Model):
@@ -394,6 +395,11 @@ class JobGrant(Model):
     episode: EpisodeSpec | None
     """The leased episode, or None when there is nothing left."""
     run_finished: bool = False
+    attempt: int = 1
+    """1 for the first lease; re-leases after a dead or stuck worker count up (at most 3)."""
+    comm_profile: dict[str, Any] | None = None
+    """The run's link model (a CommProfile as a map), so remote workers need no profile file."""
+    timing_mode: Literal["lockstep", "realtime"] = "lockstep"
 
 
 WireMessage = Annotated[

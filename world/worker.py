@@ -9,6 +9,7 @@ wall-clock deadline turns a missing action into a logged WAIT). The record is pu
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import socket
@@ -17,7 +18,8 @@ import traceback
 
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, ZenohBus, zenoh_config
-from agos.runtime.codec import DecodeError, decode
+from agos.runtime.codec import DecodeError, decode, encode
+from agos.runtime.links import CommProfile
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.schemas import (
     Action,
@@ -42,6 +44,9 @@ log = logging.getLogger("agos.world")
 ACK_WAIT_S = 3.0
 SUBMIT_ATTEMPTS = 20
 AGENT_WAIT_S = 30.0
+RESEND_S = 5.0
+"""An observation still unanswered after this long is published again (same decision index), so
+an agent service that restarted picks it up; the decision is counted once."""
 
 
 class BusSink:
@@ -75,16 +80,24 @@ class BusDecisionSource:
         self.bus.unsubscribe(self._handle)
 
     def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
+        payloads = {}
         for role, obs in observations.items():
             key = keys.obs(self.run_id, self.episode_id, role)
             if obs.decision_index == 1 and not self.bus.wait_for_subscriber(key, AGENT_WAIT_S):
                 log.warning("%s: no %s agent subscribed after %.0f s", self.episode_id, role, AGENT_WAIT_S)
-            self.bus.publish(key, obs)
+            payloads[role] = encode(obs)
+            self.bus.publish(key, payloads[role])
         pending = {role: obs.decision_index for role, obs in observations.items()}
         actions: dict[Role, Action | None] = dict.fromkeys(observations)
         deadline = time.monotonic() + self.timeout_s
+        resend_at = time.monotonic() + RESEND_S
         while pending and not self.stop.is_set():
             sample = self.inbox.get(timeout_s=min(0.5, max(0.0, deadline - time.monotonic())))
+            if time.monotonic() >= resend_at and pending:
+                for role in pending:
+                    log.info("%s: re-requesting %s decision %d", self.episode_id, role, pending[role])
+                    self.bus.publish(keys.obs(self.run_id, self.episode_id, role), payloads[role])
+                resend_at = time.monotonic() + RESEND_S
             if sample is None:
                 if time.monotonic() >= deadline:
                     break
@@ -129,7 +142,7 @@ class WorldWorker:
             if grant.episode is None:
                 self.stop.wait(1.0)
                 continue
-            self.run_episode(grant.episode)
+            self.run_episode(grant.episode, grant)
         for _, scene in self._scenes.values():
             scene.close()
         return 0
@@ -149,9 +162,13 @@ class WorldWorker:
             raise AssetError(f"asset {sha256[:12]} is not served on this zenoh network")
         return replies[0]
 
-    def run_episode(self, spec: EpisodeSpec) -> None:
+    def run_episode(self, spec: EpisodeSpec, grant: JobGrant | None = None) -> None:
         started = time.monotonic()
-        log.info("episode %s (%s) starts", spec.episode_id, spec.difficulty)
+        log.info("episode %s (%s) starts, attempt %d", spec.episode_id, spec.difficulty, grant.attempt if grant else 1)
+        settings = self.cfg.world.episode_settings()
+        if grant is not None:
+            comm = CommProfile.model_validate(grant.comm_profile) if grant.comm_profile else settings.comm
+            settings = dataclasses.replace(settings, comm=comm, timing_mode=grant.timing_mode)
         source = None
         try:
             town, scene = self._scene(spec)
@@ -161,7 +178,7 @@ class WorldWorker:
             source = BusDecisionSource(self.bus, self.run_id, spec.episode_id,
                                        timeout_s=self.cfg.run.decision_timeout_s, stop=self.stop)
             runner = EpisodeRunner(scene, town, spec, run_id=self.run_id, worker_id=self.worker_id,
-                                   settings=self.cfg.world.episode_settings(),
+                                   settings=settings,
                                    sink=BusSink(self.bus, self.run_id, spec.episode_id))
             record = runner.run(source)
             if self.stop.is_set():

@@ -1,0 +1,46 @@
+"""A stand-in policy with a fixed decision latency, for benchmarks and fault tests.
+
+``standin-200ms`` waits 200 ms (asynchronously, like a remote model) and then takes a plain
+legal action: the first waypoint option if it may move, else WAIT. It never looks at images.
+"""
+
+from __future__ import annotations
+
+import asyncio
+
+from agos.agents.policy import action_for
+from agos.runtime.schemas import Action, Observation, Role
+
+
+class FixedLatencyPolicy:
+    name = "standin"
+
+    def __init__(self, role: Role, latency_s: float) -> None:
+        self.role, self.latency_s = role, latency_s
+
+    def _choose(self, obs: Observation) -> Action:
+        move = "MOVE_TO_UAV_WAYPOINT" if obs.role == "uav" else "MOVE_TO_ROAD_WAYPOINT"
+        if move in obs.legal_actions and obs.waypoint_options:
+            return action_for(obs, move, waypoint_id=obs.waypoint_options[0].waypoint_id)
+        return action_for(obs, "WAIT")
+
+    async def act_async(self, obs: Observation) -> Action:
+        await asyncio.sleep(self.latency_s)
+        return self._choose(obs)
+
+    def act(self, obs: Observation) -> Action:
+        import time
+
+        time.sleep(self.latency_s)
+        return self._choose(obs)
+
+    def end_episode(self, episode_id: str) -> None:
+        pass
+
+
+def parse_standin(name: str) -> float:
+    """``standin-200ms`` -> 0.2 s."""
+    suffix = name.removeprefix("standin-")
+    if not suffix.endswith("ms") or not suffix[:-2].isdigit():
+        raise ValueError(f"stand-in policy {name!r}: use standin-<milliseconds>ms, e.g. standin-200ms")
+    return int(suffix[:-2]) / 1000.0

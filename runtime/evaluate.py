@@ -1,0 +1,210 @@
+"""``agos eval`` (and ``agos demo``, which is eval on the embedded defaults): one run.
+
+A run directory holds ``run.json`` (policies, comm profile, timing mode, episode source),
+``episodes.jsonl`` (the exact episodes), ``results.sqlite`` (written by the evaluator) and
+``logs/``. ``agos eval --resume DIR`` re-reads the first two and leases only the episodes not yet
+stored. The local processes (router, evaluator, agents, world workers) are started as children
+unless ``--connect`` attaches to processes started elsewhere.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+from agos.evaluator.metrics import by_difficulty
+from agos.evaluator.store import ResultStore, results_path
+from agos.evaluator.table import results_table
+from agos.runtime.bus import ZenohBus
+from agos.runtime.launcher import Launcher, free_port, wait_listening
+from agos.runtime.links import load_profile
+from agos.runtime.orchestrator import Orchestrator
+from agos.runtime.process import install_stop_handlers
+from agos.runtime.schemas import EpisodeSpec
+from agos.runtime.settings import AgosConfig
+
+log = logging.getLogger("agos.eval")
+RUN_FILE = "run.json"
+
+
+class RunDirError(ValueError):
+    """A run directory that cannot be created or resumed; the message names it and why."""
+
+
+@dataclass
+class RunPlan:
+    run_dir: Path
+    episodes: list[EpisodeSpec]
+    policies: dict[str, str]
+    comm: str
+    timing_mode: str
+    resumed: bool = False
+
+    @property
+    def run_id(self) -> str:
+        return self.run_dir.name
+
+
+def generated_episodes(cfg: AgosConfig) -> list[EpisodeSpec]:
+    from agos.world.asset import open_town
+    from agos.world.episodes import generate_episodes
+    from agos.world.scene import Scene
+
+    town = open_town(cfg.run.town)
+    scene = Scene(town.layout)  # episodes are checked solvable by rendering
+    try:
+        return generate_episodes(town, scene, per_difficulty=cfg.run.per_difficulty, seed=cfg.run.episode_seed)
+    finally:
+        scene.close()
+
+
+def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: str, stamp: bool) -> RunPlan:
+    from agos.world.episodes import read_episodes, write_episodes
+
+    episodes = read_episodes(cfg.run.episodes_file) if cfg.run.episodes_file else generated_episodes(cfg)
+    if run_dir is None:
+        run_id = f"{cfg.run.run_id}-{datetime.now(UTC).strftime('%Y%m%d-%H%M%S')}" if stamp else cfg.run.run_id
+        run_dir = cfg.run.runs_dir / run_id
+    if (run_dir / "results.sqlite").exists():
+        raise RunDirError(f"{run_dir}: already holds results; resume it with: agos eval --resume {run_dir}")
+    load_profile(comm)  # fail before starting anything
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_episodes(run_dir / "episodes.jsonl", episodes)
+    plan = RunPlan(run_dir, episodes, {"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv}, comm, timing_mode)
+    (run_dir / RUN_FILE).write_text(json.dumps({
+        "run_id": plan.run_id, "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "policies": plan.policies, "comm": comm, "timing_mode": timing_mode, "episodes": len(episodes),
+        "episode_source": str(cfg.run.episodes_file or f"generated: {cfg.run.town}, {cfg.run.per_difficulty}/difficulty, "
+                                                         f"seed {cfg.run.episode_seed}"),
+    }, indent=2) + "\n")
+    return plan
+
+
+def resume_plan(run_dir: Path) -> RunPlan:
+    from agos.world.episodes import read_episodes
+
+    path = run_dir / RUN_FILE
+    if not path.exists():
+        raise RunDirError(f"{run_dir}: no {RUN_FILE}; not an agos run directory")
+    meta = json.loads(path.read_text())
+    return RunPlan(run_dir, read_episodes(run_dir / "episodes.jsonl"), meta["policies"], meta["comm"],
+                   meta["timing_mode"], resumed=True)
+
+
+def stored_episodes(run_dir: Path) -> set[str]:
+    path = run_dir / "results.sqlite"
+    if not path.exists():
+        return set()
+    store = ResultStore(path, create=False)
+    try:
+        return {eid for eid, _ in store.raw_records()}
+    finally:
+        store.close()
+
+
+def _launch_all(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, endpoint: str, port: int, workers: int,
+                config_path: Path | None, console: Console) -> bool:
+    common = ["--connect", endpoint, "--run", plan.run_id] + (["--config", str(config_path)] if config_path else [])
+    launcher.start("router", ["router", "--listen", endpoint])
+    if not wait_listening("127.0.0.1", port, 15.0):
+        console.print(f"[red]router did not listen on {endpoint}; see {launcher.log_dir / 'router.log'}")
+        return False
+    console.print(f"zenoh endpoint: {endpoint}", highlight=False)
+    launcher.start("evaluator", ["evaluator", "--connect", endpoint, "--runs-dir", str(plan.run_dir.parent)]
+                   + (["--config", str(config_path)] if config_path else []))
+    launcher.start("agent-uav", ["agent", "--role", "uav", "--policy", plan.policies["uav"], *common])
+    launcher.start("agent-ugv", ["agent", "--role", "ugv", "--policy", plan.policies["ugv"], *common])
+    for k in range(workers):
+        launcher.start(f"world-{k}", ["world", *common, "--worker-id", f"w{k}"])
+    return True
+
+
+def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, port: int | None = None,
+        config_path: Path | None = None, console: Console | None = None, stuck_after_s: float = 180.0) -> int:
+    console = console or Console()
+    stop = install_stop_handlers()
+    profile = load_profile(plan.comm)
+    done_before = stored_episodes(plan.run_dir)
+    launcher = Launcher(None if attach else plan.run_dir / "logs")
+    started = time.monotonic()
+    bus = None
+    orch = None
+    interrupted = False
+    try:
+        if attach:
+            endpoint = cfg.zenoh.connect
+            console.print(f"zenoh endpoint: {endpoint} (attached; run {plan.run_id})", highlight=False)
+        else:
+            port = port or free_port(7447)
+            endpoint = f"tcp/127.0.0.1:{port}"
+            if not _launch_all(cfg, plan, launcher, endpoint, port, workers, config_path, console):
+                return 1
+        bus = ZenohBus.connect(endpoint, connect_timeout_s=cfg.zenoh.connect_timeout_s)
+        orch = Orchestrator(bus, plan.run_id, plan.episodes, policies=plan.policies,
+                            comm_profile=profile.model_dump(), timing_mode=plan.timing_mode,
+                            already_stored=done_before, resumed=plan.resumed, stuck_after_s=stuck_after_s)
+        orch.publish_manifest("running")
+        if done_before:
+            console.print(f"resuming {plan.run_dir}: {len(orch.stored)} of {orch.total} episodes already stored")
+        successes = 0
+        columns = (TextColumn("[bold]episodes"), BarColumn(), MofNCompleteColumn(),
+                   TextColumn("SR so far {task.fields[sr]}"), TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn())
+        with Progress(*columns, console=console, transient=False) as progress:
+            task = progress.add_task("episodes", total=orch.total, completed=len(orch.stored), sr="-")
+            fresh = 0
+            while not orch.finished and not stop.is_set():
+                for record in orch.pump(0.25):
+                    fresh += 1
+                    successes += record.success
+                    progress.update(task, completed=len(orch.stored), sr=f"{100 * successes / fresh:.0f}%")
+                dead = {n: c for n, c in launcher.dead().items() if not n.startswith("world")}
+                if dead:
+                    names = ", ".join(f"{n} (exit {c})" for n, c in dead.items())
+                    console.print(f"[red]process exited early: {names}; logs in {plan.run_dir / 'logs'}")
+                    return 1
+                if launcher.children and all(n in launcher.dead() for n in launcher.children if n.startswith("world")):
+                    console.print(f"[red]every world worker exited; logs in {plan.run_dir / 'logs'}")
+                    return 1
+        interrupted = stop.is_set()
+        orch.publish_manifest("interrupted" if interrupted else "finished")
+        if not interrupted:
+            time.sleep(0.3)  # let the evaluator log its table before it is stopped
+    finally:
+        if launcher.children:
+            launcher.stop_all(order=[n for n in launcher.children if n.startswith("world")]
+                              + ["agent-uav", "agent-ugv", "evaluator", "router"])
+        if bus is not None:
+            bus.close()
+    _summary(console, plan, orch, attach, len(launcher.children) + 1, time.monotonic() - started)
+    if interrupted:
+        console.print(f"[yellow]interrupted: every process stopped; resume with: agos eval --resume {plan.run_dir}")
+    return 0
+
+
+def _summary(console: Console, plan: RunPlan, orch: Orchestrator | None, attach: bool, processes: int,
+             wall_s: float) -> None:
+    path = results_path(plan.run_dir.parent, plan.run_id)
+    records = []
+    if path.exists():
+        store = ResultStore(path)
+        records = store.records(plan.run_id)
+        store.close()
+    elif orch is not None:  # the evaluator stores elsewhere: show what was acknowledged
+        records = [orch.records[e] for e in sorted(orch.stored) if e in orch.records]
+    if records:
+        where = "attached" if attach else f"{processes} processes"
+        console.print(results_table(by_difficulty(records), title=f"{plan.run_id}: {len(records)} episodes, "
+                                    f"{plan.policies['uav']}/{plan.policies['ugv']} policies, comm {plan.comm}, {where}"))
+    console.print(f"results: {path}", highlight=False)
+    if not attach:
+        console.print(f"logs:    {plan.run_dir / 'logs'}", highlight=False)
+    if orch is not None and orch.releases:
+        console.print(f"re-leased episodes: {orch.releases}", highlight=False)
+    console.print(f"wall time: {wall_s:.1f} s", highlight=False)
