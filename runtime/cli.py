@@ -58,6 +58,16 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--port", type=int)
     ev.add_argument("--stuck-after", type=float, default=180.0, help="re-lease an episode without progress for this long (s)")
 
+    sw = sub.add_parser("sweep", help="a comm-profile parameter grid x link seeds: table and plots with CIs")
+    sw.add_argument("--split", type=Path, required=True, help="JSONL episode file")
+    sw.add_argument("--comm", default="ideal", help="base profile")
+    sw.add_argument("--param", default="loss.p", help="dotted profile field, e.g. loss.p, latency.mean_s")
+    sw.add_argument("--values", default="0,0.1,0.2,0.3,0.4,0.5", help="comma-separated values")
+    sw.add_argument("--seeds", default="0,1", help="comma-separated link seeds")
+    sw.add_argument("--policy", default="heuristic")
+    sw.add_argument("--workers", type=int, default=2)
+    sw.add_argument("--out", type=Path, required=True)
+
     router = sub.add_parser("router", help="zenoh router")
     router.add_argument("--config", type=Path)
     router.add_argument("--listen", help="endpoint to listen on (default tcp/127.0.0.1:7447)")
@@ -135,6 +145,8 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
             return demo.main(cfg, config_path=args.config, port=args.port, attach=args.connect is not None)
         if args.command == "eval":
             return _eval(args, cfg)
+        if args.command == "sweep":
+            return _sweep(args)
         if args.command == "router":
             from agos.runtime import router
 
@@ -163,6 +175,30 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
         print(f"episode file error: {exc}", file=sys.stderr)
         return 2
     raise AssertionError(args.command)
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from agos.runtime.links import ProfileError
+    from agos.runtime.sweep import run_sweep
+    from agos.world.episodes import read_episodes
+
+    try:
+        values = [float(v) for v in args.values.split(",")]
+        seeds = [int(v) for v in args.seeds.split(",")]
+        total = len(values) * len(seeds) * len(read_episodes(args.split))
+        with Progress(TextColumn("[bold]sweep"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()) as bar:
+            task = bar.add_task("episodes", total=total)
+            table = run_sweep(args.split, args.out, base=args.comm, param=args.param, values=values, seeds=seeds,
+                              policies=(args.policy, args.policy), workers=args.workers,
+                              progress=lambda: bar.advance(task))
+    except (ProfileError, ValueError) as exc:
+        print(f"sweep error: {exc}", file=sys.stderr)
+        return 2
+    print((args.out / "sweep.md").read_text())
+    print(f"{len(table)} points -> {args.out}/sweep.csv, sweep.md, sweep.png")
+    return 0
 
 
 def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:

@@ -78,6 +78,8 @@ class EpisodeSettings:
     """A UAV that has not heard its candidate resolved by then is asked again (lossy links)."""
     comm: CommProfile = field(default_factory=lambda: IDEAL)
     timing_mode: str = "lockstep"
+    link_seed: int = 0
+    """Extra seed of the link streams, for repeating an episode under other link randomness."""
     """``lockstep``: the sim clock waits for decisions; ``realtime``: a decision's wall-clock
     latency delays its effect in sim time, while the teammate carries on."""
     confirm: ConfirmSettings = field(default_factory=ConfirmSettings)
@@ -186,7 +188,8 @@ class EpisodeRunner:
         self.ugv = _Ugv(start, self.roads.heading_at(start), route=[start])
         self.start_node = start
         self.shortest_path_m = self._shortest_confirmable_path()
-        self.channel = Channel(self.cfg.comm, spec.seed, {"uav": self._uav_pose(), "ugv": self._ugv_pose()})
+        self.channel = Channel(self.cfg.comm, spec.seed + 7919 * self.cfg.link_seed,
+                               {"uav": self._uav_pose(), "ugv": self._ugv_pose()})
         self._info_age: dict[str, float | None] = {"uav": None, "ugv": None}
 
     def teardown(self) -> None:

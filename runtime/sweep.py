@@ -1,0 +1,163 @@
+"""``agos sweep``: how a link parameter changes cooperation.
+
+A grid of values of one comm-profile parameter (``loss.p``, ``latency.mean_s``,
+``bandwidth.bits_per_s``, ``range.max_range_m`` ...) times link seeds, each point run on the same
+episodes. Episodes run in parallel worker processes with the policies called in-process (the link
+model lives in the world, so this measures exactly what `agos eval` would, without a router;
+the same seed gives the same numbers). Writes ``points/*.jsonl`` (episode records), ``sweep.csv``,
+``sweep.md`` and one PNG per metric (SR, SPL, DS) with 95 % bootstrap intervals over episodes.
+"""
+
+from __future__ import annotations
+
+import csv
+import multiprocessing as mp
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agos.runtime.links import CommProfile, load_profile
+
+METRICS = ("SR", "SPL", "DS")
+
+
+def with_param(profile: CommProfile, param: str, value: float) -> CommProfile:
+    """A copy of ``profile`` with a dotted parameter set (``loss.p`` also switches Bernoulli loss on)."""
+    data = profile.model_dump()
+    section, _, key = param.partition(".")
+    if section not in data or not isinstance(data[section], dict) or key not in data[section]:
+        raise ValueError(f"sweep parameter {param!r}: not a field of a comm profile (e.g. loss.p, latency.mean_s)")
+    data[section][key] = value
+    if param == "loss.p" and data["loss"]["model"] == "none":
+        data["loss"]["model"] = "bernoulli"
+    data["name"] = f"{profile.name}[{param}={value:g}]"
+    return CommProfile.model_validate(data)
+
+
+@dataclass(frozen=True)
+class Point:
+    value: float
+    seed: int
+
+
+_CACHE: dict[str, Any] = {}
+
+
+def _run_point_episode(args: tuple[dict, int, str, list[str], str]) -> str:
+    """Worker process: one episode under one profile and link seed; returns the record JSON."""
+    profile_data, link_seed, episode_json, policies, _ = args
+    from agos.agents.inprocess import InProcessAgents
+    from agos.agents.policy import make_policy
+    from agos.runtime.schemas import EpisodeSpec
+    from agos.world.asset import town_for
+    from agos.world.episode import EpisodeRunner, EpisodeSettings
+    from agos.world.scene import Scene
+
+    spec = EpisodeSpec.model_validate_json(episode_json)
+    key = spec.asset_sha256
+    if key not in _CACHE:
+        town = town_for(spec.town.generator, spec.town.seed, spec.asset_sha256, town_id=spec.town.town_id)
+        _CACHE[key] = (town, Scene(town.layout))
+    town, scene = _CACHE[key]
+    settings = EpisodeSettings(comm=CommProfile.model_validate(profile_data), link_seed=link_seed)
+    agents = InProcessAgents({"uav": make_policy(policies[0], "uav"), "ugv": make_policy(policies[1], "ugv")})
+    record = EpisodeRunner(scene, town, spec, run_id="sweep", worker_id="sweep", settings=settings).run(agents)
+    return record.model_dump_json()
+
+
+def run_sweep(episodes_file: Path, out_dir: Path, *, base: str, param: str, values: list[float], seeds: list[int],
+              policies: tuple[str, str], workers: int, progress: Callable[[], None] | None = None) -> list[dict]:
+    from agos.world.episodes import read_episodes
+
+    episodes = read_episodes(episodes_file)
+    profile = load_profile(base)
+    points = [Point(v, s) for v in values for s in seeds]
+    jobs = [(with_param(profile, param, p.value).model_dump(), p.seed, e.model_dump_json(), list(policies), str(i))
+            for i, p in enumerate(points) for e in episodes]
+    results: dict[int, list[str]] = {i: [] for i in range(len(points))}
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
+        futures = {pool.submit(_run_point_episode, job): int(job[4]) for job in jobs}
+        for future in as_completed(futures):
+            results[futures[future]].append(future.result())
+            if progress:
+                progress()
+    (out_dir / "points").mkdir(parents=True, exist_ok=True)
+    rows = []
+    for i, point in enumerate(points):
+        lines = sorted(results[i])
+        (out_dir / "points" / f"{param}={point.value:g}_seed{point.seed}.jsonl").write_text("\n".join(lines) + "\n")
+        rows.append({"value": point.value, "seed": point.seed, "records": lines})
+    return summarize(rows, out_dir, param)
+
+
+def _bootstrap_ci(values: np.ndarray, rng: np.random.Generator, resamples: int = 2000) -> tuple[float, float]:
+    if len(values) < 2:
+        return float(values.mean()), float(values.mean())
+    means = values[rng.integers(0, len(values), size=(resamples, len(values)))].mean(axis=1)
+    low, high = np.percentile(means, [2.5, 97.5])
+    return float(low), float(high)
+
+
+def summarize(rows: list[dict], out_dir: Path, param: str) -> list[dict]:
+    from agos.evaluator.metrics import decision_steps, spl, success
+    from agos.evaluator.summary import EpisodeSummary
+
+    rng = np.random.default_rng(0)
+    by_value: dict[float, list] = {}
+    for row in rows:
+        eps = [EpisodeSummary.from_valid(__import__("json").loads(line)) for line in row["records"]]
+        by_value.setdefault(row["value"], []).extend(eps)
+    table = []
+    for value in sorted(by_value):
+        eps = [e for e in by_value[value] if e.status == "finished"]
+        entry: dict[str, Any] = {"value": value, "episodes": len(eps)}
+        for name, fn in (("SR", success), ("SPL", spl), ("DS", decision_steps)):
+            arr = np.array([fn(e) for e in eps], dtype=float)
+            low, high = _bootstrap_ci(arr, rng)
+            entry[name], entry[f"{name}_low"], entry[f"{name}_high"] = float(arr.mean()), low, high
+        rates = [e.link["delivery_rate"] for e in eps if e.link and e.link.get("delivery_rate") is not None]
+        entry["delivery_rate"] = float(np.mean(rates)) if rates else None
+        table.append(entry)
+    with (out_dir / "sweep.csv").open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(table[0]))
+        writer.writeheader()
+        writer.writerows(table)
+    lines = [f"| {param} | episodes | delivered % | SR % [95% CI] | SPL % [95% CI] | DS [95% CI] |",
+             "|---:|---:|---:|---|---|---|"]
+    for t in table:
+        delivered = "-" if t["delivery_rate"] is None else f"{100 * t['delivery_rate']:.1f}"
+        lines.append(f"| {t['value']:g} | {t['episodes']} | {delivered} | {100 * t['SR']:.1f} [{100 * t['SR_low']:.1f}, "
+                     f"{100 * t['SR_high']:.1f}] | {100 * t['SPL']:.1f} [{100 * t['SPL_low']:.1f}, {100 * t['SPL_high']:.1f}] "
+                     f"| {t['DS']:.1f} [{t['DS_low']:.1f}, {t['DS_high']:.1f}] |")
+    (out_dir / "sweep.md").write_text("\n".join(lines) + "\n")
+    _plots(table, out_dir, param)
+    return table
+
+
+def _plots(table: list[dict], out_dir: Path, param: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = [t["value"] for t in table]
+    fig, axes = plt.subplots(1, 3, figsize=(11, 3.2), dpi=140)
+    for ax, name in zip(axes, METRICS, strict=True):
+        scale = 1.0 if name == "DS" else 100.0
+        y = [scale * t[name] for t in table]
+        lo = [scale * (t[name] - t[f"{name}_low"]) for t in table]
+        hi = [scale * (t[f"{name}_high"] - t[name]) for t in table]
+        ax.errorbar(x, y, yerr=[lo, hi], marker="o", capsize=3)
+        ax.set_xlabel(param)
+        ax.set_ylabel(name + ("" if name == "DS" else " (%)"))
+        ax.set_title(f"{name} vs {param} (95% CI)", fontsize=9)
+        ax.grid(alpha=0.3)
+        if name != "DS":
+            ax.set_ylim(0, 105)
+    fig.tight_layout()
+    fig.savefig(out_dir / "sweep.png")
+    plt.close(fig)
