@@ -26,13 +26,17 @@ class Policy(Protocol):
 
 
 def make_policy(name: str, role: Role) -> Policy:
-    """Build a policy by name: ``heuristic`` (offline, OpenCV)."""
+    """Build a policy by name: ``heuristic`` (offline, OpenCV) or ``standin-<N>ms`` (fixed latency)."""
     if name == "heuristic":
         from agos.agents.heuristic.uav import HeuristicUav
         from agos.agents.heuristic.ugv import HeuristicUgv
 
         return HeuristicUav() if role == "uav" else HeuristicUgv()
-    raise ValueError(f"unknown policy {name!r}; known: heuristic")
+    if name.startswith("standin-"):
+        from agos.agents.standin import FixedLatencyPolicy, parse_standin
+
+        return FixedLatencyPolicy(role, parse_standin(name))
+    raise ValueError(f"unknown policy {name!r}; known: heuristic, standin-<N>ms")
 
 
 def action_for(obs: Observation, name: str, **fields: object) -> Action:

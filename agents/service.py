@@ -55,7 +55,7 @@ async def answer(policy: Policy, obs: Observation, executor: ThreadPoolExecutor)
 
 async def serve_async(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag, *, concurrency: int) -> int:
     loop = asyncio.get_running_loop()
-    queue: asyncio.Queue[Sample] = asyncio.Queue()
+    queue: asyncio.Queue[Sample | None] = asyncio.Queue()
     inbox = _LoopInbox(loop, queue)
     bus.subscribe(keys.obs(run_id, "*", policy.role), inbox)  # type: ignore[arg-type]
     bus.subscribe(keys.result(run_id, "*"), inbox)  # type: ignore[arg-type]
@@ -69,13 +69,18 @@ async def serve_async(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag
             action = await answer(policy, obs, executor)
         bus.publish(keys.act(run_id, obs.episode_id, policy.role), action)
 
+    async def watch_stop() -> None:
+        while not stop.is_set():
+            await asyncio.sleep(0.25)
+        queue.put_nowait(None)  # wakes the loop below; no per-message timers on the hot path
+
+    watcher = asyncio.create_task(watch_stop())
     log.info("%s agent (%s) serving run %s, up to %d decisions at once", policy.role, policy.name, run_id, concurrency)
     try:
-        while not stop.is_set():
-            try:
-                sample = await asyncio.wait_for(queue.get(), timeout=0.5)
-            except TimeoutError:
-                continue
+        while True:
+            sample = await queue.get()
+            if sample is None:
+                break
             try:
                 message = decode(sample.payload)
             except DecodeError as exc:
@@ -88,6 +93,7 @@ async def serve_async(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag
                 tasks.add(task)
                 task.add_done_callback(tasks.discard)
     finally:
+        watcher.cancel()
         for task in tasks:
             task.cancel()
         executor.shutdown(wait=False, cancel_futures=True)

@@ -68,6 +68,10 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--workers", type=int, default=2)
     sw.add_argument("--out", type=Path, required=True)
 
+    watch = sub.add_parser("watch", help="print every message under agos/** (a read-only observer)")
+    watch.add_argument("--connect", default="tcp/127.0.0.1:7447")
+    watch.add_argument("--key", default="agos/**")
+
     router = sub.add_parser("router", help="zenoh router")
     router.add_argument("--config", type=Path)
     router.add_argument("--listen", help="endpoint to listen on (default tcp/127.0.0.1:7447)")
@@ -147,6 +151,10 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
             return _eval(args, cfg)
         if args.command == "sweep":
             return _sweep(args)
+        if args.command == "watch":
+            from agos.runtime import observer
+
+            return observer.main(args.connect, args.key)
         if args.command == "router":
             from agos.runtime import router
 
@@ -157,7 +165,13 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
             return worker.main(cfg, worker_id=args.worker_id)
         if args.command == "agent":
             from agos.agents import service
+            from agos.agents.policy import make_policy
 
+            try:
+                make_policy(args.policy or (cfg.run.policy_uav if args.role == "uav" else cfg.run.policy_ugv), args.role)
+            except ValueError as exc:
+                print(f"agent error: {exc}", file=sys.stderr)
+                return 2
             return service.main(cfg, role=args.role, policy_name=args.policy, concurrency=args.concurrency)
         if args.command == "evaluator":
             from agos.evaluator import service as evaluator_service
