@@ -207,4 +207,8 @@ def _summary(console: Console, plan: RunPlan, orch: Orchestrator | None, attach:
         console.print(f"logs:    {plan.run_dir / 'logs'}", highlight=False)
     if orch is not None and orch.releases:
         console.print(f"re-leased episodes: {orch.releases}", highlight=False)
+    if orch is not None:
+        rate = orch.episodes_per_minute(len(orch.stored) - orch.already)
+        if rate is not None:
+            console.print(f"throughput: {rate:.1f} episodes/min (first lease to last stored episode)", highlight=False)
     console.print(f"wall time: {wall_s:.1f} s", highlight=False)

@@ -51,10 +51,13 @@ class Orchestrator:
         done = already_stored or set()
         self.total = len(episodes)
         self.stored: set[str] = {e.episode_id for e in episodes if e.episode_id in done}
+        self.already = len(self.stored)
         self.pending: deque[tuple[EpisodeSpec, int]] = deque((e, 1) for e in episodes if e.episode_id not in done)
         self.leases: dict[str, Lease] = {}
         self.records: dict[str, EpisodeRecord] = {}
         self.releases = 0
+        self.first_lease_s: float | None = None
+        self.last_stored_s: float | None = None
         self.created_utc = datetime.now(UTC).isoformat(timespec="seconds")
         self._queries = bus.serve(keys.jobs(run_id), lambda q: None)
         # Imported towns travel by hash: workers without the file ask agos/assets/<sha256>.
@@ -66,6 +69,12 @@ class Orchestrator:
         self._live = Inbox()
         bus.watch_liveliness(keys.live(run_id, "world", "*"), self._live)
         bus.declare_token(keys.live(run_id, "orchestrator", "main"))
+
+    def episodes_per_minute(self, fresh: int) -> float | None:
+        """Throughput from the first lease to the last stored episode (process start-up excluded)."""
+        if self.first_lease_s is None or self.last_stored_s is None or self.last_stored_s <= self.first_lease_s:
+            return None
+        return 60.0 * fresh / (self.last_stored_s - self.first_lease_s)
 
     @property
     def finished(self) -> bool:
@@ -98,6 +107,7 @@ class Orchestrator:
                 self.records.setdefault(message.episode_id, message)
             elif isinstance(message, ResultAck) and message.episode_id not in self.stored:
                 self.stored.add(message.episode_id)
+                self.last_stored_s = now
                 self.leases.pop(message.episode_id, None)
                 if message.episode_id in self.records:
                     newly.append(self.records[message.episode_id])
@@ -140,6 +150,8 @@ class Orchestrator:
         if self.pending:
             spec, attempt = self.pending.popleft()
             now = self._clock()
+            if self.first_lease_s is None:
+                self.first_lease_s = now
             self.leases[spec.episode_id] = Lease(spec, worker, attempt, now, now)
             log.info("leased %s to %s (attempt %d)", spec.episode_id, worker, attempt)
             query.reply(encode(JobGrant(episode=spec, attempt=attempt, comm_profile=self.comm_profile,
