@@ -9,9 +9,11 @@ in this order, each recording why a message was dropped:
 3. ``loss``: independent (Bernoulli) loss, or bursty loss from a two-state Gilbert-Elliott
    chain stepped once per transmission;
 4. ``bandwidth``: serialization delay ``bytes * 8 / bits_per_s`` through a FIFO with a bounded
-   queue (in bytes); a message that does not fit is dropped;
+   queue (in bytes); a message that does not fit is dropped; a message lost in stages 1-3 never
+   occupies the radio;
 5. ``latency``: propagation delay ``mean_s`` plus jitter (normal, uniform, exponential or
-   lognormal; never negative).
+   lognormal; never negative), added after the queue, so with jitter messages may arrive out of
+   order (receivers keep the newest information).
 
 Each direction (uav->ugv, ugv->uav) has its own link and random stream, derived from the
 episode seed, so the same seed gives bit-identical deliveries. Profiles are TOML files in
@@ -27,7 +29,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 PROFILE_DIR = Path(__file__).resolve().parents[1] / "deploy" / "comm"
 
@@ -68,6 +70,12 @@ class Blackout(_Section):
     start_s: float = Field(ge=0)
     end_s: float = Field(ge=0)
 
+    @model_validator(mode="after")
+    def _ordered(self) -> Blackout:
+        if self.end_s < self.start_s:
+            raise ValueError(f"blackout ends ({self.end_s} s) before it starts ({self.start_s} s)")
+        return self
+
 
 class CommProfile(_Section):
     name: str
@@ -96,6 +104,8 @@ def load_profile(name_or_path: str | Path) -> CommProfile:
     path = Path(name_or_path)
     if not path.suffix:
         path = PROFILE_DIR / f"{name_or_path}.toml"
+    elif not path.exists() and path.parent == Path(".") and (PROFILE_DIR / path.name).exists():
+        path = PROFILE_DIR / path.name
     try:
         data = tomllib.loads(path.read_text())
     except FileNotFoundError:
@@ -138,13 +148,14 @@ class Link:
         # Draw every random number in a fixed order whatever happens, so one message's fate
         # never shifts the stream of the next (bit-identical replays, comparable sweeps).
         u_loss, u_nlos, u_state, z = self.rng.random(), self.rng.random(), self.rng.random(), self.rng.standard_normal()
+        lost = self._lost(u_loss, u_state)  # the loss chain steps on every transmission, whatever its fate
         if any(b.start_s <= t_send < b.end_s for b in p.blackouts):
             return Delivery(False, None, "blackout")
         if p.range.max_range_m is not None and distance_m > p.range.max_range_m:
             return Delivery(False, None, "out_of_range")
         if not line_of_sight and u_nlos < p.range.nlos_loss:
             return Delivery(False, None, "nlos")
-        if self._lost(u_loss, u_state):
+        if lost:
             return Delivery(False, None, "loss")
         start = t_send
         if p.bandwidth.bits_per_s is not None:
