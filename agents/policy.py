@@ -25,18 +25,48 @@ class Policy(Protocol):
         ...
 
 
+ABLATIONS = {"": (True, True), "no_e2a": (False, True), "no_rgpp": (True, False), "no_both": (False, False)}
+KNOWN = "heuristic[:no_e2a|no_rgpp|no_both], oracle, random, standin-<N>ms"
+
+
+def split_name(name: str) -> tuple[str, str]:
+    """``heuristic:no_rgpp`` -> ("heuristic", "no_rgpp"); raises ValueError for unknown variants."""
+    base, _, variant = name.partition(":")
+    if variant not in ABLATIONS:
+        raise ValueError(f"unknown policy variant {variant!r} in {name!r}; variants: no_e2a, no_rgpp, no_both")
+    return base, variant
+
+
+def tools_for(policies: dict[str, str]) -> dict[str, bool]:
+    """The world-side tools a run's policies use: E2A and RGPP (off in ablations), oracle hints."""
+    e2a = rgpp = True
+    for name in policies.values():
+        _, variant = split_name(name)
+        e2a, rgpp = e2a and ABLATIONS[variant][0], rgpp and ABLATIONS[variant][1]
+    return {"e2a": e2a, "rgpp": rgpp, "oracle": any(split_name(n)[0] == "oracle" for n in policies.values())}
+
+
 def make_policy(name: str, role: Role) -> Policy:
-    """Build a policy by name: ``heuristic`` (offline, OpenCV) or ``standin-<N>ms`` (fixed latency)."""
-    if name == "heuristic":
+    """Build a policy by name (see ``KNOWN``); ablation variants change only world-side tools."""
+    base, _ = split_name(name)
+    if base == "heuristic":
         from agos.agents.heuristic.uav import HeuristicUav
         from agos.agents.heuristic.ugv import HeuristicUgv
 
         return HeuristicUav() if role == "uav" else HeuristicUgv()
-    if name.startswith("standin-"):
+    if base == "oracle":
+        from agos.agents.oracle import OracleUav, OracleUgv
+
+        return OracleUav() if role == "uav" else OracleUgv()
+    if base == "random":
+        from agos.agents.random_policy import RandomPolicy
+
+        return RandomPolicy(role)
+    if base.startswith("standin-"):
         from agos.agents.standin import FixedLatencyPolicy, parse_standin
 
-        return FixedLatencyPolicy(role, parse_standin(name))
-    raise ValueError(f"unknown policy {name!r}; known: heuristic, standin-<N>ms")
+        return FixedLatencyPolicy(role, parse_standin(base))
+    raise ValueError(f"unknown policy {name!r}; known: {KNOWN}")
 
 
 def action_for(obs: Observation, name: str, **fields: object) -> Action:

@@ -227,7 +227,7 @@ def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
             if run_dir is None and args.connect and args.run_id:
                 run_dir = cfg.run.runs_dir / args.run_id
             plan = evaluate.new_plan(cfg, run_dir=run_dir, comm=args.comm, timing_mode=args.timing, stamp=True)
-    except (evaluate.RunDirError, ProfileError) as exc:
+    except (evaluate.RunDirError, ProfileError, ValueError) as exc:
         print(f"eval error: {exc}", file=sys.stderr)
         return 2
     return evaluate.run(cfg, plan, workers=cfg.run.workers, attach=args.connect is not None, port=args.port,

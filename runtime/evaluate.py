@@ -19,6 +19,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from agos.agents.policy import tools_for
 from agos.evaluator.metrics import by_difficulty
 from agos.evaluator.store import ResultStore, results_path
 from agos.evaluator.table import results_table
@@ -75,6 +76,7 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
     if (run_dir / "results.sqlite").exists():
         raise RunDirError(f"{run_dir}: already holds results; resume it with: agos eval --resume {run_dir}")
     load_profile(comm)  # fail before starting anything
+    tools_for({"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv})  # unknown policy names fail here too
     run_dir.mkdir(parents=True, exist_ok=True)
     write_episodes(run_dir / "episodes.jsonl", episodes)
     plan = RunPlan(run_dir, episodes, {"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv}, comm, timing_mode)
@@ -149,7 +151,8 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
         bus = ZenohBus.connect(endpoint, connect_timeout_s=cfg.zenoh.connect_timeout_s)
         orch = Orchestrator(bus, plan.run_id, plan.episodes, policies=plan.policies,
                             comm_profile=profile.model_dump(), timing_mode=plan.timing_mode,
-                            already_stored=done_before, resumed=plan.resumed, stuck_after_s=stuck_after_s)
+                            already_stored=done_before, resumed=plan.resumed, stuck_after_s=stuck_after_s,
+                            tools=tools_for(plan.policies))
         orch.publish_manifest("running")
         if done_before:
             console.print(f"resuming {plan.run_dir}: {len(orch.stored)} of {orch.total} episodes already stored")

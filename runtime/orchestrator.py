@@ -43,9 +43,11 @@ class Orchestrator:
     def __init__(self, bus: ZenohBus, run_id: str, episodes: list[EpisodeSpec], *, policies: dict[str, str],
                  comm_profile: dict[str, Any] | None = None, timing_mode: str = "lockstep",
                  stuck_after_s: float = 180.0, max_attempts: int = 3, already_stored: set[str] | None = None,
+                 tools: dict[str, bool] | None = None,
                  resumed: bool = False, clock=time.monotonic) -> None:
         self.bus, self.run_id = bus, run_id
         self.policies, self.comm_profile, self.timing_mode = policies, comm_profile, timing_mode
+        self.tools = tools or {"e2a": True, "rgpp": True, "oracle": False}
         self.stuck_after_s, self.max_attempts, self.resumed = stuck_after_s, max_attempts, resumed
         self._clock = clock
         done = already_stored or set()
@@ -155,7 +157,7 @@ class Orchestrator:
             self.leases[spec.episode_id] = Lease(spec, worker, attempt, now, now)
             log.info("leased %s to %s (attempt %d)", spec.episode_id, worker, attempt)
             query.reply(encode(JobGrant(episode=spec, attempt=attempt, comm_profile=self.comm_profile,
-                                        timing_mode=self.timing_mode)))
+                                        timing_mode=self.timing_mode, tools=self.tools)))
         else:
             query.reply(encode(JobGrant(episode=None, run_finished=self.finished)))
 

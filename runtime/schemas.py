@@ -92,6 +92,9 @@ class Waypoint(Model):
     """Road distance from the agent's current node (UGV options only)."""
     option: str | None = None
     """UGV options: ``forward`` (~10 m), ``forward_far`` (~30 m), ``junction_exit``, ``backward``."""
+    distance_to_candidate_m: float | None = None
+    """Without road-graph path planning (no_rgpp ablation): straight-line distance from this
+    option to the active candidate's centre, the hint the UGV navigates by."""
 
 
 CandidateStatus = Literal["pending", "arrived", "rejected", "confirmed", "false_confirm"]
@@ -139,6 +142,16 @@ class CoordinationState(Model):
     max_annotations: int = 5
 
 
+class OracleHints(Model):
+    """Ground truth, given only to the ``oracle`` policy (an upper bound and solvability check)."""
+
+    target_world_m: Vec2
+    target_in_view: bool
+    """The target is oracle-visible in this observation's images."""
+    confirm_would_succeed: bool
+    """A CONFIRM now would pass the checker (UGV after STOP_OBSERVE)."""
+
+
 class Observation(Model):
     """World -> agent: everything a role may know at its decision ``decision_index``."""
 
@@ -166,6 +179,8 @@ class Observation(Model):
     grid_cols: int = 5
     fresh_stop_observe: bool = False
     """True right after STOP_OBSERVE, before any movement (UGV)."""
+    oracle: OracleHints | None = None
+    """Only when the run's policy is ``oracle``; never for other policies."""
 
 
 class Action(Model):
@@ -400,6 +415,9 @@ class JobGrant(Model):
     comm_profile: dict[str, Any] | None = None
     """The run's link model (a CommProfile as a map), so remote workers need no profile file."""
     timing_mode: Literal["lockstep", "realtime"] = "lockstep"
+    tools: dict[str, bool] = Field(default_factory=lambda: {"e2a": True, "rgpp": True, "oracle": False})
+    """World-side tools of the run's policy: Ego-to-Allo projection, road-graph path planning
+    (GO_TO_CANDIDATE), and oracle hints."""
 
 
 WireMessage = Annotated[

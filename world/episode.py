@@ -42,6 +42,7 @@ from agos.runtime.schemas import (
     ImageFrame,
     MessageRecord,
     Observation,
+    OracleHints,
     Pose,
     Role,
     StepEvent,
@@ -78,6 +79,14 @@ class EpisodeSettings:
     """A UAV that has not heard its candidate resolved by then is asked again (lossy links)."""
     comm: CommProfile = field(default_factory=lambda: IDEAL)
     timing_mode: str = "lockstep"
+    e2a: bool = True
+    """Ego-to-Allo projection: a candidate is its grid cell on the ground. Off (no_e2a ablation):
+    the candidate centre is the UAV's ground footprint and its polygon the whole view."""
+    rgpp: bool = True
+    """Road-graph path planning: GO_TO_CANDIDATE exists. Off (no_rgpp): the UGV approaches through
+    road waypoints, each with its distance to the candidate as a hint."""
+    oracle: bool = False
+    """Give observations the ground-truth hints of the oracle policy."""
     link_seed: int = 0
     """Extra seed of the link streams, for repeating an episode under other link randomness."""
     """``lockstep``: the sim clock waits for decisions; ``realtime``: a decision's wall-clock
@@ -286,7 +295,8 @@ class EpisodeRunner:
                 legal_actions=self._uav_legal(options), waypoint_options=options,
                 region_world_m=self.spec.region_world_m,
                 active_uav_waypoints=[self._uav_waypoint(n) for n in sorted(self.active_uav)],
-                coordination=self._coordination("uav"), grid_rows=sensors.GRID_ROWS, grid_cols=sensors.GRID_COLS)
+                coordination=self._coordination("uav"), grid_rows=sensors.GRID_ROWS, grid_cols=sensors.GRID_COLS,
+                oracle=self._oracle("uav", self._uav_target_px >= self.cfg.uav_visible_min_px))
         self.ugv.decisions += 1
         if self.ugv.mode == "stop_6view":
             images = [f for shot in self.ugv.six for f in sensors.frames_of(shot, self.scene, cam)] + self._map_frame()
@@ -300,7 +310,7 @@ class EpisodeRunner:
             mode="stop_6view" if self.ugv.mode == "stop_6view" else "driving", images=images,
             references=self.references, legal_actions=self._ugv_legal(options), waypoint_options=options,
             region_world_m=self.spec.region_world_m, coordination=self._coordination("ugv"),
-            fresh_stop_observe=self.ugv.fresh_stop)
+            fresh_stop_observe=self.ugv.fresh_stop, oracle=self._oracle("ugv", bool(self._ground_visible)))
 
     def _map_frame(self) -> list[ImageFrame]:
         """M: the episode region from above with both agents' markers (north up)."""
@@ -329,14 +339,22 @@ class EpisodeRunner:
 
     def _ugv_options(self) -> list[Waypoint]:
         pos = self.roads.positions_world_m
+        cand = None if self.cfg.rgpp else self._active_candidate("ugv")
         return [Waypoint(waypoint_id=RoadGraphs.anchor_id(o.anchor),
                          position_world_m=(float(pos[o.anchor][0]), float(pos[o.anchor][1]), 0.0),
-                         kind=self.roads.anchors[o.anchor], path_length_m=o.path_length_m, option=o.option)
+                         kind=self.roads.anchors[o.anchor], path_length_m=o.path_length_m, option=o.option,
+                         distance_to_candidate_m=None if cand is None else round(math.dist(pos[o.anchor], cand.center_world_m), 2))
                 for o in ugv_options(self.roads, self.ugv.node, self.ugv.route)]
+
+    def _oracle(self, role: Role, target_in_view: bool) -> OracleHints | None:
+        if not self.cfg.oracle:
+            return None
+        would = role == "ugv" and self.ugv.mode == "stop_6view" and not check_confirm(self._evidence(), self.cfg.confirm)
+        return OracleHints(target_world_m=self.target_xy, target_in_view=target_in_view, confirm_would_succeed=would)
 
     def _ugv_legal(self, options: list[Waypoint]) -> list[ActionName]:
         legal: list[ActionName] = ["MOVE_TO_ROAD_WAYPOINT"] if options else []
-        if self._active_candidate("ugv") is not None:
+        if self._active_candidate("ugv") is not None and self.cfg.rgpp:
             legal.append("GO_TO_CANDIDATE")
         legal += ["STOP_OBSERVE", "CONFIRM"]
         if self._active_candidate("ugv") is not None or self.ugv.mode == "stop_6view":
@@ -408,8 +426,12 @@ class EpisodeRunner:
             except ValueError as exc:
                 raise IllegalAction(str(exc)) from None
             assert uav.last_nadir is not None
-            polygon = sensors.cell_polygon_world(cell, uav.last_nadir.world_from_camera, uav.last_nadir.intrinsics)
-            centre = centroid(polygon)
+            if self.cfg.e2a:
+                polygon = sensors.cell_polygon_world(cell, uav.last_nadir.world_from_camera, uav.last_nadir.intrinsics)
+                centre = centroid(polygon)
+            else:  # the cell is kept as metadata; the candidate is the UAV's whole ground footprint
+                polygon = sensors.footprint_world(uav.last_nadir.world_from_camera, uav.last_nadir.intrinsics)
+                centre = (float(uav.position[0]), float(uav.position[1]))
             approach = self._approach_anchor(centre)
             cand = Candidate(candidate_id=f"C{len(self.candidates) + 1:03d}", cell=cell,
                              polygon_world_m=[(round(x, 3), round(y, 3)) for x, y in polygon],

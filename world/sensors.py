@@ -129,6 +129,12 @@ def cell_polygon_world(cell: str, shot_pose: np.ndarray, intr: CameraIntrinsics,
     return [pixel_to_ground(u, v, shot_pose, intr, ground_z_m) for u, v in ((u0, v0), (u1, v0), (u1, v1), (u0, v1))]
 
 
+def footprint_world(shot_pose: np.ndarray, intr: CameraIntrinsics, ground_z_m: float = 0.0) -> list[tuple[float, float]]:
+    """The whole nadir view on the ground (corners: top-left, top-right, bottom-right, bottom-left)."""
+    w, h = intr.width_px, intr.height_px
+    return [pixel_to_ground(u, v, shot_pose, intr, ground_z_m) for u, v in ((0, 0), (w, 0), (w, h), (0, h))]
+
+
 def pixel_to_ground(u: float, v: float, world_from_camera: np.ndarray, intr: CameraIntrinsics,
                     ground_z_m: float = 0.0) -> tuple[float, float]:
     """Intersect the ray through pixel (u, v) with the plane z = ground_z_m."""

@@ -168,7 +168,9 @@ class WorldWorker:
         settings = self.cfg.world.episode_settings()
         if grant is not None:
             comm = CommProfile.model_validate(grant.comm_profile) if grant.comm_profile else settings.comm
-            settings = dataclasses.replace(settings, comm=comm, timing_mode=grant.timing_mode)
+            settings = dataclasses.replace(settings, comm=comm, timing_mode=grant.timing_mode,
+                                           e2a=grant.tools.get("e2a", True), rgpp=grant.tools.get("rgpp", True),
+                                           oracle=grant.tools.get("oracle", False))
         source = None
         try:
             town, scene = self._scene(spec)

@@ -7,14 +7,20 @@ target's paint stands on the road at the reference's painted height within 48 m,
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from agos.agents.heuristic.perception import TargetProfile, detect_from_ground, profile_from_references
+from agos.agents.navigation import Navigator
 from agos.agents.policy import action_for
 from agos.runtime.codec import decode_image
 from agos.runtime.schemas import Action, Observation
 
 MIN_PIXELS = 80
+
+
+APPROACH_WITHIN_M = 12.0
 
 
 class HeuristicUgv:
@@ -23,9 +29,11 @@ class HeuristicUgv:
 
     def __init__(self) -> None:
         self._profiles: dict[str, TargetProfile] = {}
+        self.nav = Navigator()
 
     def end_episode(self, episode_id: str) -> None:
         self._profiles.pop(episode_id, None)
+        self.nav.forget(episode_id)
 
     def act(self, obs: Observation) -> Action:
         profile = self._profiles.get(obs.episode_id)
@@ -43,6 +51,13 @@ class HeuristicUgv:
         if active is not None and active.status == "pending" and "GO_TO_CANDIDATE" in obs.legal_actions:
             return action_for(obs, "GO_TO_CANDIDATE", candidate_id=active.candidate_id,
                               message=f"Driving to {active.candidate_id}.")
+        if active is not None and active.status == "pending" and obs.mode == "driving":
+            # No road-graph path planning: approach by the options' distance hints, then stop.
+            if math.dist(obs.pose.position_world_m[:2], active.center_world_m) <= APPROACH_WITHIN_M:
+                return action_for(obs, "STOP_OBSERVE")
+            step = self.nav.towards(obs, active.center_world_m)
+            if step is not None:
+                return action_for(obs, "MOVE_TO_ROAD_WAYPOINT", waypoint_id=step)
         if active is not None and active.status == "arrived" and obs.mode == "driving":
             return action_for(obs, "STOP_OBSERVE")
         return action_for(obs, "WAIT")

@@ -1,0 +1,89 @@
+"""The oracle policy: uses the ground-truth hints the world gives only to it.
+
+An upper bound for the benchmark and a solvability check (oracle SR should be near 100 %).
+UAV: annotate the grid cell containing the target as soon as it is in view, else fly towards it.
+UGV: take a candidate with GO_TO_CANDIDATE, else drive towards the target; stop when near;
+CONFIRM exactly when the checker would accept, else move on.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from agos.agents.navigation import Navigator
+from agos.agents.policy import action_for
+from agos.runtime.schemas import Action, Observation
+
+STOP_WITHIN_M = 25.0
+
+
+class OracleUav:
+    role = "uav"
+    name = "oracle"
+
+    def end_episode(self, episode_id: str) -> None:
+        pass
+
+    def act(self, obs: Observation) -> Action:
+        hints = obs.oracle
+        if hints is None:
+            raise ValueError("the oracle policy needs a run started with policy 'oracle' (world hints missing)")
+        if hints.target_in_view and "ANNOTATE_CANDIDATE" in obs.legal_actions:
+            cell = _cell_of(obs, hints.target_world_m)
+            if cell is not None:
+                return action_for(obs, "ANNOTATE_CANDIDATE", cell=cell, message=f"Target in {cell}.")
+        if "MOVE_TO_UAV_WAYPOINT" in obs.legal_actions and obs.waypoint_options:
+            best = min(obs.waypoint_options, key=lambda w: (math.dist(w.position_world_m[:2], hints.target_world_m),
+                                                             w.waypoint_id))
+            if math.dist(best.position_world_m[:2], hints.target_world_m) < math.dist(obs.pose.position_world_m[:2],
+                                                                                      hints.target_world_m):
+                return action_for(obs, "MOVE_TO_UAV_WAYPOINT", waypoint_id=best.waypoint_id)
+        return action_for(obs, "WAIT")
+
+
+def _cell_of(obs: Observation, xy: tuple[float, float]) -> str | None:
+    frame = next((f for f in obs.images if f.kind == "rgb" and f.name == "nadir"), None)
+    if frame is None or frame.intrinsics is None or frame.world_from_camera is None:
+        return None
+    pose = np.asarray(frame.world_from_camera).reshape(4, 4)
+    p_cam = np.linalg.inv(pose) @ np.array([xy[0], xy[1], 0.0, 1.0])
+    i = frame.intrinsics
+    u, v = i.fx_px * p_cam[0] / p_cam[2] + i.cx_px, i.fy_px * p_cam[1] / p_cam[2] + i.cy_px
+    if not (0 <= u < i.width_px and 0 <= v < i.height_px):
+        return None
+    col, row = int(u * obs.grid_cols / i.width_px), int(v * len(obs.grid_rows) / i.height_px)
+    return f"{obs.grid_rows[row]}{col + 1}"
+
+
+class OracleUgv:
+    role = "ugv"
+    name = "oracle"
+
+    def __init__(self) -> None:
+        self.nav = Navigator()
+
+    def end_episode(self, episode_id: str) -> None:
+        self.nav.forget(episode_id)
+
+    def act(self, obs: Observation) -> Action:
+        hints = obs.oracle
+        if hints is None:
+            raise ValueError("the oracle policy needs a run started with policy 'oracle' (world hints missing)")
+        active = next((c for c in obs.coordination.candidates if c.status in ("pending", "arrived")), None)
+        if obs.mode == "stop_6view":
+            if hints.confirm_would_succeed:
+                return action_for(obs, "CONFIRM", message="Target confirmed.")
+            self.nav.mark_stopped(obs)
+            if active is not None:
+                return action_for(obs, "REJECT", candidate_id=active.candidate_id)
+        if active is not None and active.status == "pending" and "GO_TO_CANDIDATE" in obs.legal_actions:
+            return action_for(obs, "GO_TO_CANDIDATE", candidate_id=active.candidate_id)
+        here = obs.pose.position_world_m[:2]
+        if math.dist(here, hints.target_world_m) <= STOP_WITHIN_M and not self.nav.stopped_here(obs):
+            return action_for(obs, "STOP_OBSERVE")
+        step = self.nav.towards(obs, hints.target_world_m)
+        if step is not None:
+            return action_for(obs, "MOVE_TO_ROAD_WAYPOINT", waypoint_id=step)
+        return action_for(obs, "WAIT")
