@@ -1,0 +1,130 @@
+"""E2A projection, road-graph path planning, ablation mechanics and the oracle/random policies."""
+
+from __future__ import annotations
+
+import math
+
+import networkx as nx
+import numpy as np
+import pytest
+
+from agos.agents.inprocess import InProcessAgents
+from agos.agents.policy import make_policy, split_name, tools_for
+from agos.world import sensors
+from agos.world.asset import open_town
+from agos.world.episode import EpisodeRunner, EpisodeSettings
+from agos.world.episodes import generate_episodes
+from agos.world.lanes import Lane, LaneNetwork
+from agos.world.options import shortest_path
+from agos.world.roadgraph import build_road_graphs
+from agos.world.scene import Scene
+
+
+@pytest.mark.parametrize("altitude", [40.0, 80.0, 120.0])
+@pytest.mark.parametrize("yaw_deg", [0.0, 30.0, 90.0, 217.0])
+def test_e2a_cell_centres_land_within_a_metre_of_the_true_ground_point(altitude: float, yaw_deg: float) -> None:
+    eye = np.array([12.0, -7.0, altitude])
+    yaw = math.radians(yaw_deg)
+    pose = sensors._pose(eye, np.array([0.0, 0.0, -1.0]), np.array([math.cos(yaw), math.sin(yaw), 0.0]))
+    intr = sensors.intrinsics_for(512, 512, 60.0)
+    for r, row in enumerate(sensors.GRID_ROWS):
+        for c in range(sensors.GRID_COLS):
+            polygon = sensors.cell_polygon_world(f"{row}{c + 1}", pose, intr)
+            centre = np.mean(polygon, axis=0)
+            # the true ground point under the cell's centre pixel, by intersecting its ray with z = 0
+            u, v = (c + 0.5) * 512 / 5, (r + 0.5) * 512 / 5
+            ray = pose[:3, :3] @ np.array([(u - intr.cx_px) / intr.fx_px, (v - intr.cy_px) / intr.fy_px, 1.0])
+            truth = eye + ray * (-eye[2] / ray[2])
+            assert np.linalg.norm(centre - truth[:2]) < 1.0
+
+
+def _lane(lane_id: str, points, successors=(), in_junction=False) -> Lane:
+    pts = np.asarray(points, dtype=float)
+    dense = np.concatenate([np.linspace(pts[i], pts[i + 1], 20, endpoint=False) for i in range(len(pts) - 1)] + [pts[-1:]])
+    return Lane(lane_id, dense, np.full(len(dense), 3.5), list(successors), in_junction)
+
+
+def test_rgpp_paths_are_legal_on_the_fine_graph_and_shortest_on_the_decision_graph() -> None:
+    # a square loop with a shortcut across: two ways from A to C, the shortcut is shorter
+    net = LaneNetwork({
+        "ab": _lane("ab", [(0, 0), (100, 0)], ["bc"]),
+        "bc": _lane("bc", [(100, 0), (100, 100)], ["cd"]),
+        "cd": _lane("cd", [(100, 100), (0, 100)], ["da"]),
+        "da": _lane("da", [(0, 100), (0, 0)], ["ab"]),
+        "short": _lane("short", [(0, 0), (100, 100)], ["cd"]),
+    })
+    net.lanes["da"].successors.append("short")
+    roads = build_road_graphs(net)
+    source = min(roads.anchors, key=lambda n: np.linalg.norm(roads.positions_world_m[n] - [0, 90]))
+    target = min(roads.anchors, key=lambda n: np.linalg.norm(roads.positions_world_m[n] - [60, 100]))
+    path = shortest_path(roads, source, target)
+    assert all(roads.fine.has_edge(a, b) for a, b in zip(path, path[1:], strict=False))
+    decision_len = nx.shortest_path_length(roads.decision, source, target, weight="length_m")
+    assert roads.path_length_m(path) == pytest.approx(decision_len, abs=1e-6)
+    assert any(roads.node_lane[n] == "short" for n in path)  # the shortcut, not the loop
+
+
+def test_policy_names_and_tools() -> None:
+    assert split_name("heuristic:no_rgpp") == ("heuristic", "no_rgpp")
+    with pytest.raises(ValueError, match="variant"):
+        split_name("heuristic:no_wings")
+    with pytest.raises(ValueError, match="unknown policy"):
+        make_policy("gpt-9", "uav")
+    assert tools_for({"uav": "heuristic", "ugv": "heuristic"}) == {"e2a": True, "rgpp": True, "oracle": False}
+    assert tools_for({"uav": "heuristic:no_both", "ugv": "heuristic:no_both"}) == {"e2a": False, "rgpp": False,
+                                                                                   "oracle": False}
+    assert tools_for({"uav": "oracle", "ugv": "oracle"})["oracle"] is True
+
+
+@pytest.fixture(scope="module")
+def world():
+    town = open_town("grid-s7")
+    scene = Scene(town.layout)
+    episodes = generate_episodes(town, scene, per_difficulty=1, seed=1)
+    yield town, scene, episodes
+    scene.close()
+
+
+def _run(world, policy: str, spec, sink=None):
+    town, scene, _ = world
+    tools = tools_for({"uav": policy, "ugv": policy})
+    settings = EpisodeSettings(e2a=tools["e2a"], rgpp=tools["rgpp"], oracle=tools["oracle"])
+    agents = InProcessAgents({r: make_policy(policy, r) for r in ("uav", "ugv")})
+    return EpisodeRunner(scene, town, spec, run_id="t", worker_id="w", settings=settings, sink=sink).run(agents)
+
+
+def test_oracle_solves_every_episode_and_random_is_legal(world) -> None:
+    for spec in world[2]:
+        assert _run(world, "oracle", spec).success, spec.episode_id
+        record = _run(world, "random", spec)
+        assert record.fallbacks == 0  # random picks only legal actions with valid arguments
+
+
+def test_no_rgpp_removes_go_to_candidate_and_gives_distance_hints(world) -> None:
+    seen = []
+
+    class Spy:
+        def __init__(self, inner):
+            self.inner = inner
+
+        def decide(self, observations):
+            seen.extend(observations.values())
+            return self.inner.decide(observations)
+
+    town, scene, episodes = world
+    settings = EpisodeSettings(rgpp=False)
+    agents = Spy(InProcessAgents({r: make_policy("heuristic:no_rgpp", r) for r in ("uav", "ugv")}))
+    record = EpisodeRunner(scene, town, episodes[0], run_id="t", worker_id="w", settings=settings).run(agents)
+    ugv = [o for o in seen if o.role == "ugv"]
+    assert all("GO_TO_CANDIDATE" not in o.legal_actions for o in ugv)
+    with_candidate = [o for o in ugv if any(c.status == "pending" for c in o.coordination.candidates)]
+    assert with_candidate and all(w.distance_to_candidate_m is not None for o in with_candidate for w in o.waypoint_options)
+    assert record.status == "finished"
+
+
+def test_no_e2a_candidate_is_the_uav_footprint(world) -> None:
+    record = _run(world, "heuristic:no_e2a", world[2][0])
+    assert record.candidates
+    e2a = _run(world, "heuristic", world[2][0])
+    # the footprint centre is the UAV position: farther from the target than the annotated cell
+    assert record.candidates[0].center_error_m > e2a.candidates[0].center_error_m
