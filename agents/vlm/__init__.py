@@ -1,0 +1,1 @@
+"""VLM-backed policies: reply parsing and validation (the client and prompts come next)."""
