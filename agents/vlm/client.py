@@ -1,0 +1,135 @@
+"""An async client for OpenAI-compatible chat-completion endpoints (vLLM, SGLang, Ollama,
+llama.cpp server, hosted APIs), for VLM policies.
+
+* Images go as ``image_url`` parts with base64 data URLs (JPEG for RGB, PNG otherwise).
+* Structured output: ``response_format`` with a JSON schema when the backend supports it
+  (``structured=True``); the reply is always validated by the caller anyway.
+* Retries on 408, 409, 429, 5xx, timeouts and connection errors: honour ``Retry-After`` (seconds)
+  and ``retry-after-ms``, else exponential back-off with full jitter; at most ``max_retries``.
+* At most ``concurrency`` requests in flight per client.
+* :meth:`preflight` reads ``/models`` so a run fails before it starts when the model is missing.
+* The API key is read from an environment variable and is never logged or returned.
+
+Every call returns a :class:`Reply` with the text, ``finish_reason``, token usage, latency and the
+number of HTTP attempts: retries are counted apart from decisions (DS never includes them).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import os
+import random
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import httpx
+
+RETRY_STATUS = {408, 409, 429, 500, 502, 503, 504}
+
+
+class VlmError(RuntimeError):
+    """The endpoint could not give an answer (after retries); the message says why, never the key."""
+
+
+@dataclass
+class Reply:
+    text: str | None
+    finish_reason: str | None
+    prompt_tokens: int | None
+    completion_tokens: int | None
+    latency_s: float
+    attempts: int
+    raw: dict[str, Any] = field(default_factory=dict, repr=False)
+
+
+def image_part(data: bytes, encoding: str) -> dict[str, Any]:
+    mime = "image/jpeg" if encoding == "jpeg" else "image/png"
+    return {"type": "image_url", "image_url": {"url": f"data:{mime};base64,{base64.b64encode(data).decode()}"}}
+
+
+class VlmClient:
+    def __init__(self, base_url: str, model: str, *, api_key_env: str = "OPENAI_API_KEY", timeout_s: float = 60.0,
+                 max_retries: int = 4, concurrency: int = 8, structured: bool = True, max_tokens: int = 512,
+                 backoff_base_s: float = 0.5, backoff_max_s: float = 20.0, transport: httpx.AsyncBaseTransport | None = None,
+                 rng: random.Random | None = None) -> None:
+        self.base_url = base_url.rstrip("/")
+        self.model = model
+        self.max_retries, self.structured, self.max_tokens = max_retries, structured, max_tokens
+        self.backoff_base_s, self.backoff_max_s = backoff_base_s, backoff_max_s
+        self._limit = asyncio.Semaphore(concurrency)
+        self._rng = rng or random.Random()
+        key = os.environ.get(api_key_env)
+        headers = {"Authorization": f"Bearer {key}"} if key else {}
+        self._http = httpx.AsyncClient(base_url=self.base_url, headers=headers, timeout=timeout_s, transport=transport)
+
+    async def close(self) -> None:
+        await self._http.aclose()
+
+    async def preflight(self) -> list[str]:
+        """Models the server offers; raises VlmError when it is unreachable or lacks ``model``."""
+        try:
+            response = await self._http.get("/models")
+            response.raise_for_status()
+            models = [m.get("id") for m in response.json().get("data", [])]
+        except (httpx.HTTPError, ValueError) as exc:
+            raise VlmError(f"{self.base_url}/models: {type(exc).__name__}: {exc}") from None
+        if self.model not in models:
+            raise VlmError(f"{self.base_url}: model {self.model!r} not served (available: {', '.join(map(str, models))})")
+        return models
+
+    def _body(self, messages: list[dict[str, Any]], schema: dict[str, Any] | None) -> dict[str, Any]:
+        body: dict[str, Any] = {"model": self.model, "messages": messages, "max_tokens": self.max_tokens,
+                                "temperature": 0.0}
+        if schema is not None and self.structured:
+            body["response_format"] = {"type": "json_schema", "json_schema": {"name": "action", "schema": schema}}
+        return body
+
+    def _delay(self, attempt: int, response: httpx.Response | None) -> float:
+        if response is not None:
+            ms = response.headers.get("retry-after-ms")
+            if ms is not None:
+                try:
+                    return min(self.backoff_max_s, float(ms) / 1000.0)
+                except ValueError:
+                    pass
+            seconds = response.headers.get("retry-after")
+            if seconds is not None:
+                try:
+                    return min(self.backoff_max_s, float(seconds))
+                except ValueError:
+                    pass
+        return self._rng.uniform(0.0, min(self.backoff_max_s, self.backoff_base_s * 2 ** attempt))
+
+    async def complete(self, messages: list[dict[str, Any]], *, schema: dict[str, Any] | None = None) -> Reply:
+        body = self._body(messages, schema)
+        started = time.monotonic()
+        last_error = "no attempt"
+        async with self._limit:
+            for attempt in range(self.max_retries + 1):
+                response = None
+                try:
+                    response = await self._http.post("/chat/completions", json=body)
+                    if response.status_code in RETRY_STATUS:
+                        last_error = f"HTTP {response.status_code}"
+                    elif response.is_error:
+                        raise VlmError(f"{self.base_url}: HTTP {response.status_code}: {response.text[:200]}")
+                    else:
+                        return self._reply(response.json(), started, attempt + 1)
+                except (httpx.TimeoutException, httpx.TransportError) as exc:
+                    last_error = type(exc).__name__
+                except ValueError as exc:  # a 200 whose body is not JSON
+                    last_error = f"invalid JSON body ({exc})"
+                if attempt < self.max_retries:
+                    await asyncio.sleep(self._delay(attempt, response))
+        raise VlmError(f"{self.base_url}: no answer after {self.max_retries + 1} attempts ({last_error})")
+
+    @staticmethod
+    def _reply(data: dict[str, Any], started: float, attempts: int) -> Reply:
+        choice = (data.get("choices") or [{}])[0]
+        message = choice.get("message") or {}
+        usage = data.get("usage") or {}
+        return Reply(text=message.get("content"), finish_reason=choice.get("finish_reason"),
+                     prompt_tokens=usage.get("prompt_tokens"), completion_tokens=usage.get("completion_tokens"),
+                     latency_s=round(time.monotonic() - started, 4), attempts=attempts, raw=data)
