@@ -25,6 +25,7 @@ from typing import Any
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, ZenohBus
 from agos.runtime.codec import DecodeError, decode, encode
+from agos.runtime.records import failure_record
 from agos.runtime.schemas import EpisodeRecord, EpisodeSpec, JobGrant, JobRequest, ResultAck, RunManifest
 
 log = logging.getLogger("agos.orchestrator")
@@ -132,7 +133,9 @@ class Orchestrator:
         self.releases += 1
         if lease.attempt >= self.max_attempts:
             log.error("%s failed %d times (%s); recording an infrastructure failure", episode_id, lease.attempt, why)
-            self.bus.publish(keys.result(self.run_id, episode_id), _failure_record(self.run_id, lease, why))
+            self.bus.publish(keys.result(self.run_id, episode_id), failure_record(
+                self.run_id, lease.spec, status="world_crashed", worker_id=lease.worker,
+                error=f"gave up after {lease.attempt} attempts: {why}"))
             return
         log.warning("re-leasing %s (attempt %d): %s", episode_id, lease.attempt + 1, why)
         self.pending.appendleft((lease.spec, lease.attempt + 1))
@@ -170,14 +173,3 @@ class Orchestrator:
         if path.exists():
             log.info("serving asset %s (%d bytes)", sha[:12], path.stat().st_size)
             query.reply(path.read_bytes())
-
-
-def _failure_record(run_id: str, lease: Lease, why: str) -> EpisodeRecord:
-    spec = lease.spec
-    return EpisodeRecord(
-        run_id=run_id, episode_id=spec.episode_id, difficulty=spec.difficulty, status="world_crashed",
-        termination="error", success=False, ground_observed=False, n_confirm=0, ugv_path_length_m=0.0,
-        shortest_path_length_m=None, final_distance_m=0.0, uav_budget=spec.decision_budget,
-        uav_first_visible_step=None, candidates=[], decisions_uav=0, decisions_ugv=0, sim_time_s=0.0,
-        wall_time_s=0.0, worker_id=lease.worker, town_id=spec.town.town_id, asset_sha256=spec.asset_sha256,
-        seed=spec.seed, renderer="none", error=f"gave up after {lease.attempt} attempts: {why}")

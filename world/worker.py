@@ -21,6 +21,7 @@ from agos.runtime.bus import Inbox, ZenohBus, zenoh_config
 from agos.runtime.codec import DecodeError, decode, encode
 from agos.runtime.links import CommProfile
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
+from agos.runtime.records import failure_record
 from agos.runtime.schemas import (
     Action,
     AgentMessage,
@@ -200,13 +201,8 @@ class WorldWorker:
                  "success" if record.success else "failure", time.monotonic() - started)
 
     def _failed(self, spec: EpisodeSpec, status: str, error: str, started: float) -> EpisodeRecord:
-        return EpisodeRecord(
-            run_id=self.run_id, episode_id=spec.episode_id, difficulty=spec.difficulty, status=status,
-            termination="error", success=False, ground_observed=False, n_confirm=0, ugv_path_length_m=0.0,
-            shortest_path_length_m=None, final_distance_m=0.0, uav_budget=spec.decision_budget,
-            uav_first_visible_step=None, candidates=[], decisions_uav=0, decisions_ugv=0, sim_time_s=0.0,
-            wall_time_s=round(time.monotonic() - started, 3), worker_id=self.worker_id, town_id=spec.town.town_id,
-            asset_sha256=spec.asset_sha256, seed=spec.seed, renderer=self.cfg.world.renderer, error=error)
+        return failure_record(self.run_id, spec, status=status, worker_id=self.worker_id, error=error,
+                              renderer=self.cfg.world.renderer, wall_time_s=time.monotonic() - started)
 
     def submit(self, record: EpisodeRecord) -> bool:
         """Publish the record until the evaluator acknowledges it (it stores idempotently)."""
