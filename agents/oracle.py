@@ -15,6 +15,7 @@ import numpy as np
 from agos.agents.navigation import Navigator
 from agos.agents.policy import action_for
 from agos.runtime.schemas import Action, Observation
+from agos.world.camera import cell_of_pixel, ground_to_pixel
 
 STOP_WITHIN_M = 25.0
 
@@ -47,14 +48,11 @@ def _cell_of(obs: Observation, xy: tuple[float, float]) -> str | None:
     frame = next((f for f in obs.images if f.kind == "rgb" and f.name == "nadir"), None)
     if frame is None or frame.intrinsics is None or frame.world_from_camera is None:
         return None
-    pose = np.asarray(frame.world_from_camera).reshape(4, 4)
-    p_cam = np.linalg.inv(pose) @ np.array([xy[0], xy[1], 0.0, 1.0])
     i = frame.intrinsics
-    u, v = i.fx_px * p_cam[0] / p_cam[2] + i.cx_px, i.fy_px * p_cam[1] / p_cam[2] + i.cy_px
-    if not (0 <= u < i.width_px and 0 <= v < i.height_px):
+    pixel = ground_to_pixel(xy, np.asarray(frame.world_from_camera).reshape(4, 4), i)
+    if pixel is None or not (0 <= pixel[0] < i.width_px and 0 <= pixel[1] < i.height_px):
         return None
-    col, row = int(u * obs.grid_cols / i.width_px), int(v * len(obs.grid_rows) / i.height_px)
-    return f"{obs.grid_rows[row]}{col + 1}"
+    return cell_of_pixel(pixel[0], pixel[1], i.width_px, i.height_px)
 
 
 class OracleUgv:

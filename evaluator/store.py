@@ -55,11 +55,6 @@ class ResultStore:
         """(episode id, record JSON) of every stored episode, in episode order."""
         return list(self._db.execute("SELECT episode_id, record_json FROM episodes ORDER BY run_id, episode_id"))
 
-    def save_manifest(self, run_id: str, manifest_json: str) -> None:
-        with self._db:
-            self._db.execute("CREATE TABLE IF NOT EXISTS runs (run_id TEXT PRIMARY KEY, manifest_json TEXT NOT NULL)")
-            self._db.execute("INSERT OR REPLACE INTO runs VALUES (?, ?)", (run_id, manifest_json))
-
     def close(self) -> None:
         self._db.close()
 

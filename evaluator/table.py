@@ -53,10 +53,3 @@ def comparison_table(comparison) -> Table:
         table.add_row(m.metric, f(m.a), f(m.b), f(m.diff) + (unit if m.diff is not None else ""), ci,
                       "n/a" if m.p_value is None else f"{m.p_value:.4f}")
     return table
-
-
-def results_markdown(summaries: dict[str, Summary]) -> str:
-    lines = ["| difficulty | episodes | SR % | OSR % | SPL % | NE m | DS |", "|---|---:|---:|---:|---:|---:|---:|"]
-    for level, s in summaries.items():
-        lines.append(f"| {level} | {s.n} | {_pct(s.SR)} | {_pct(s.OSR)} | {_pct(s.SPL)} | {_num(s.NE)} | {_num(s.DS)} |")
-    return "\n".join(lines)

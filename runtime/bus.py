@@ -15,7 +15,6 @@ import queue
 import re
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -66,7 +65,7 @@ class Query(Protocol):
 class Bus(Protocol):
     def publish(self, key: str, message: Any) -> None: ...
     def subscribe(self, key_expr: str, inbox: Inbox) -> None: ...
-    def serve(self, key_expr: str, handler: Callable[[Query], None]) -> None: ...
+    def serve(self, key_expr: str) -> Inbox: ...
     def request(self, key: str, message: Any, timeout_s: float) -> list[bytes]: ...
     def wait_for_subscriber(self, key: str, timeout_s: float) -> bool: ...
     def declare_token(self, key: str) -> None: ...
@@ -147,8 +146,9 @@ class ZenohBus:
             self._keep.remove(handle)
             handle.undeclare()
 
-    def serve(self, key_expr: str, handler: Callable[[Query], None]) -> Inbox:
-        """Declare a queryable; queries are queued and answered by ``handler`` in :meth:`pump`."""
+    def serve(self, key_expr: str) -> Inbox:
+        """Declare a queryable; its queries are queued in the returned inbox for the caller to
+        answer with ``query.reply(bytes)`` (never inside the zenoh callback)."""
         inbox = Inbox()
 
         def on_query(query: zenoh.Query) -> None:

@@ -62,9 +62,9 @@ class Orchestrator:
         self.first_lease_s: float | None = None
         self.last_stored_s: float | None = None
         self.created_utc = datetime.now(UTC).isoformat(timespec="seconds")
-        self._queries = bus.serve(keys.jobs(run_id), lambda q: None)
+        self._queries = bus.serve(keys.jobs(run_id))
         # Imported towns travel by hash: workers without the file ask agos/assets/<sha256>.
-        self._asset_queries = bus.serve(keys.asset("*"), lambda q: None)
+        self._asset_queries = bus.serve(keys.asset("*"))
         self._inbox = Inbox()
         bus.subscribe(keys.result(run_id, "*"), self._inbox)
         bus.subscribe(keys.result_ack(run_id, "*"), self._inbox)

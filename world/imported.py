@@ -25,7 +25,6 @@ def imported_layout(path: Path, *, seed: int = 0) -> TownLayout:
 
     network = load_lane_network(path)
     _kerb_parking(network)
-    _lane_changes(network)
     surfaces = []
     for lane_id in sorted(network.lanes):
         lane = network.lanes[lane_id]
@@ -37,22 +36,6 @@ def imported_layout(path: Path, *, seed: int = 0) -> TownLayout:
     layout = TownLayout(path.stem, "opendrive", seed, network, surfaces)
     furnish(layout, np.random.default_rng(seed), parks=1, plazas=0)
     return layout
-
-
-def _lane_changes(network) -> None:
-    """Same-direction neighbours on a road section (ids differing by one, same side) allow lane
-    changes both ways; junction connectors have none."""
-    by_key: dict[tuple[str, str, int], str] = {}
-    for lane_id, lane in network.lanes.items():
-        parts = lane_id.split(".")
-        if lane.in_junction or len(parts) != 3 or not parts[2].lstrip("-").isdigit():
-            continue
-        by_key[(parts[0], parts[1], int(parts[2]))] = lane_id
-    for (road, section, num), lane_id in by_key.items():
-        for neighbour in (num - 1, num + 1):
-            other = by_key.get((road, section, neighbour))
-            if other is not None and neighbour != 0 and (neighbour > 0) == (num > 0):
-                network.lanes[lane_id].lane_changes.append(other)
 
 
 def _kerb_parking(network) -> None:

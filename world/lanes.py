@@ -15,6 +15,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+TURNAROUND = "turnaround"
+"""``road_id`` of a connector that turns a vehicle around at a dead end."""
+
 
 @dataclass
 class Lane:

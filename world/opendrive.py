@@ -617,6 +617,12 @@ class _Loader:
                 lanes[lane_id] = Lane(lane_id, np.ascontiguousarray(pts), np.ascontiguousarray(wid), [],
                                       road.in_junction, road.road_id, offset)
                 self.emitted.setdefault((road.road_id, sec.index, lid), []).append((lanes[lane_id], direction))
+        if not road.in_junction:  # same-direction neighbours on this section allow lane changes
+            for lid in sorted(driving):
+                for neighbour in (lid - 1, lid + 1):
+                    if neighbour in driving and neighbour != 0 and (neighbour > 0) == (lid > 0):
+                        lanes[f"r{road.road_id}.s{sec.index}.{lid}"].lane_changes.append(
+                            f"r{road.road_id}.s{sec.index}.{neighbour}")
 
     def parking_offset(self, road: _Road, sec: _Section, lid: int, widths: dict[int, np.ndarray]) -> float | None:
         """Offset of a parking row beside the outermost driving lane of a side (unsigned), or None."""

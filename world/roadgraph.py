@@ -19,11 +19,10 @@ from dataclasses import dataclass, field
 import networkx as nx
 import numpy as np
 
-from agos.world.lanes import LaneNetwork
+from agos.world.lanes import TURNAROUND, LaneNetwork
 
 FINE_SPACING_M = 2.0
 CRUISE_SPACING_M = 10.0
-TURNAROUND = "turnaround"
 
 
 @dataclass

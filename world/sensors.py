@@ -17,6 +17,18 @@ import numpy as np
 
 from agos.runtime.codec import encode_jpeg, encode_png
 from agos.runtime.schemas import CameraIntrinsics, ImageFrame
+from agos.world.camera import (  # noqa: F401 - re-exported: sensors is where callers look for them
+    GRID_COLS,
+    GRID_ROWS,
+    _pose,
+    cell_of_pixel,
+    cell_polygon_world,
+    footprint_world,
+    ground_to_pixel,
+    intrinsics_for,
+    parse_cell,
+    pixel_to_ground,
+)
 from agos.world.scene import STUDIO_OFFSET_M, RenderResult, Scene
 
 UGV_CAMERA_HEIGHT_M = 1.7
@@ -26,8 +38,6 @@ SIX_VIEWS: tuple[tuple[str, float], ...] = (
 )
 DEPTH_SCALE_M = 0.005
 """Depth PNGs store uint16 units of 5 mm (0 to 327 m)."""
-GRID_ROWS = "ABCDE"
-GRID_COLS = 5
 
 
 @dataclass(frozen=True)
@@ -51,23 +61,6 @@ class Shot:
     intrinsics: CameraIntrinsics
     world_from_camera: np.ndarray
     """4x4 camera pose, OpenCV axes."""
-
-
-def intrinsics_for(width_px: int, height_px: int, fov_deg: float) -> CameraIntrinsics:
-    """Pinhole intrinsics of a camera with vertical field of view ``fov_deg``."""
-    f = (height_px / 2) / math.tan(math.radians(fov_deg) / 2)
-    return CameraIntrinsics(width_px=width_px, height_px=height_px, fx_px=f, fy_px=f,
-                            cx_px=width_px / 2, cy_px=height_px / 2)
-
-
-def _pose(eye: np.ndarray, forward: np.ndarray, up: np.ndarray) -> np.ndarray:
-    z = forward / np.linalg.norm(forward)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    pose = np.eye(4)
-    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = x, y, z, eye
-    return pose
 
 
 def shoot(scene: Scene, name: str, eye: np.ndarray, forward: np.ndarray, up: np.ndarray,
@@ -116,50 +109,6 @@ def grid_overlay(rgb: np.ndarray) -> np.ndarray:
             cv2.putText(out, f"{row}{c + 1}", org, cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 3, cv2.LINE_AA)
             cv2.putText(out, f"{row}{c + 1}", org, cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 0), 1, cv2.LINE_AA)
     return out
-
-
-def cell_polygon_world(cell: str, shot_pose: np.ndarray, intr: CameraIntrinsics,
-                       ground_z_m: float = 0.0) -> list[tuple[float, float]]:
-    """Ego-to-Allo projection: the ground-plane polygon seen by grid cell ``cell`` of a nadir
-    image taken from ``shot_pose`` (corners in image order: top-left, top-right, bottom-right,
-    bottom-left)."""
-    row, col = parse_cell(cell)
-    u0, u1 = col * intr.width_px / GRID_COLS, (col + 1) * intr.width_px / GRID_COLS
-    v0, v1 = row * intr.height_px / len(GRID_ROWS), (row + 1) * intr.height_px / len(GRID_ROWS)
-    return [pixel_to_ground(u, v, shot_pose, intr, ground_z_m) for u, v in ((u0, v0), (u1, v0), (u1, v1), (u0, v1))]
-
-
-def footprint_world(shot_pose: np.ndarray, intr: CameraIntrinsics, ground_z_m: float = 0.0) -> list[tuple[float, float]]:
-    """The whole nadir view on the ground (corners: top-left, top-right, bottom-right, bottom-left)."""
-    w, h = intr.width_px, intr.height_px
-    return [pixel_to_ground(u, v, shot_pose, intr, ground_z_m) for u, v in ((0, 0), (w, 0), (w, h), (0, h))]
-
-
-def pixel_to_ground(u: float, v: float, world_from_camera: np.ndarray, intr: CameraIntrinsics,
-                    ground_z_m: float = 0.0) -> tuple[float, float]:
-    """Intersect the ray through pixel (u, v) with the plane z = ground_z_m."""
-    ray_cam = np.array([(u - intr.cx_px) / intr.fx_px, (v - intr.cy_px) / intr.fy_px, 1.0])
-    ray = world_from_camera[:3, :3] @ ray_cam
-    eye = world_from_camera[:3, 3]
-    if abs(ray[2]) < 1e-9 or (ground_z_m - eye[2]) / ray[2] <= 0:
-        raise ValueError(f"pixel ({u:.0f}, {v:.0f}) does not look at the ground plane")
-    t = (ground_z_m - eye[2]) / ray[2]
-    p = eye + t * ray
-    return (float(p[0]), float(p[1]))
-
-
-def parse_cell(cell: str) -> tuple[int, int]:
-    """``"C4"`` -> (row 2, col 3); raises ValueError for anything else."""
-    if (len(cell) != 2 or cell[0].upper() not in GRID_ROWS or not cell[1].isdigit()
-            or not 1 <= int(cell[1]) <= GRID_COLS):
-        raise ValueError(f"grid cell {cell!r} is not one of A1..E5")
-    return GRID_ROWS.index(cell[0].upper()), int(cell[1]) - 1
-
-
-def cell_of_pixel(u: float, v: float, width_px: int, height_px: int) -> str:
-    col = min(GRID_COLS - 1, max(0, int(u * GRID_COLS / width_px)))
-    row = min(len(GRID_ROWS) - 1, max(0, int(v * len(GRID_ROWS) / height_px)))
-    return f"{GRID_ROWS[row]}{col + 1}"
 
 
 def reference_views(scene: Scene, uid: int, position_world_m: tuple[float, float, float], yaw_rad: float,

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -73,7 +73,7 @@ def build_split(out_dir: Path, jobs: list[Job], *, workers: int, progress: Calla
     else:
         with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
             futures = {pool.submit(run_job, job): job for job in jobs}
-            for future in _as_completed(futures):
+            for future in as_completed(futures):
                 results[futures[future]] = future.result()
                 if progress:
                     progress(futures[future].count)
@@ -87,8 +87,3 @@ def build_split(out_dir: Path, jobs: list[Job], *, workers: int, progress: Calla
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     return manifest
 
-
-def _as_completed(futures):
-    from concurrent.futures import as_completed
-
-    return as_completed(futures)

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agos.world.lanes import Lane, LaneNetwork
+from agos.world.lanes import TURNAROUND, Lane, LaneNetwork
 
 LANE_WIDTH_M = 3.5
 PARKING_WIDTH_M = 2.5
@@ -24,7 +24,6 @@ ROAD_HALF_WIDTH_M = LANE_WIDTH_M + PARKING_WIDTH_M
 JUNCTION_SETBACK_M = ROAD_HALF_WIDTH_M + 2.0
 """Lanes end this far (along the street) from a junction centre; connectors cross the junction."""
 SAMPLE_M = 1.0
-TURNAROUND = "turnaround"
 
 
 @dataclass(frozen=True)

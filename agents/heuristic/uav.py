@@ -18,6 +18,7 @@ from agos.agents.heuristic.perception import TargetProfile, detect_from_above, p
 from agos.agents.policy import action_for
 from agos.runtime.codec import decode_image
 from agos.runtime.schemas import Action, Observation
+from agos.world.camera import cell_of_pixel, pixel_to_ground
 
 SEEN_RADIUS_M = 41.0
 REJECTED_RADIUS_M = 12.0
@@ -77,11 +78,8 @@ class HeuristicUav:
         rejected = [c.center_world_m for c in obs.coordination.candidates if c.status in ("rejected", "false_confirm")]
         intr = frame.intrinsics
         for det in detect_from_above(rgb, profile, altitude_m=altitude, fy_px=intr.fy_px):
-            ray = pose[:3, :3] @ np.array([(det.u_px - intr.cx_px) / intr.fx_px, (det.v_px - intr.cy_px) / intr.fy_px, 1.0])
-            ground = pose[:3, 3] + ray * (-pose[2, 3] / ray[2])
-            if any(math.dist(ground[:2], r) <= REJECTED_RADIUS_M for r in rejected):
+            ground = pixel_to_ground(det.u_px, det.v_px, pose, intr)
+            if any(math.dist(ground, r) <= REJECTED_RADIUS_M for r in rejected):
                 continue
-            col = min(obs.grid_cols - 1, int(det.u_px * obs.grid_cols / intr.width_px))
-            row = min(len(obs.grid_rows) - 1, int(det.v_px * len(obs.grid_rows) / intr.height_px))
-            return f"{obs.grid_rows[row]}{col + 1}"
+            return cell_of_pixel(det.u_px, det.v_px, intr.width_px, intr.height_px)
         return None
