@@ -1,110 +1,75 @@
-"""The VLM client against a real HTTP server on loopback that injects faults."""
+"""The VLM client against the real stand-in server on loopback (``agos vlm-standin``), which injects faults."""
 
 from __future__ import annotations
 
 import asyncio
 import json
+import math
 import random
-import threading
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from collections.abc import Iterator
 
+import cv2
+import numpy as np
 import pytest
 
 from agos.agents.vlm.client import VlmClient, VlmError, image_part
+from agos.agents.vlm.standin_server import StandinServer
+
+MODEL = "stand-in-vl"
 
 
-class FaultServer:
-    """Answers chat completions; ``script`` lists what the next requests get:
-    ("ok"), ("429", retry-after seconds), ("500"), ("slow", seconds), ("garbage")."""
-
-    def __init__(self) -> None:
-        self.script: list[tuple] = []
-        self.requests: list[dict] = []
-        self.headers: list[dict] = []
-        outer = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def log_message(self, *args) -> None:
-                pass
-
-            def _send(self, status: int, body: bytes, headers: dict | None = None) -> None:
-                self.send_response(status)
-                for k, v in (headers or {}).items():
-                    self.send_header(k, v)
-                self.send_header("Content-Length", str(len(body)))
-                self.end_headers()
-                self.wfile.write(body)
-
-            def do_GET(self) -> None:
-                self._send(200, json.dumps({"data": [{"id": "stand-in-vl"}]}).encode())
-
-            def do_POST(self) -> None:
-                length = int(self.headers["Content-Length"])
-                outer.requests.append(json.loads(self.rfile.read(length)))
-                outer.headers.append(dict(self.headers))
-                step = outer.script.pop(0) if outer.script else ("ok",)
-                if step[0] == "429":
-                    self._send(429, b"{}", {"Retry-After": str(step[1])})
-                elif step[0] == "500":
-                    self._send(500, b"oops")
-                elif step[0] == "slow":
-                    import time
-
-                    time.sleep(step[1])
-                    self._send(200, b"{}")
-                elif step[0] == "garbage":
-                    self._send(200, b"<html>not json</html>")
-                else:
-                    reply = {"choices": [{"message": {"content": '{"action": "WAIT"}'}, "finish_reason": "stop"}],
-                             "usage": {"prompt_tokens": 812, "completion_tokens": 9}}
-                    self._send(200, json.dumps(reply).encode())
-
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.server.server_port}/v1"
-        threading.Thread(target=self.server.serve_forever, daemon=True).start()
-
-    def close(self) -> None:
-        self.server.shutdown()
-        self.server.server_close()
+def wait(request) -> dict:
+    return {"action": "WAIT"}
 
 
 @pytest.fixture
-def server():
-    s = FaultServer()
-    yield s
-    s.close()
+def standin() -> Iterator:
+    """``standin(**kwargs)`` starts a stand-in serving MODEL that is closed after the test."""
+    servers: list[StandinServer] = []
+
+    def make(**kwargs) -> StandinServer:
+        server = StandinServer(wait, models=(MODEL,), **kwargs).start()
+        servers.append(server)
+        return server
+
+    yield make
+    for server in servers:
+        server.close()
 
 
-def client(server: FaultServer, **kw) -> VlmClient:
-    return VlmClient(server.url, "stand-in-vl", backoff_base_s=0.01, rng=random.Random(0), **kw)
+def client(server: StandinServer, **kw) -> VlmClient:
+    return VlmClient(server.url, MODEL, backoff_base_s=0.01, rng=random.Random(0), **kw)
 
 
 def run(coro):
     return asyncio.run(coro)
 
 
-def test_reply_usage_and_request_shape(server, monkeypatch) -> None:
+def test_reply_usage_and_request_shape(standin, monkeypatch) -> None:
     monkeypatch.setenv("OPENAI_API_KEY", "sk-secret-value")
+    server = standin()
+    jpeg = cv2.imencode(".jpg", np.zeros((56, 84, 3), np.uint8))[1].tobytes()
 
     async def go():
         c = client(server)
-        messages = [{"role": "user", "content": [{"type": "text", "text": "hi"}, image_part(b"\xff\xd8jpeg", "jpeg")]}]
+        messages = [{"role": "user", "content": [{"type": "text", "text": "hi"}, image_part(jpeg, "jpeg")]}]
         reply = await c.complete(messages, schema={"type": "object"})
         await c.close()
         return reply
 
     reply = run(go())
-    assert reply.text == '{"action": "WAIT"}' and reply.attempts == 1
-    assert (reply.prompt_tokens, reply.completion_tokens) == (812, 9)
-    body = server.requests[0]
-    assert body["model"] == "stand-in-vl" and body["response_format"]["type"] == "json_schema"
-    assert body["messages"][0]["content"][1]["image_url"]["url"].startswith("data:image/jpeg;base64,")
-    assert server.headers[0]["Authorization"] == "Bearer sk-secret-value"
+    assert json.loads(reply.text) == {"action": "WAIT"} and reply.attempts == 1 and reply.finish_reason == "stop"
+    assert reply.prompt_tokens == 1 + 3 * 2  # "hi" is one token; an 84x56 image is 3x2 patches of 28x28
+    assert reply.completion_tokens == math.ceil(len(json.dumps({"action": "WAIT"})) / 4)
+    (request,) = server.recorded
+    assert request.body["model"] == MODEL and request.body["response_format"]["type"] == "json_schema"
+    assert request.body["messages"][0]["content"][1]["image_url"]["url"].startswith("data:image/jpeg;base64,")
+    assert request.headers["Authorization"] == "Bearer sk-secret-value"
     assert "sk-secret" not in repr(reply)
 
 
-def test_retries_honour_retry_after_and_count_attempts(server) -> None:
-    server.script = [("429", 0.2), ("500",), ("garbage",), ("ok",)]
+def test_retries_honour_retry_after_and_count_attempts(standin) -> None:
+    server = standin(script=("429", "500", "garbage", "ok"), retry_after_s=0.2)
 
     async def go():
         c = client(server)
@@ -115,10 +80,11 @@ def test_retries_honour_retry_after_and_count_attempts(server) -> None:
     reply = run(go())
     assert reply.attempts == 4 and reply.text is not None
     assert reply.latency_s >= 0.2  # waited at least the Retry-After of the 429
+    assert server.stats()["chat_completions"] == 4
 
 
-def test_timeouts_are_retried_then_reported(server) -> None:
-    server.script = [("slow", 0.5), ("slow", 0.5), ("slow", 0.5)]
+def test_timeouts_are_retried_then_reported(standin) -> None:
+    server = standin(faults={"timeout": 1.0}, hang_s=0.5)
 
     async def go():
         c = client(server, timeout_s=0.1, max_retries=2)
@@ -131,7 +97,9 @@ def test_timeouts_are_retried_then_reported(server) -> None:
         run(go())
 
 
-def test_preflight_finds_the_model_or_says_what_is_served(server) -> None:
+def test_preflight_finds_the_model_or_says_what_is_served(standin) -> None:
+    server = standin()
+
     async def go(model: str):
         c = VlmClient(server.url, model)
         try:
@@ -139,13 +107,13 @@ def test_preflight_finds_the_model_or_says_what_is_served(server) -> None:
         finally:
             await c.close()
 
-    assert run(go("stand-in-vl")) == ["stand-in-vl"]
+    assert run(go(MODEL)) == [MODEL]
     with pytest.raises(VlmError, match="available: stand-in-vl"):
         run(go("gpt-99"))
 
 
-def test_concurrency_limit(server) -> None:
-    server.script = [("slow", 0.2)] * 4 + [("ok",)] * 4
+def test_concurrency_limit(standin) -> None:
+    server = standin(latency_ms=200)
 
     async def go():
         c = client(server, concurrency=2, timeout_s=5)
@@ -155,3 +123,4 @@ def test_concurrency_limit(server) -> None:
         return asyncio.get_running_loop().time() - started
 
     assert run(go()) >= 0.4  # four 0.2 s replies, two at a time
+    assert server.stats()["max_in_flight"] <= 2
