@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Protocol
 
 from agos.runtime.schemas import Action, Observation, Role
+from agos.runtime.settings import VlmOptions
 
 
 class Policy(Protocol):
@@ -26,7 +27,16 @@ class Policy(Protocol):
 
 
 ABLATIONS = {"": (True, True), "no_e2a": (False, True), "no_rgpp": (True, False), "no_both": (False, False)}
-KNOWN = "heuristic[:no_e2a|no_rgpp|no_both], oracle, random, standin-<N>ms"
+KNOWN = ("heuristic[:no_e2a|no_rgpp|no_both], agos-agent[:no_e2a|no_rgpp|no_both], baseline, oracle, random, "
+         "standin-<N>ms")
+VLM_POLICIES = ("agos-agent", "baseline")
+"""Policies that ask a vision-language model over an OpenAI-compatible endpoint."""
+NO_CANDIDATES = ("baseline",)
+"""Policies that coordinate through text messages only: no ANNOTATE_CANDIDATE / GO_TO_CANDIDATE."""
+
+
+def needs_vlm(name: str) -> bool:
+    return split_name(name)[0] in VLM_POLICIES
 
 
 def split_name(name: str) -> tuple[str, str]:
@@ -34,21 +44,35 @@ def split_name(name: str) -> tuple[str, str]:
     base, _, variant = name.partition(":")
     if variant not in ABLATIONS:
         raise ValueError(f"unknown policy variant {variant!r} in {name!r}; variants: no_e2a, no_rgpp, no_both")
+    if variant and base in NO_CANDIDATES:
+        raise ValueError(f"{base} has no candidate tools, so it has no {variant} ablation")
     return base, variant
 
 
 def tools_for(policies: dict[str, str]) -> dict[str, bool]:
-    """The world-side tools a run's policies use: E2A and RGPP (off in ablations), oracle hints."""
-    e2a = rgpp = True
+    """The world-side tools a run's policies use: structured candidates (off for the Baseline), E2A and
+    RGPP (off in ablations), oracle hints."""
+    e2a = rgpp = candidates = True
     for name in policies.values():
-        _, variant = split_name(name)
+        base, variant = split_name(name)
         e2a, rgpp = e2a and ABLATIONS[variant][0], rgpp and ABLATIONS[variant][1]
-    return {"e2a": e2a, "rgpp": rgpp, "oracle": any(split_name(n)[0] == "oracle" for n in policies.values())}
+        candidates = candidates and base not in NO_CANDIDATES
+    return {"candidates": candidates, "e2a": e2a, "rgpp": rgpp,
+            "oracle": any(split_name(n)[0] == "oracle" for n in policies.values())}
 
 
-def make_policy(name: str, role: Role) -> Policy:
-    """Build a policy by name (see ``KNOWN``); ablation variants change only world-side tools."""
+def make_policy(name: str, role: Role, *, vlm: VlmOptions | None = None) -> Policy:
+    """Build a policy by name (see ``KNOWN``); ablation variants change only world-side tools.
+
+    VLM policies (``agos-agent``, ``baseline``) need ``vlm``: the endpoint, model and client options."""
     base, _ = split_name(name)
+    if base in VLM_POLICIES:
+        if vlm is None or not vlm.base_url or not vlm.model:
+            raise ValueError(f"policy {name!r} asks a VLM: give --vlm-base-url URL and --model NAME "
+                             "(offline: start `agos vlm-standin` and use its URL)")
+        from agos.agents.vlm.agent import VlmAgent
+
+        return VlmAgent(role, name, vlm)
     if base == "heuristic":
         from agos.agents.heuristic.uav import HeuristicUav
         from agos.agents.heuristic.ugv import HeuristicUgv

@@ -16,12 +16,13 @@ import asyncio
 import logging
 import os
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 from agos.agents.policy import Policy, action_for, make_policy
 from agos.runtime import keys
 from agos.runtime.bus import Sample, ZenohBus, zenoh_config
-from agos.runtime.codec import DecodeError, decode
+from agos.runtime.codec import DecodeError, Decoder
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role
 from agos.runtime.settings import AgosConfig
@@ -30,13 +31,14 @@ log = logging.getLogger("agos.agent")
 
 
 class _LoopInbox:
-    """Hands zenoh samples (from its callback thread) to an asyncio queue, doing nothing else."""
+    """Hands zenoh samples (from its callback thread) to a function on the asyncio loop, doing
+    nothing else in the callback."""
 
-    def __init__(self, loop: asyncio.AbstractEventLoop, queue: asyncio.Queue) -> None:
-        self.loop, self.queue = loop, queue
+    def __init__(self, loop: asyncio.AbstractEventLoop, handle: Callable[[Sample], None]) -> None:
+        self.loop, self.handle = loop, handle
 
     def put(self, sample: Sample) -> None:
-        self.loop.call_soon_threadsafe(self.queue.put_nowait, sample)
+        self.loop.call_soon_threadsafe(self.handle, sample)
 
 
 async def answer(policy: Policy, obs: Observation, executor: ThreadPoolExecutor) -> Action:
@@ -55,11 +57,8 @@ async def answer(policy: Policy, obs: Observation, executor: ThreadPoolExecutor)
 
 async def serve_async(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag, *, concurrency: int) -> int:
     loop = asyncio.get_running_loop()
-    queue: asyncio.Queue[Sample | None] = asyncio.Queue()
-    inbox = _LoopInbox(loop, queue)
-    bus.subscribe(keys.obs(run_id, "*", policy.role), inbox)  # type: ignore[arg-type]
-    bus.subscribe(keys.result(run_id, "*"), inbox)  # type: ignore[arg-type]
-    bus.declare_token(keys.live(run_id, "agent", f"{policy.role}-{os.getpid()}"))
+    # Observations repeat their reference views and searchable area every decision: validated once.
+    decoder = Decoder()
     limit = asyncio.Semaphore(concurrency)
     executor = ThreadPoolExecutor(max_workers=concurrency, thread_name_prefix="policy")
     tasks: set[asyncio.Task] = set()
@@ -69,31 +68,31 @@ async def serve_async(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag
             action = await answer(policy, obs, executor)
         bus.publish(keys.act(run_id, obs.episode_id, policy.role), action)
 
-    async def watch_stop() -> None:
-        while not stop.is_set():
-            await asyncio.sleep(0.25)
-        queue.put_nowait(None)  # wakes the loop below; no per-message timers on the hot path
+    def on_sample(sample: Sample) -> None:
+        """Runs on the loop for every sample: decode and start answering (no queue in between)."""
+        try:
+            message = decoder.decode(sample.payload)
+        except DecodeError as exc:
+            log.warning("ignoring undecodable payload on %s: %s", sample.key, exc)
+            return
+        if isinstance(message, EpisodeRecord):
+            policy.end_episode(message.episode_id)
+            decoder.forget(message.episode_id)
+            bus.forget(keys.episode_prefix(run_id, message.episode_id))
+        elif isinstance(message, Observation):
+            task = loop.create_task(handle(message))
+            tasks.add(task)
+            task.add_done_callback(tasks.discard)
 
-    watcher = asyncio.create_task(watch_stop())
+    inbox = _LoopInbox(loop, on_sample)
+    bus.subscribe(keys.obs(run_id, "*", policy.role), inbox)  # type: ignore[arg-type]
+    bus.subscribe(keys.result(run_id, "*"), inbox)  # type: ignore[arg-type]
+    bus.declare_token(keys.live(run_id, "agent", f"{policy.role}-{os.getpid()}"))
     log.info("%s agent (%s) serving run %s, up to %d decisions at once", policy.role, policy.name, run_id, concurrency)
     try:
-        while True:
-            sample = await queue.get()
-            if sample is None:
-                break
-            try:
-                message = decode(sample.payload)
-            except DecodeError as exc:
-                log.warning("ignoring undecodable payload on %s: %s", sample.key, exc)
-                continue
-            if isinstance(message, EpisodeRecord):
-                policy.end_episode(message.episode_id)
-            elif isinstance(message, Observation):
-                task = asyncio.create_task(handle(message))
-                tasks.add(task)
-                task.add_done_callback(tasks.discard)
+        while not stop.is_set():
+            await asyncio.sleep(0.25)  # samples arrive through on_sample; this only watches the stop flag
     finally:
-        watcher.cancel()
         for task in tasks:
             task.cancel()
         executor.shutdown(wait=False, cancel_futures=True)
@@ -104,7 +103,17 @@ def main(cfg: AgosConfig, *, role: Role, policy_name: str | None = None, concurr
     setup_logging(f"agent-{role}")
     stop = install_stop_handlers()
     name = policy_name or (cfg.run.policy_uav if role == "uav" else cfg.run.policy_ugv)
-    policy = make_policy(name, role)
+    policy = make_policy(name, role, vlm=cfg.vlm)
+    if hasattr(policy, "preflight"):
+        from agos.agents.vlm.client import VlmError
+
+        try:
+            asyncio.run(policy.preflight())
+        except VlmError as exc:
+            log.error("VLM preflight failed: %s", exc)
+            return 3
+        log.info("VLM endpoint %s serves %s (checked: model listed, %s-sized requests accepted)",
+                 cfg.vlm.base_url, cfg.vlm.model, role)
     bus = ZenohBus(zenoh_config(connect=[cfg.zenoh.connect], multicast_scouting=cfg.zenoh.multicast_scouting,
                                 connect_timeout_s=cfg.zenoh.connect_timeout_s))
     try:

@@ -58,6 +58,10 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--run", dest="run_id", help="run id (with --connect; default: the run directory's name)")
     ev.add_argument("--port", type=int)
     ev.add_argument("--stuck-after", type=float, default=180.0, help="re-lease an episode without progress for this long (s)")
+    _vlm_flags(ev)
+    ev.add_argument("--vlm-standin", nargs="?", const="", metavar="FAULTS",
+                    help="start the offline stand-in VLM server for this run (optionally with faults, "
+                         "e.g. 429=0.1,500=0.05); VLM policies then use it")
 
     sw = sub.add_parser("sweep", help="a comm-profile parameter grid x link seeds: table and plots with CIs")
     sw.add_argument("--split", type=Path, required=True, help="JSONL episode file")
@@ -86,6 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
     agent.add_argument("--role", choices=["uav", "ugv"], required=True)
     agent.add_argument("--policy", help="policy name (default from config: heuristic)")
     agent.add_argument("--concurrency", type=int, default=32, help="decisions answered at once (default 32)")
+    _vlm_flags(agent)
 
     evaluator = sub.add_parser("evaluator", help="stores episode records of every run and reports metrics")
     evaluator.add_argument("--config", type=Path)
@@ -119,8 +124,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _vlm_flags(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--vlm-base-url", help="OpenAI-compatible endpoint of VLM policies, e.g. http://HOST:8000/v1")
+    p.add_argument("--model", help="model name at that endpoint")
+    p.add_argument("--vlm-api-key-env", help="environment variable holding the API key (default OPENAI_API_KEY)")
+    p.add_argument("--vlm-timeout", type=float, help="seconds per HTTP attempt (default 60)")
+    p.add_argument("--vlm-max-retries", type=int, help="HTTP retries per request (default 4)")
+    p.add_argument("--vlm-no-structured", action="store_true", help="do not send a JSON schema (servers that mishandle it)")
+    p.add_argument("--vlm-trace", type=Path, help="also append every decision trace to this JSONL file")
+
+
 def _config(args: argparse.Namespace) -> AgosConfig:
     overrides = {
+        "vlm": {"base_url": getattr(args, "vlm_base_url", None), "model": getattr(args, "model", None),
+                "api_key_env": getattr(args, "vlm_api_key_env", None), "timeout_s": getattr(args, "vlm_timeout", None),
+                "max_retries": getattr(args, "vlm_max_retries", None),
+                "structured": False if getattr(args, "vlm_no_structured", False) else None,
+                "trace_file": getattr(args, "vlm_trace", None)},
         "zenoh": {"connect": getattr(args, "connect", None), "listen": getattr(args, "listen", None)},
         "run": {"run_id": getattr(args, "run_id", None), "runs_dir": getattr(args, "runs_dir", None),
                 "workers": getattr(args, "workers", None),
@@ -173,7 +193,8 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
             from agos.agents.policy import make_policy
 
             try:
-                make_policy(args.policy or (cfg.run.policy_uav if args.role == "uav" else cfg.run.policy_ugv), args.role)
+                make_policy(args.policy or (cfg.run.policy_uav if args.role == "uav" else cfg.run.policy_ugv), args.role,
+                            vlm=cfg.vlm)
             except ValueError as exc:
                 print(f"agent error: {exc}", file=sys.stderr)
                 return 2
@@ -235,7 +256,8 @@ def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
             run_dir = args.run_dir
             if run_dir is None and args.connect and args.run_id:
                 run_dir = cfg.run.runs_dir / args.run_id
-            plan = evaluate.new_plan(cfg, run_dir=run_dir, comm=args.comm, timing_mode=args.timing, stamp=True)
+            plan = evaluate.new_plan(cfg, run_dir=run_dir, comm=args.comm, timing_mode=args.timing, stamp=True,
+                                     vlm_standin=args.vlm_standin)
     except (evaluate.RunDirError, ProfileError, ValueError) as exc:
         print(f"eval error: {exc}", file=sys.stderr)
         return 2

@@ -12,14 +12,15 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from agos.agents.policy import tools_for
+from agos.agents.policy import needs_vlm, tools_for
 from agos.evaluator.metrics import by_difficulty
 from agos.evaluator.store import ResultStore, results_path
 from agos.evaluator.table import results_table
@@ -33,6 +34,7 @@ from agos.runtime.settings import AgosConfig
 
 log = logging.getLogger("agos.eval")
 RUN_FILE = "run.json"
+STANDIN_MODEL = "agos-standin"
 
 
 class RunDirError(ValueError):
@@ -47,6 +49,9 @@ class RunPlan:
     comm: str
     timing_mode: str
     resumed: bool = False
+    vlm: dict[str, Any] = field(default_factory=dict)
+    """VLM policies: ``base_url`` and ``model``, or ``standin`` (its fault string) for a stand-in server
+    the run starts itself. Stored in run.json (never an API key)."""
 
     @property
     def run_id(self) -> str:
@@ -66,7 +71,21 @@ def generated_episodes(cfg: AgosConfig) -> list[EpisodeSpec]:
         scene.close()
 
 
-def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: str, stamp: bool) -> RunPlan:
+def vlm_plan(cfg: AgosConfig, policies: dict[str, str], standin: str | None) -> dict[str, Any]:
+    """Where the run's VLM policies get their model; {} when no policy needs one."""
+    if not any(needs_vlm(p) for p in policies.values()):
+        return {}
+    if standin is not None:
+        return {"standin": standin, "model": STANDIN_MODEL}
+    if not cfg.vlm.base_url or not cfg.vlm.model:
+        names = ", ".join(sorted({p for p in policies.values() if needs_vlm(p)}))
+        raise RunDirError(f"policy {names} asks a VLM: give --vlm-base-url URL --model NAME, or --vlm-standin for the "
+                          "offline stand-in server")
+    return {"base_url": cfg.vlm.base_url, "model": cfg.vlm.model}
+
+
+def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: str, stamp: bool,
+             vlm_standin: str | None = None) -> RunPlan:
     from agos.world.episodes import read_episodes, write_episodes
 
     episodes = read_episodes(cfg.run.episodes_file) if cfg.run.episodes_file else generated_episodes(cfg)
@@ -76,13 +95,15 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
     if (run_dir / "results.sqlite").exists():
         raise RunDirError(f"{run_dir}: already holds results; resume it with: agos eval --resume {run_dir}")
     load_profile(comm)  # fail before starting anything
-    tools_for({"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv})  # unknown policy names fail here too
+    policies = {"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv}
+    tools_for(policies)  # unknown policy names fail here too
+    vlm = vlm_plan(cfg, policies, vlm_standin)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_episodes(run_dir / "episodes.jsonl", episodes)
-    plan = RunPlan(run_dir, episodes, {"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv}, comm, timing_mode)
+    plan = RunPlan(run_dir, episodes, policies, comm, timing_mode, vlm=vlm)
     (run_dir / RUN_FILE).write_text(json.dumps({
         "run_id": plan.run_id, "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "policies": plan.policies, "comm": comm, "timing_mode": timing_mode, "episodes": len(episodes),
+        "policies": plan.policies, "comm": comm, "timing_mode": timing_mode, "episodes": len(episodes), "vlm": vlm,
         "episode_source": str(cfg.run.episodes_file or f"generated: {cfg.run.town}, {cfg.run.per_difficulty}/difficulty, "
                                                          f"seed {cfg.run.episode_seed}"),
     }, indent=2) + "\n")
@@ -97,7 +118,7 @@ def resume_plan(run_dir: Path) -> RunPlan:
         raise RunDirError(f"{run_dir}: no {RUN_FILE}; not an agos run directory")
     meta = json.loads(path.read_text())
     return RunPlan(run_dir, read_episodes(run_dir / "episodes.jsonl"), meta["policies"], meta["comm"],
-                   meta["timing_mode"], resumed=True)
+                   meta["timing_mode"], resumed=True, vlm=meta.get("vlm", {}))
 
 
 def stored_episodes(run_dir: Path) -> set[str]:
@@ -121,11 +142,35 @@ def _launch_all(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, endpoint: st
     console.print(f"zenoh endpoint: {endpoint}", highlight=False)
     launcher.start("evaluator", ["evaluator", "--connect", endpoint, "--runs-dir", str(plan.run_dir.parent)]
                    + (["--config", str(config_path)] if config_path else []))
-    launcher.start("agent-uav", ["agent", "--role", "uav", "--policy", plan.policies["uav"], *common])
-    launcher.start("agent-ugv", ["agent", "--role", "ugv", "--policy", plan.policies["ugv"], *common])
+    vlm_args = _start_vlm(plan, launcher, console)
+    if vlm_args is None:
+        return False
+    launcher.start("agent-uav", ["agent", "--role", "uav", "--policy", plan.policies["uav"], *common, *vlm_args])
+    launcher.start("agent-ugv", ["agent", "--role", "ugv", "--policy", plan.policies["ugv"], *common, *vlm_args])
     for k in range(workers):
         launcher.start(f"world-{k}", ["world", *common, "--worker-id", f"w{k}"])
     return True
+
+
+def _start_vlm(plan: RunPlan, launcher: Launcher, console: Console) -> list[str] | None:
+    """Agent flags for the run's model endpoint; starts the stand-in server when the plan asks for it.
+    None when the stand-in did not come up."""
+    if not plan.vlm:
+        return []
+    if "standin" not in plan.vlm:
+        return ["--vlm-base-url", plan.vlm["base_url"], "--model", plan.vlm["model"]]
+    port = free_port(8000)
+    faults = ["--faults", plan.vlm["standin"]] if plan.vlm["standin"] else []
+    launcher.start("vlm-standin", ["vlm-standin", "--port", str(port), "--model", STANDIN_MODEL, *faults,
+                                   "--retry-after-s", "0.2", "--hang-s", "5"])
+    if not wait_listening("127.0.0.1", port, 30.0):
+        console.print(f"[red]the VLM stand-in did not listen on port {port}; see {launcher.log_dir / 'vlm-standin.log'}")
+        return None
+    url = f"http://127.0.0.1:{port}/v1"
+    console.print(f"VLM stand-in: {url} (faults: {plan.vlm['standin'] or 'none'})", highlight=False)
+    # Injected timeouts hang 5 s; a 2 s attempt timeout makes the client retry them quickly, and ten
+    # retries make a decision that never gets an answer rare even at high injected fault rates.
+    return ["--vlm-base-url", url, "--model", STANDIN_MODEL, "--vlm-timeout", "2", "--vlm-max-retries", "10"]
 
 
 def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, port: int | None = None,
@@ -182,7 +227,7 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
     finally:
         if launcher.children:
             launcher.stop_all(order=[n for n in launcher.children if n.startswith("world")]
-                              + ["agent-uav", "agent-ugv", "evaluator", "router"])
+                              + ["agent-uav", "agent-ugv", "vlm-standin", "evaluator", "router"])
         if bus is not None:
             bus.close()
     _summary(console, plan, orch, attach, len(launcher.children) + 1, time.monotonic() - started)

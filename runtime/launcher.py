@@ -49,7 +49,9 @@ class Launcher:
                 proc.send_signal(signal.SIGTERM)
         deadline = time.monotonic() + grace_s
         for name in names:
-            proc = self.children[name]
+            proc = self.children.get(name)
+            if proc is None:
+                continue
             try:
                 proc.wait(timeout=max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:

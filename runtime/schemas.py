@@ -183,6 +183,37 @@ class Observation(Model):
     """Only when the run's policy is ``oracle``; never for other policies."""
 
 
+class DecisionTrace(Model):
+    """How a model-backed policy reached one decision (VLM policies; None for scripted ones).
+
+    Retries, re-asks and repairs are counted here, never as decisions (DS counts decisions)."""
+
+    policy: str
+    model: str
+    stage: str
+    """The prompt's task stage (``search``, ``candidate_reminder``, ``six_view`` ...)."""
+    prompt_sha256: str
+    """Hash of the request body of the first attempt (text and images), not the request itself."""
+    image_bytes: dict[str, int]
+    """Label -> encoded size of each image sent."""
+    raw_reply: str | None
+    """The last reply's text, cut to 2,000 characters."""
+    parsed_action: str
+    fallback: bool
+    fallback_reason: str | None = None
+    repaired: bool = False
+    """The reply's JSON needed syntax repair (fences, quotes, trailing text)."""
+    reasks: int = 0
+    """Extra requests after a reply that could not be used."""
+    http_attempts: int = 0
+    """HTTP requests made, retries included."""
+    latency_s: float = 0.0
+    prompt_tokens: int | None = None
+    completion_tokens: int | None = None
+    error: str | None = None
+    """Why the endpoint gave no answer at all (the decision then became a fallback)."""
+
+
 class Action(Model):
     """Agent -> world: one decision."""
 
@@ -200,6 +231,8 @@ class Action(Model):
     """Optional short text to the teammate, delivered through the link model."""
     rationale: str | None = None
     agent_wall_latency_s: float | None = None
+    trace: DecisionTrace | None = None
+    """Model-backed policies: how the decision was reached (stored with the episode)."""
 
 
 class AgentMessage(Model):
@@ -296,6 +329,27 @@ class LinkStats(Model):
     """Candidates the UGV never learned of."""
 
 
+class StoredTrace(DecisionTrace):
+    """A decision trace as stored with the episode: which role and decision it belongs to."""
+
+    role: Role
+    decision_index: int
+
+
+class RoleTraceStats(Model):
+    """Per-role totals of the decision traces of an episode (model-backed policies)."""
+
+    decisions: int
+    http_attempts: int
+    reasks: int
+    repaired: int
+    fallbacks: int
+    """Replies that became the fallback action in the agent (no answer, unparseable, illegal)."""
+    prompt_tokens: int
+    completion_tokens: int
+    mean_latency_s: float | None
+
+
 class EpisodeRecord(Model):
     """World -> evaluator: the episode summary (DESIGN.md §7 fields plus provenance)."""
 
@@ -339,6 +393,10 @@ class EpisodeRecord(Model):
     """Why the checker refused the final CONFIRM (a false confirm), else None."""
     error: str | None = None
     """What went wrong in the infrastructure (status other than finished), else None."""
+    agent_stats: dict[str, RoleTraceStats] = Field(default_factory=dict)
+    """Per role, totals of its decision traces (empty for scripted policies)."""
+    decision_traces: list[StoredTrace] = Field(default_factory=list)
+    """Every decision of model-backed policies, in the order the world applied them."""
 
 
 class StepEvent(Model):
@@ -415,9 +473,10 @@ class JobGrant(Model):
     comm_profile: dict[str, Any] | None = None
     """The run's link model (a CommProfile as a map), so remote workers need no profile file."""
     timing_mode: Literal["lockstep", "realtime"] = "lockstep"
-    tools: dict[str, bool] = Field(default_factory=lambda: {"e2a": True, "rgpp": True, "oracle": False})
-    """World-side tools of the run's policy: Ego-to-Allo projection, road-graph path planning
-    (GO_TO_CANDIDATE), and oracle hints."""
+    tools: dict[str, bool] = Field(
+        default_factory=lambda: {"candidates": True, "e2a": True, "rgpp": True, "oracle": False})
+    """World-side tools of the run's policy: structured candidates (ANNOTATE_CANDIDATE; off for the
+    Baseline), Ego-to-Allo projection, road-graph path planning (GO_TO_CANDIDATE), oracle hints."""
 
 
 WireMessage = Annotated[

@@ -47,6 +47,9 @@ class RunSettings(_Section):
     policy_ugv: str = "heuristic"
     decision_timeout_s: float = Field(60.0, gt=0)
     """Wall-clock wait for an action before the world logs a WAIT fallback."""
+    agent_wait_s: float = Field(30.0, gt=0)
+    """How long a world worker waits for both agent services at an episode's first decision
+    before it records the episode as failed, naming the missing role."""
     workers: int = Field(1, ge=1)
 
 
@@ -85,10 +88,35 @@ class WorldSettings(_Section):
             cameras=CameraSettings(nadir_px=self.nadir_px, ground_px=self.ground_px, rgb_encoding=self.rgb_encoding))
 
 
+class VlmOptions(_Section):
+    """How VLM policies reach their model (``[vlm]`` section, ``AGOS_VLM__*``, ``--vlm-*`` flags)."""
+
+    base_url: str | None = None
+    """OpenAI-compatible endpoint, e.g. ``http://127.0.0.1:8000/v1`` (vLLM, SGLang, Ollama ...)."""
+    model: str | None = None
+    api_key_env: str = "OPENAI_API_KEY"
+    """Environment variable holding the API key (the key itself is never logged or stored)."""
+    timeout_s: float = Field(60.0, gt=0)
+    """Per HTTP attempt."""
+    max_retries: int = Field(4, ge=0)
+    concurrency: int = Field(8, ge=1)
+    """HTTP requests in flight at once, per agent service."""
+    structured: bool = True
+    """Send a JSON schema as ``response_format`` (turn off for servers that mishandle it)."""
+    max_tokens: int = Field(512, ge=16)
+    reasks: int = Field(2, ge=0)
+    """Further requests after a reply that cannot be used, before the fallback action."""
+    images: Literal["all", "view_only"] = "all"
+    """``view_only`` sends only the role's camera view(s) and the top reference (small image limits)."""
+    trace_file: Path | None = None
+    """Also append every decision trace as a JSON line here (agent side)."""
+
+
 class AgosConfig(_Section):
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     run: RunSettings = Field(default_factory=RunSettings)
     world: WorldSettings = Field(default_factory=WorldSettings)
+    vlm: VlmOptions = Field(default_factory=VlmOptions)
 
 
 def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:

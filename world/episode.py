@@ -46,9 +46,11 @@ from agos.runtime.schemas import (
     Pose,
     Role,
     StepEvent,
+    StoredTrace,
     Termination,
     Waypoint,
 )
+from agos.runtime.traces import trace_stats
 from agos.world import sensors
 from agos.world.asset import Town
 from agos.world.comms import Channel
@@ -79,6 +81,9 @@ class EpisodeSettings:
     """A UAV that has not heard its candidate resolved by then is asked again (lossy links)."""
     comm: CommProfile = field(default_factory=lambda: IDEAL)
     timing_mode: str = "lockstep"
+    candidates: bool = True
+    """Structured candidates: ANNOTATE_CANDIDATE and GO_TO_CANDIDATE exist. Off for the Baseline,
+    which coordinates through text messages only."""
     e2a: bool = True
     """Ego-to-Allo projection: a candidate is its grid cell on the ground. Off (no_e2a ablation):
     the candidate centre is the UAV's ground footprint and its polygon the whole view."""
@@ -169,6 +174,7 @@ class EpisodeRunner:
         self.messages: list[MessageRecord] = []
         self.decisions_used = 0
         self.fallbacks = 0
+        self.traces: list[StoredTrace] = []
         self.n_confirm = 0
         self.tau: int | None = None
         self.ground_observed = False
@@ -333,7 +339,8 @@ class EpisodeRunner:
 
     def _uav_legal(self, options: list[Waypoint]) -> list[ActionName]:
         legal: list[ActionName] = ["MOVE_TO_UAV_WAYPOINT"] if options else []
-        if self._active_candidate("uav") is None and len(self.candidates) < self.cfg.max_annotations:
+        if (self.cfg.candidates and self._active_candidate("uav") is None
+                and len(self.candidates) < self.cfg.max_annotations):
             legal.append("ANNOTATE_CANDIDATE")
         return [*legal, "NO_RELIABLE_CANDIDATE", "WAIT"]
 
@@ -385,6 +392,8 @@ class EpisodeRunner:
         if fallback is not None:
             self.fallbacks += 1
             self._wait(role)
+        if action is not None and action.trace is not None:
+            self.traces.append(StoredTrace(role=role, decision_index=obs.decision_index, **action.trace.model_dump()))
         if action is not None and action.message and fallback is None:
             self.channel.message(role, self.sim_time_s, action.message, self._link_geometry())
         self.channel.sync(role, self.sim_time_s, self._pose(role), self._link_geometry())
@@ -640,4 +649,5 @@ class EpisodeRunner:
             sim_time_s=round(self.sim_time_s, 3), wall_time_s=round(wall_time_s, 3), worker_id=self.worker_id,
             town_id=self.town.town_id, asset_sha256=self.town.sha256, seed=self.spec.seed,
             renderer=self.scene.renderer_name(), comm_profile=self.cfg.comm.name, timing_mode=self.cfg.timing_mode,
-            link=self.channel.stats(self.candidates), ledger=self.channel.ledger, confirm_rejection=self.confirm_failure)
+            link=self.channel.stats(self.candidates), ledger=self.channel.ledger, confirm_rejection=self.confirm_failure,
+            agent_stats=trace_stats(self.traces), decision_traces=self.traces)

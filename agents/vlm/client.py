@@ -32,6 +32,11 @@ RETRY_STATUS = {408, 409, 429, 500, 502, 503, 504}
 class VlmError(RuntimeError):
     """The endpoint could not give an answer (after retries); the message says why, never the key."""
 
+    def __init__(self, message: str, *, attempts: int = 0) -> None:
+        super().__init__(message)
+        self.attempts = attempts
+        """HTTP requests made before giving up."""
+
 
 @dataclass
 class Reply:
@@ -114,7 +119,8 @@ class VlmClient:
                     if response.status_code in RETRY_STATUS:
                         last_error = f"HTTP {response.status_code}"
                     elif response.is_error:
-                        raise VlmError(f"{self.base_url}: HTTP {response.status_code}: {response.text[:200]}")
+                        raise VlmError(f"{self.base_url}: HTTP {response.status_code}: {response.text[:200]}",
+                                       attempts=attempt + 1)
                     else:
                         return self._reply(response.json(), started, attempt + 1)
                 except (httpx.TimeoutException, httpx.TransportError) as exc:
@@ -123,7 +129,8 @@ class VlmClient:
                     last_error = f"invalid JSON body ({exc})"
                 if attempt < self.max_retries:
                     await asyncio.sleep(self._delay(attempt, response))
-        raise VlmError(f"{self.base_url}: no answer after {self.max_retries + 1} attempts ({last_error})")
+        raise VlmError(f"{self.base_url}: no answer after {self.max_retries + 1} attempts ({last_error})",
+                       attempts=self.max_retries + 1)
 
     @staticmethod
     def _reply(data: dict[str, Any], started: float, attempts: int) -> Reply:

@@ -1,0 +1,203 @@
+"""VLM policies: AGOS-Agent (and its ablations) and the Baseline, over an OpenAI-compatible endpoint.
+
+One decision: build the role's prompt (stage-conditioned for AGOS-Agent), ask the model with the
+legal actions as a JSON schema, parse and validate the reply into a legal action. A reply that
+cannot be used is re-asked up to ``reasks`` times, telling the model what was wrong; after that, or
+when the endpoint gives no answer at all, the decision becomes the fallback WAIT, logged with its
+reason. Every decision carries a :class:`~agos.runtime.schemas.DecisionTrace` (prompt hash, image
+sizes, raw reply, parsed action, fallback flag, latency, tokens, HTTP attempts and re-asks), which
+the world stores with the episode. Retries and re-asks never add decisions.
+
+The ablation variants (``agos-agent:no_e2a`` ...) use the same prompts; what changes is the tools
+the world offers (the prompt follows from the legal actions and the options' hints).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+from agos.agents.policy import split_name
+from agos.agents.vlm import agos_prompts, baseline_prompts
+from agos.agents.vlm.client import VlmClient, VlmError, image_part
+from agos.agents.vlm.parse import Parsed, to_action
+from agos.agents.vlm.protocol import action_schema
+from agos.agents.vlm.request import Memory, Prompt
+from agos.runtime.schemas import Action, DecisionTrace, Observation, Role
+from agos.runtime.settings import VlmOptions
+
+log = logging.getLogger("agos.agent.vlm")
+logging.getLogger("httpx").setLevel(logging.WARNING)  # one INFO line per request drowns the agent log
+RAW_REPLY_CHARS = 2000
+UAV_AT_WAYPOINT_M = 1.0
+MAX_IMAGES = {("uav", "all"): 7, ("ugv", "all"): 12, ("uav", "view_only"): 2, ("ugv", "view_only"): 7}
+"""Most images one request of a role carries: UAV view + map + 5 references; UGV six panels + map + 5."""
+
+TINY_PNG = bytes.fromhex(
+    "89504e470d0a1a0a0000000d4948445200000001000000010802000000907753de0000000a49444154081d6300020000"
+    "0400010d3ba4b90000000049454e44ae426082")
+"""A valid 1 x 1 PNG, for the image-limit probe."""
+
+Builder = Callable[..., Prompt]
+BUILDERS: dict[tuple[str, Role], Builder] = {
+    ("agos-agent", "uav"): agos_prompts.uav_prompt,
+    ("agos-agent", "ugv"): agos_prompts.ugv_prompt,
+    ("baseline", "uav"): baseline_prompts.uav_prompt,
+    ("baseline", "ugv"): baseline_prompts.ugv_prompt,
+}
+
+
+class VlmAgent:
+    """A policy whose decisions come from a vision-language model (see the module docstring)."""
+
+    def __init__(self, role: Role, name: str, options: VlmOptions, *, client: VlmClient | None = None) -> None:
+        base, _ = split_name(name)
+        self.role, self.name, self.base = role, name, base
+        self.options = options
+        self.build = BUILDERS[(base, role)]
+        self._client = client
+        self._memory: dict[str, Memory] = {}
+        self._trace_path: Path | None = options.trace_file
+
+    # ----- lifecycle --------------------------------------------------------------------------
+    def client(self) -> VlmClient:
+        if self._client is None:
+            o = self.options
+            self._client = VlmClient(str(o.base_url), str(o.model), api_key_env=o.api_key_env, timeout_s=o.timeout_s,
+                                     max_retries=o.max_retries, concurrency=o.concurrency, structured=o.structured,
+                                     max_tokens=o.max_tokens)
+        return self._client
+
+    async def aclose(self) -> None:
+        if self._client is not None:
+            await self._client.close()
+            self._client = None
+
+    async def preflight(self) -> list[str]:
+        """Before serving: the endpoint is up, serves the model, and accepts this role's largest request
+        (as many images as a six-view decision sends). Raises VlmError saying what to change."""
+        o = self.options
+        client = VlmClient(str(o.base_url), str(o.model), api_key_env=o.api_key_env, timeout_s=o.timeout_s,
+                           max_retries=min(o.max_retries, 2), structured=False, max_tokens=16)
+        try:
+            models = await client.preflight()
+            n = MAX_IMAGES[(self.role, o.images)]
+            parts: list[dict] = [{"type": "text", "text": "Connectivity check: reply with {\"action\": \"WAIT\"}."}]
+            parts += [image_part(TINY_PNG, "png") for _ in range(n)]
+            try:
+                await client.complete([{"role": "user", "content": parts}])
+            except VlmError as exc:
+                raise VlmError(f"{exc}\n{o.base_url} refused a request with {n} images, which a {self.role} decision "
+                               "needs. For vLLM start the server with --limit-mm-per-prompt '{\"image\": "
+                               f"{n}}}'; or set [vlm] images = \"view_only\" (AGOS_VLM__IMAGES=view_only) to send fewer."
+                               ) from None
+            return models
+        finally:
+            await client.close()
+
+    def end_episode(self, episode_id: str) -> None:
+        self._memory.pop(episode_id, None)
+
+    def act(self, obs: Observation) -> Action:
+        """Synchronous use (in-process runners): one event loop and one HTTP client per call."""
+
+        async def once() -> Action:
+            try:
+                return await self.act_async(obs)
+            finally:
+                await self.aclose()
+
+        return asyncio.run(once())
+
+    # ----- one decision -----------------------------------------------------------------------
+    async def act_async(self, obs: Observation) -> Action:
+        memory = self._memory.setdefault(obs.episode_id, Memory())
+        self._locate(obs, memory)
+        prompt = self.build(obs, memory, images=self.options.images)
+        schema = action_schema(prompt.actions)
+        messages = prompt.messages()
+        attempts = reasks = prompt_tokens = completion_tokens = 0
+        latency = 0.0
+        raw: str | None = None
+        error: str | None = None
+        parsed: Parsed | None = None
+        for ask in range(self.options.reasks + 1):
+            try:
+                reply = await self.client().complete(messages, schema=schema)
+            except VlmError as exc:
+                error = str(exc)
+                attempts += exc.attempts
+                break
+            attempts += reply.attempts
+            latency += reply.latency_s
+            prompt_tokens += reply.prompt_tokens or 0
+            completion_tokens += reply.completion_tokens or 0
+            raw = reply.text
+            parsed = to_action(reply.text, obs, truncated=reply.finish_reason == "length")
+            if not parsed.fallback:
+                break
+            if ask < self.options.reasks:
+                reasks += 1
+                messages = [*messages, {"role": "assistant", "content": reply.text or ""},
+                            {"role": "user", "content": _reask_text(parsed.reason, prompt.actions)}]
+        if parsed is None or parsed.fallback:
+            reason = f"no answer from the model: {error}" if parsed is None else str(parsed.reason)
+            parsed = to_action(None, obs) if parsed is None else parsed
+            log.warning("%s %s #%d: fallback %s (%s)", obs.episode_id, self.role, obs.decision_index,
+                        parsed.action.action, reason)
+        else:
+            reason = None
+        action = parsed.action
+        action.trace = DecisionTrace(
+            policy=self.name, model=str(self.options.model), stage=prompt.stage, prompt_sha256=prompt.sha256(),
+            image_bytes=prompt.image_bytes, raw_reply=None if raw is None else raw[:RAW_REPLY_CHARS],
+            parsed_action=action.action, fallback=reason is not None, fallback_reason=reason, repaired=parsed.repaired,
+            reasks=reasks, http_attempts=attempts, latency_s=round(latency, 4), prompt_tokens=prompt_tokens or None,
+            completion_tokens=completion_tokens or None, error=error)
+        self._remember(obs, memory, action)
+        if self._trace_path is not None:
+            self._append_trace(obs, action)
+        return action
+
+    # ----- memory -----------------------------------------------------------------------------
+    def _locate(self, obs: Observation, memory: Memory) -> None:
+        here = (float(obs.pose.position_world_m[0]), float(obs.pose.position_world_m[1]))
+        if self.role == "uav":
+            memory.seen_from(here)
+            node = next((w for w in obs.active_uav_waypoints
+                         if math.dist(w.position_world_m[:2], here) <= UAV_AT_WAYPOINT_M), None)
+            memory.at(node.waypoint_id if node else None)
+
+    def _remember(self, obs: Observation, memory: Memory, action: Action) -> None:
+        detail = action.waypoint_id or action.cell or action.candidate_id or ""
+        memory.note(obs.decision_index, action.action, detail)
+        here = (round(obs.pose.position_world_m[0], 1), round(obs.pose.position_world_m[1], 1))
+        if action.action == "WAIT" and memory.last_position == here:
+            memory.waits_here += 1
+        elif action.action == "WAIT":
+            memory.waits_here = 1
+        else:
+            memory.waits_here = 0
+        memory.last_position = here
+        if action.action == "MOVE_TO_ROAD_WAYPOINT":
+            memory.at(action.waypoint_id)
+        if self.base == "baseline" and self.role == "ugv" and action.action == "REJECT":
+            anchor = baseline_prompts.anchor_from_messages(obs, memory)
+            memory.inspected_anchors.append(anchor if anchor is not None else here)
+
+    def _append_trace(self, obs: Observation, action: Action) -> None:
+        assert action.trace is not None and self._trace_path is not None
+        line = {"run_id": obs.run_id, "episode_id": obs.episode_id, "role": self.role,
+                "decision_index": obs.decision_index, **action.trace.model_dump()}
+        self._trace_path.parent.mkdir(parents=True, exist_ok=True)
+        with self._trace_path.open("a") as f:
+            f.write(json.dumps(line) + "\n")
+
+
+def _reask_text(reason: str | None, actions: list[str]) -> str:
+    return (f"Your last reply could not be used: {reason}. Answer again with exactly one JSON object, no other "
+            f"text. The action must be one of: {', '.join(actions)}; use only ids listed in the state.")
