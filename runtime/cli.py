@@ -84,6 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     world = sub.add_parser("world", help="world worker: simulates leased episodes")
     _common(world)
     world.add_argument("--worker-id")
+    world.add_argument("--agent-wait", type=float, help="seconds to wait for both agent services (default 30)")
 
     agent = sub.add_parser("agent", help="agent service for one role")
     _common(agent)
@@ -118,6 +119,14 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("--out", type=Path, required=True)
     report.add_argument("--labels", nargs="+", help="one label per run; a leading '+' marks an agent variant row")
 
+    check = sub.add_parser("check", help="conformance checks")
+    check_sub = check.add_subparsers(dest="check_what", required=True)
+    check_agent = check_sub.add_parser("agent", help="a short conformance episode against attached agent services")
+    _common(check_agent)
+    check_agent.add_argument("--budget", type=int, default=16, help="decisions in the check episode (default 16)")
+    check_agent.add_argument("--town", default="grid-s7", help="procedural town of the check episode")
+    check_agent.add_argument("--agent-wait", type=float, help="seconds to wait for each role's service (default 30)")
+
     from agos.agents.vlm.standin_server import add_parser as add_standin_parser
 
     add_standin_parser(sub)
@@ -143,7 +152,7 @@ def _config(args: argparse.Namespace) -> AgosConfig:
                 "trace_file": getattr(args, "vlm_trace", None)},
         "zenoh": {"connect": getattr(args, "connect", None), "listen": getattr(args, "listen", None)},
         "run": {"run_id": getattr(args, "run_id", None), "runs_dir": getattr(args, "runs_dir", None),
-                "workers": getattr(args, "workers", None),
+                "workers": getattr(args, "workers", None), "agent_wait_s": getattr(args, "agent_wait", None),
                 "episodes_file": getattr(args, "episodes", None) or getattr(args, "split", None),
                 "per_difficulty": getattr(args, "per_difficulty", None),
                 "policy_uav": getattr(args, "policy_uav", None) or getattr(args, "policy", None),
@@ -155,7 +164,7 @@ def _config(args: argparse.Namespace) -> AgosConfig:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        cfg = _config(args) if args.command in ("demo", "eval", "router", "world", "agent", "evaluator") else None
+        cfg = _config(args) if args.command in ("demo", "eval", "router", "world", "agent", "evaluator", "check") else None
         return _dispatch(args, cfg)
     except ConfigError as exc:
         print(str(exc), file=sys.stderr)
@@ -199,6 +208,10 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
                 print(f"agent error: {exc}", file=sys.stderr)
                 return 2
             return service.main(cfg, role=args.role, policy_name=args.policy, concurrency=args.concurrency)
+        if args.command == "check":
+            from agos.runtime.check import run_check
+
+            return run_check(cfg, budget=args.budget, town_name=args.town)
         if args.command == "evaluator":
             from agos.evaluator import service as evaluator_service
 

@@ -70,10 +70,17 @@ def test_policy_names_and_tools() -> None:
         split_name("heuristic:no_wings")
     with pytest.raises(ValueError, match="unknown policy"):
         make_policy("gpt-9", "uav")
-    assert tools_for({"uav": "heuristic", "ugv": "heuristic"}) == {"e2a": True, "rgpp": True, "oracle": False}
-    assert tools_for({"uav": "heuristic:no_both", "ugv": "heuristic:no_both"}) == {"e2a": False, "rgpp": False,
-                                                                                   "oracle": False}
+    assert tools_for({"uav": "heuristic", "ugv": "heuristic"}) == {"candidates": True, "e2a": True, "rgpp": True,
+                                                                   "oracle": False}
+    assert tools_for({"uav": "heuristic:no_both", "ugv": "heuristic:no_both"}) == {
+        "candidates": True, "e2a": False, "rgpp": False, "oracle": False}
     assert tools_for({"uav": "oracle", "ugv": "oracle"})["oracle"] is True
+    assert tools_for({"uav": "baseline", "ugv": "baseline"})["candidates"] is False
+    assert tools_for({"uav": "agos-agent:no_rgpp", "ugv": "agos-agent:no_rgpp"})["rgpp"] is False
+    with pytest.raises(ValueError, match="no candidate tools"):
+        split_name("baseline:no_e2a")
+    with pytest.raises(ValueError, match="--vlm-base-url"):
+        make_policy("agos-agent", "uav")
 
 
 @pytest.fixture(scope="module")

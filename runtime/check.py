@@ -1,0 +1,156 @@
+"""``agos check agent``: a short conformance episode against attached agent services.
+
+    agos check agent --connect tcp/HOST:PORT --run RUN [--budget 16] [--town grid-s7]
+
+Before a long evaluation, the author of a remote agent runs one real episode (world simulated in
+this process, decisions asked over zenoh exactly as a world worker asks them) and gets a verdict
+per check:
+
+* ``subscribed``: an agent service of each role listens for the run (else: which role is missing);
+* ``answered``: every decision answered before the deadline, with the right decision index;
+* ``legal``: every action is one of the observation's legal actions;
+* ``arguments``: waypoint ids among the options, cells A1..E5, known candidate ids (the world
+  accepted the action instead of turning it into a fallback);
+* ``message``: messages to the teammate are at most 500 characters;
+* ``finished``: the episode ran to its end (confirm, false confirm or budget).
+
+The episode's budget is cut short (``--budget``); the exit status is 0 when every check passed.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from dataclasses import dataclass, field
+
+from rich.console import Console
+from rich.table import Table
+
+from agos.runtime import keys
+from agos.runtime.bus import ZenohBus
+from agos.runtime.process import install_stop_handlers
+from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role, StepEvent
+from agos.runtime.settings import AgosConfig
+
+MESSAGE_LIMIT = 500
+CHECKS = ("subscribed", "answered", "legal", "arguments", "message", "finished")
+
+
+@dataclass
+class Verdicts:
+    failures: dict[str, list[str]] = field(default_factory=lambda: {c: [] for c in CHECKS})
+    passes: dict[str, int] = field(default_factory=lambda: dict.fromkeys(CHECKS, 0))
+    latency_s: dict[str, list[float]] = field(default_factory=lambda: {"uav": [], "ugv": []})
+
+    def check(self, name: str, ok: bool, why: str = "") -> None:
+        if ok:
+            self.passes[name] += 1
+        else:
+            self.failures[name].append(why)
+
+    @property
+    def ok(self) -> bool:
+        return not any(self.failures.values())
+
+
+class CheckingSource:
+    """Asks the agents through a world worker's decision source and checks every answer."""
+
+    def __init__(self, inner, verdicts: Verdicts) -> None:
+        self.inner, self.v = inner, verdicts
+
+    def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
+        started = time.monotonic()
+        actions = self.inner.decide(observations)
+        for role, obs in observations.items():
+            action = actions.get(role)
+            where = f"{role} decision {obs.decision_index}"
+            self.v.check("answered", action is not None, f"{where}: no answer within the deadline")
+            if action is None:
+                continue
+            self.v.latency_s[role].append(action.agent_wall_latency_s or (time.monotonic() - started))
+            self.v.check("legal", action.action in obs.legal_actions,
+                         f"{where}: {action.action} is not legal (legal: {', '.join(obs.legal_actions)})")
+            self.v.check("message", len(action.message or "") <= MESSAGE_LIMIT,
+                         f"{where}: message of {len(action.message or '')} characters (limit {MESSAGE_LIMIT})")
+        return actions
+
+
+class StepChecks:
+    """The world's verdict on each action: a fallback on a legal action means bad arguments."""
+
+    def __init__(self, inner, verdicts: Verdicts) -> None:
+        self.inner, self.v = inner, verdicts
+
+    def step(self, event: StepEvent) -> None:
+        if event.requested is not None:  # an illegal action was already counted by the "legal" check
+            reason = event.fallback_reason or ""
+            bad = bool(reason) and "is not legal now" not in reason
+            self.v.check("arguments", not bad, f"{event.role} decision {event.decision_index}: {reason}")
+        self.inner.step(event)
+
+    def coordination(self, truth, views) -> None:
+        self.inner.coordination(truth, views)
+
+    def message(self, message) -> None:
+        self.inner.message(message)
+
+
+def run_check(cfg: AgosConfig, *, budget: int, town_name: str, console: Console | None = None) -> int:
+    from agos.world.asset import open_town
+    from agos.world.episode import EpisodeRunner
+    from agos.world.episodes import generate_episodes
+    from agos.world.scene import Scene
+    from agos.world.worker import BusDecisionSource, BusSink, MissingAgent
+
+    console = console or Console()
+    stop = install_stop_handlers()
+    v = Verdicts()
+    run_id = cfg.run.run_id
+    bus = ZenohBus.connect(cfg.zenoh.connect, connect_timeout_s=cfg.zenoh.connect_timeout_s)
+    town = open_town(town_name)
+    scene = Scene(town.layout)
+    record: EpisodeRecord | None = None
+    try:
+        spec = generate_episodes(town, scene, per_difficulty=1, seed=cfg.run.episode_seed)[0]
+        spec = spec.model_copy(update={"episode_id": f"check-{spec.episode_id}", "decision_budget": budget})
+        console.print(f"checking the agents of run {run_id!r} on {cfg.zenoh.connect}: episode {spec.episode_id}, "
+                      f"{budget} decisions")
+        source = BusDecisionSource(bus, run_id, spec.episode_id, timeout_s=cfg.run.decision_timeout_s, stop=stop,
+                                   agent_wait_s=cfg.run.agent_wait_s)
+        sink = StepChecks(BusSink(bus, run_id, spec.episode_id), v)
+        try:
+            record = EpisodeRunner(scene, town, spec, run_id=run_id, worker_id="check", sink=sink).run(
+                CheckingSource(source, v))
+            v.check("subscribed", True)
+        except MissingAgent as exc:
+            v.check("subscribed", False, str(exc))
+        finally:
+            source.close()
+        if record is not None:
+            v.check("finished", record.status == "finished", f"episode status {record.status}")
+            bus.publish(keys.result(run_id, spec.episode_id), record)  # lets the agents forget the episode
+    finally:
+        scene.close()
+        bus.close()
+    _report(console, v, record)
+    return 0 if v.ok else 1
+
+
+def _report(console: Console, v: Verdicts, record: EpisodeRecord | None) -> None:
+    table = Table(title="agent conformance")
+    for col in ("check", "passed", "failed", "first failure"):
+        table.add_column(col)
+    for name in CHECKS:
+        fails = v.failures[name]
+        table.add_row(name, str(v.passes[name]), str(len(fails)), fails[0] if fails else "",
+                      style="red" if fails else None)
+    console.print(table)
+    for role, lat in v.latency_s.items():
+        if lat:
+            p95 = sorted(lat)[max(0, round(0.95 * len(lat)) - 1)]
+            console.print(f"{role}: {len(lat)} decisions, latency median {statistics.median(lat):.3f} s, p95 {p95:.3f} s")
+    if record is not None:
+        console.print(f"episode: {record.termination}, {record.decisions_uav + record.decisions_ugv} decisions, "
+                      f"{record.fallbacks} fallbacks")
+    console.print("[green]PASS: the agents conform" if v.ok else "[red]FAIL: see the failed checks above")

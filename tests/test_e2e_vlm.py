@@ -1,0 +1,148 @@
+"""The VLM path end to end: real agent processes asking the real stand-in HTTP server, over a real
+router, with injected faults; and ``agos check agent`` against attached services.
+
+"DS is unchanged by retries": each policy's run with faults is compared, decision for decision,
+with the same episode run in-process against a fault-free stand-in (the stand-in's answers are a
+deterministic function of the request).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from agos.agents.inprocess import InProcessAgents
+from agos.agents.policy import make_policy, tools_for
+from agos.agents.vlm.standin_server import StandinServer
+from agos.runtime.launcher import free_port, wait_listening
+from agos.runtime.settings import VlmOptions
+from agos.world.asset import open_town
+from agos.world.episode import EpisodeRunner, EpisodeSettings
+from agos.world.episodes import read_episodes
+from agos.world.scene import Scene
+
+pytestmark = pytest.mark.e2e
+AGOS = [sys.executable, "-m", "agos.runtime.cli"]
+POLICIES = ["agos-agent", "baseline", "agos-agent:no_e2a", "agos-agent:no_rgpp", "agos-agent:no_both"]
+FAULTS = "429=0.15,500=0.1,timeout=0.02,fenced=0.3"
+
+
+@pytest.fixture(scope="module")
+def episode_file(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("episodes") / "eps.jsonl"
+    subprocess.run([*AGOS, "episodes", "sample", "--town", "grid-s7", "--difficulty", "mid", "-n", "1", "--seed", "3",
+                    "--out", str(path)], check=True, capture_output=True, timeout=120)
+    return path
+
+
+@pytest.fixture(scope="module")
+def reference(episode_file) -> dict[str, dict]:
+    """Each policy's episode in-process against a fault-free stand-in server: the expected record."""
+    spec = read_episodes(episode_file)[0]
+    town = open_town(spec.town.town_id)
+    scene = Scene(town.layout)
+    out = {}
+    with StandinServer() as server:
+        options = VlmOptions(base_url=server.url, model="agos-standin")
+        for policy in POLICIES:
+            tools = tools_for({"uav": policy, "ugv": policy})
+            settings = EpisodeSettings(candidates=tools["candidates"], e2a=tools["e2a"], rgpp=tools["rgpp"])
+            agents = InProcessAgents({r: make_policy(policy, r, vlm=options) for r in ("uav", "ugv")})
+            record = EpisodeRunner(scene, town, spec, run_id="ref", worker_id="w", settings=settings).run(agents)
+            out[policy] = record.model_dump()
+    scene.close()
+    return out
+
+
+def _records(run_dir: Path) -> list[dict]:
+    with sqlite3.connect(run_dir / "results.sqlite") as db:
+        return [json.loads(r) for (r,) in db.execute("SELECT record_json FROM episodes")]
+
+
+def _actions(record: dict) -> list[tuple]:
+    return [(t["role"], t["decision_index"], t["parsed_action"]) for t in record["decision_traces"]]
+
+
+@pytest.mark.parametrize("policy", POLICIES)
+def test_policy_completes_over_the_standin_with_faults_and_retries_do_not_change_ds(policy, episode_file, reference,
+                                                                                    tmp_path) -> None:
+    run_dir = tmp_path / "run"
+    proc = subprocess.run([*AGOS, "eval", "--split", str(episode_file), "--policy", policy, "--vlm-standin", FAULTS,
+                           "--run-dir", str(run_dir), "--port", str(free_port(21000 + os.getpid() % 400))],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=400)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    [record] = _records(run_dir)
+    ref = reference[policy]
+    assert record["status"] == "finished"
+    ds, ref_ds = record["decisions_uav"] + record["decisions_ugv"], ref["decisions_uav"] + ref["decisions_ugv"]
+    assert ds == ref_ds, (policy, ds, ref_ds)
+    assert _actions(record) == _actions(ref)
+    assert record["termination"] == ref["termination"]
+    stats = record["agent_stats"]
+    decisions = sum(s["decisions"] for s in stats.values())
+    assert decisions == ds  # one trace per logical decision
+    assert sum(s["http_attempts"] for s in stats.values()) > decisions  # faults were injected and retried
+    assert sum(s["fallbacks"] for s in stats.values()) == 0
+    assert all(t["prompt_sha256"] and t["image_bytes"] and t["raw_reply"] for t in record["decision_traces"])
+    if policy == "baseline":
+        assert record["candidates"] == []  # no candidate tools
+    else:
+        assert record["candidates"], "AGOS-Agent hands off through candidates"
+    log = (run_dir / "logs" / "vlm-standin.log").read_text()
+    assert "listening on http://127.0.0.1:" in log
+
+
+def _start(tmp: Path, name: str, *args: str) -> subprocess.Popen:
+    log = (tmp / f"{name}.log").open("ab")
+    return subprocess.Popen([*AGOS, *args], cwd=tmp, stdout=log, stderr=subprocess.STDOUT)
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+    for p in procs:
+        try:
+            p.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
+def test_check_agent_names_a_missing_role_then_passes_with_remote_vlm_agents(tmp_path) -> None:
+    port = free_port(22000 + os.getpid() % 400)
+    endpoint = f"tcp/127.0.0.1:{port}"
+    procs = [_start(tmp_path, "router", "router", "--listen", endpoint)]
+    try:
+        assert wait_listening("127.0.0.1", port, 15.0)
+        with StandinServer() as server:
+            attach = ["--connect", endpoint, "--run", "remote", "--policy", "agos-agent", "--vlm-base-url", server.url,
+                      "--model", "agos-standin"]
+            procs.append(_start(tmp_path, "agent-uav", "agent", "--role", "uav", *attach))
+            check = [*AGOS, "check", "agent", "--connect", endpoint, "--run", "remote", "--budget", "12"]
+            missing = subprocess.run([*check, "--agent-wait", "4"], cwd=tmp_path, capture_output=True, text=True,
+                                     timeout=120)
+            assert missing.returncode == 1, missing.stdout
+            assert "no UGV agent service" in missing.stdout and "FAIL" in missing.stdout
+            procs.append(_start(tmp_path, "agent-ugv", "agent", "--role", "ugv", *attach))
+            ok = subprocess.run(check, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+            assert ok.returncode == 0, ok.stdout + ok.stderr
+            assert "PASS" in ok.stdout and "uav:" in ok.stdout and "ugv:" in ok.stdout
+            assert server.stats()["requests"] > 0
+    finally:
+        _stop(procs)
+
+
+def test_agent_preflight_fails_clearly_when_the_model_is_missing(tmp_path) -> None:
+    with StandinServer(models=("other-model",)) as server:
+        proc = subprocess.run([*AGOS, "agent", "--role", "uav", "--policy", "agos-agent", "--vlm-base-url", server.url,
+                               "--model", "agos-standin", "--connect", "tcp/127.0.0.1:1", "--run", "x"],
+                              cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 3
+    assert "agos-standin" in proc.stderr and "not served" in proc.stderr
