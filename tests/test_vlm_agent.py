@@ -1,0 +1,150 @@
+"""VLM policies against the real stand-in HTTP server on loopback: prompt layout and stages,
+re-asks, logged fallbacks, traces, and the API key kept out of everything recorded."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+
+import pytest
+
+from agos.agents.inprocess import InProcessAgents
+from agos.agents.policy import make_policy
+from agos.agents.vlm import protocol
+from agos.agents.vlm.agos_prompts import ugv_prompt, ugv_stage
+from agos.agents.vlm.baseline_prompts import anchor_from_messages
+from agos.agents.vlm.request import Memory
+from agos.agents.vlm.standin_server import StandinServer
+from agos.runtime.schemas import MessageRecord, Observation
+from agos.runtime.settings import VlmOptions
+from agos.world.asset import open_town
+from agos.world.episode import EpisodeRunner
+from agos.world.episodes import generate_episodes
+from agos.world.scene import Scene
+
+
+@pytest.fixture(scope="module")
+def observations() -> list[Observation]:
+    """Every observation of one heuristic episode on grid-s7 (search, handoff, six views)."""
+    town = open_town("grid-s7")
+    scene = Scene(town.layout)
+    spec = generate_episodes(town, scene, per_difficulty=1, seed=1)[0]
+    seen: list[Observation] = []
+    inner = InProcessAgents({r: make_policy("heuristic", r) for r in ("uav", "ugv")})
+
+    class Spy:
+        def decide(self, obs):
+            seen.extend(obs.values())
+            return inner.decide(obs)
+
+    EpisodeRunner(scene, town, spec, run_id="t", worker_id="w").run(Spy())
+    scene.close()
+    return seen
+
+
+def _agent(url: str, role: str = "uav", name: str = "agos-agent", **kw):
+    return make_policy(name, role, vlm=VlmOptions(base_url=url, model="agos-standin", **kw))
+
+
+def test_prompts_label_every_image_and_carry_the_state(observations) -> None:
+    from agos.agents.vlm.agos_prompts import uav_prompt
+
+    uav = next(o for o in observations if o.role == "uav")
+    prompt = uav_prompt(uav, Memory())
+    req = protocol.split_request(prompt.messages())
+    assert req.unlabelled == 0
+    assert {"aerial_grid", "topdown_map", "target_ref_top", "target_ref_side"} <= set(req.images)
+    assert req.state["legal_actions"] == uav.legal_actions and req.state["stage"] == "search"
+    assert req.state["camera"]["world_from_camera"] and req.state["unvisited_waypoints"]
+    assert prompt.image_bytes["aerial_grid"] == len(req.images["aerial_grid"])
+    six = next(o for o in observations if o.role == "ugv" and o.mode == "stop_6view")
+    prompt = ugv_prompt(six, Memory())
+    req = protocol.split_request(prompt.messages())
+    assert prompt.stage == "six_view" and set(protocol.SIX_VIEWS) <= set(req.images)
+    assert set(req.state["panel_cameras"]) == set(protocol.SIX_VIEWS)
+    assert "CONFIRM" in req.state["legal_actions"]
+
+
+def test_ugv_stages() -> None:
+    cand = {"id": "C001", "status": "pending", "distance_m": 40.0}
+
+    class O:
+        mode = "driving"
+
+    assert ugv_stage(O, None, [], rgpp=True) == "free_exploration"
+    assert ugv_stage(O, None, [[1.0, 2.0]], rgpp=True) == "post_rejection"
+    assert ugv_stage(O, cand, [], rgpp=True) == "candidate_reminder"
+    assert ugv_stage(O, {**cand, "status": "arrived"}, [], rgpp=True) == "arrival"
+    assert ugv_stage(O, {**cand, "distance_m": 8.0}, [], rgpp=False) == "arrival"  # no_rgpp: arrival by distance
+    O.mode = "stop_6view"
+    assert ugv_stage(O, cand, [], rgpp=True) == "six_view"
+
+
+def test_baseline_anchor_is_the_latest_uninspected_uav_coordinate(observations) -> None:
+    obs = next(o for o in observations if o.role == "ugv").model_copy(deep=True)
+    obs.coordination.messages = [
+        MessageRecord(sender="uav", receiver="ugv", text="CLEAR_MATCH: search around (126, -116).", sent_sim_time_s=1,
+                      delivered_sim_time_s=1),
+        MessageRecord(sender="uav", receiver="ugv", text="thanks", sent_sim_time_s=2, delivered_sim_time_s=2)]
+    memory = Memory()
+    assert anchor_from_messages(obs, memory) == (126.0, -116.0)
+    memory.inspected_anchors.append((120.0, -110.0))
+    assert anchor_from_messages(obs, memory) is None
+
+
+def test_a_malformed_reply_is_re_asked_and_counted_apart_from_the_decision(observations) -> None:
+    uav = next(o for o in observations if o.role == "uav")
+    with StandinServer(script=("malformed", "ok")) as server:
+        action = _agent(server.url).act(uav)
+    assert action.trace.reasks == 1 and action.trace.http_attempts == 2 and not action.trace.fallback
+    assert action.action in uav.legal_actions and action.trace.parsed_action == action.action
+    assert action.trace.stage == "search" and action.trace.prompt_tokens
+
+
+def test_unusable_replies_become_a_logged_legal_fallback(observations, caplog) -> None:
+    uav = next(o for o in observations if o.role == "uav")
+    with StandinServer(script=("empty", "length", "garbage", "malformed")) as server, caplog.at_level(logging.WARNING):
+        action = _agent(server.url, reasks=2, max_retries=0).act(uav)
+    assert action.action == "WAIT" and "WAIT" in uav.legal_actions
+    assert action.trace.fallback and action.trace.fallback_reason
+    assert any("fallback WAIT" in r.getMessage() for r in caplog.records)
+
+
+def test_an_unreachable_endpoint_is_a_fallback_not_a_crash(observations, caplog) -> None:
+    ugv = next(o for o in observations if o.role == "ugv")
+    agent = _agent("http://127.0.0.1:9/v1", "ugv", max_retries=1, timeout_s=2)
+    with caplog.at_level(logging.WARNING):
+        action = agent.act(ugv)
+    assert action.action == "WAIT" and action.trace.fallback and action.trace.error
+    assert action.trace.http_attempts == 2
+
+
+def test_the_api_key_never_reaches_traces_or_logs(observations, caplog, monkeypatch, tmp_path) -> None:
+    secret = "sk-test-0123456789abcdef"
+    monkeypatch.setenv("AGOS_TEST_KEY", secret)
+    uav = next(o for o in observations if o.role == "uav")
+    trace_file = tmp_path / "traces.jsonl"
+    with StandinServer(script=("429", "malformed", "ok")) as server, caplog.at_level(logging.DEBUG):
+        action = _agent(server.url, api_key_env="AGOS_TEST_KEY", trace_file=trace_file).act(uav)
+        sent = [dict(r.headers) for r in server.recorded]
+    assert any(h.get("authorization") == f"Bearer {secret}" or h.get("Authorization") == f"Bearer {secret}" for h in sent)
+    assert secret not in action.model_dump_json()
+    assert secret not in trace_file.read_text() and json.loads(trace_file.read_text())["decision_index"] == 1
+    assert secret not in caplog.text
+
+
+def test_the_async_path_shares_one_client_across_concurrent_decisions(observations) -> None:
+    uavs = [o for o in observations if o.role == "uav"][:6]
+    with StandinServer(latency_ms=100) as server:
+        agent = _agent(server.url)
+
+        async def all_at_once():
+            try:
+                return await asyncio.gather(*(agent.act_async(o) for o in uavs))
+            finally:
+                await agent.aclose()
+
+        actions = asyncio.run(all_at_once())
+        assert server.stats()["max_in_flight"] > 1  # overlapped, not serialised
+    assert [a.decision_index for a in actions] == [o.decision_index for o in uavs]
