@@ -141,19 +141,7 @@ def ugv_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prom
            f"decisions left. You are at ({p[0]:.0f}, {p[1]:.0f}) m, heading "
            f"{math.degrees(obs.pose.yaw_rad):.0f} deg (0 = east, 90 = north). Mode: "
            f"{'stopped, six views' if obs.mode == 'stop_6view' else 'driving'}.")
-    cam = None
-    if obs.mode == "stop_6view":
-        for name, note in PANEL_NOTES.items():
-            f = frame(obs, name)
-            if f is not None:
-                cam = cam or f
-                b.image(name, f, note)
-    else:
-        cam = frame(obs, "forward")
-        if cam is not None:
-            b.image(protocol.FORWARD, cam, "Your forward camera while driving")
-    b.map(obs)
-    b.references(obs, top_only=b.images != "all")
+    cam = b.ground_views(obs)
     b.text(_ugv_stage_text(stage, active, rejected, rgpp=rgpp))
     if memory.recent:
         b.text("Your recent decisions: " + " | ".join(memory.recent))

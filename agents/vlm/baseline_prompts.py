@@ -114,19 +114,7 @@ def ugv_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prom
     anchor = anchor_from_messages(obs, memory)
     b.text(f"Decision {obs.decision_index}; {budget(obs)['left']} team decisions left. You are at "
            f"({p[0]:.0f}, {p[1]:.0f}) m. Mode: {'stopped, six views' if obs.mode == 'stop_6view' else 'driving'}.")
-    cam = None
-    if obs.mode == "stop_6view":
-        for name, note in PANEL_NOTES.items():
-            f = frame(obs, name)
-            if f is not None:
-                cam = cam or f
-                b.image(name, f, note)
-    else:
-        cam = frame(obs, "forward")
-        if cam is not None:
-            b.image(protocol.FORWARD, cam, "Your forward camera while driving")
-    b.map(obs)
-    b.references(obs, top_only=b.images != "all")
+    cam = b.ground_views(obs)
     if obs.coordination.messages:
         b.text("Messages from the UAV: " + " | ".join(m["text"] for m in messages(obs)))
     anchor_row = None

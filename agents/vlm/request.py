@@ -92,6 +92,24 @@ class PromptBuilder:
                 note += f" ({frame.metres_per_px:.2f} m per pixel)"
             self.image(protocol.MAP, frame, note + "; markers: cyan triangle = UAV, magenta dot with a heading line = UGV")
 
+    def ground_views(self, obs: Observation) -> ImageFrame | None:
+        """The UGV's camera image(s) (six panels after STOP_OBSERVE, else the forward view), the map
+        and the references; returns the first camera frame (its intrinsics go into the state)."""
+        first = None
+        if obs.mode == "stop_6view":
+            for name, note in PANEL_NOTES.items():
+                f = frame(obs, name)
+                if f is not None:
+                    first = first or f
+                    self.image(name, f, note)
+        else:
+            first = frame(obs, "forward")
+            if first is not None:
+                self.image(protocol.FORWARD, first, "Your forward camera while driving")
+        self.map(obs)
+        self.references(obs, top_only=self.images != "all")
+        return first
+
     def state(self, state: dict[str, Any]) -> None:
         self.text(protocol.state_text(state))
 
