@@ -151,7 +151,7 @@ def summarize(episodes: Sequence[Episode]) -> Summary:
     """All metrics of a set of episodes in one pass (each episode-level function called once)."""
     n = excluded = support = verified = 0
     sr = osr = spl_sum = ase_sum = acg_sum = ds_uav = ds_ugv = ne_sum = err_sum = 0.0
-    ne_n = err_n = 0
+    ne_n = err_n = acg_n = 0
     for e in episodes:
         if e.status != "finished":
             excluded += 1
@@ -161,7 +161,9 @@ def summarize(episodes: Sequence[Episode]) -> Summary:
         osr += oracle_success(e)
         spl_sum += spl(e)
         ase_sum += ase(e)
-        acg_sum += acg(e)
+        if e.candidate_tools:  # without candidate tools (Baseline) ACG is undefined, not 0
+            acg_sum += acg(e)
+            acg_n += 1
         ds_uav += e.decisions_uav
         ds_ugv += e.decisions_ugv
         ne = navigation_error(e)
@@ -178,7 +180,7 @@ def summarize(episodes: Sequence[Episode]) -> Summary:
         return Summary(0, None, None, None, None, None, None, None, 0, None, None, None, None, excluded)
     return Summary(
         n=n, SR=sr / n, OSR=osr / n, SPL=spl_sum / n, NE=ne_sum / ne_n if ne_n else None, ASE=ase_sum / n,
-        ACG=acg_sum / n, GVA=verified / support if support else None, GVA_support=support,
+        ACG=acg_sum / acg_n if acg_n else None, GVA=verified / support if support else None, GVA_support=support,
         DS=(ds_uav + ds_ugv) / n, DS_UAV=ds_uav / n, DS_UGV=ds_ugv / n, CErr=err_sum / err_n if err_n else None,
         excluded=excluded)
 

@@ -31,7 +31,8 @@ from agos.evaluator.metrics import (
 from agos.evaluator.summary import EpisodeSummary
 
 MEAN_METRICS = {
-    "SR": success, "OSR": oracle_success, "SPL": spl, "NE": navigation_error, "ASE": ase, "ACG": acg,
+    "SR": success, "OSR": oracle_success, "SPL": spl, "NE": navigation_error, "ASE": ase,
+    "ACG": lambda e: acg(e) if e.candidate_tools else None,
     "DS": lambda e: float(e.decisions_uav + e.decisions_ugv),
     "DS_UAV": lambda e: float(e.decisions_uav), "DS_UGV": lambda e: float(e.decisions_ugv),
 }

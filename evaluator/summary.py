@@ -53,6 +53,7 @@ class _SummaryIn(TypedDict):
     town_id: NotRequired[str | None]
     run_id: NotRequired[str | None]
     link: NotRequired[dict[str, Any] | None]
+    tools: NotRequired[dict[str, bool] | None]
 
 
 _SUMMARY = TypeAdapter(_SummaryIn)
@@ -99,6 +100,8 @@ class EpisodeSummary:
     run_id: str | None = None
     link: dict[str, Any] | None = None
     """Link statistics of degraded messaging (optional)."""
+    candidate_tools: bool = True
+    """The policy could annotate candidates (False for the Baseline: ACG is undefined, not 0)."""
 
     @classmethod
     def from_valid(cls, d: dict[str, Any]) -> EpisodeSummary:
@@ -109,7 +112,7 @@ class EpisodeSummary:
             tuple(CandidateSummary(c["distance_to_polygon_m"], c["center_error_m"], c.get("status"))
                   for c in d["candidates"]),
             d["decisions_uav"], d["decisions_ugv"], d.get("status", "finished"), d.get("termination"),
-            d.get("town_id"), d.get("run_id"), d.get("link"))
+            d.get("town_id"), d.get("run_id"), d.get("link"), (d.get("tools") or {}).get("candidates", True))
 
     @classmethod
     def model_validate(cls, data: dict[str, Any]) -> EpisodeSummary:

@@ -393,10 +393,17 @@ class EpisodeRecord(Model):
     """Why the checker refused the final CONFIRM (a false confirm), else None."""
     error: str | None = None
     """What went wrong in the infrastructure (status other than finished), else None."""
+    tools: dict[str, bool] = Field(default_factory=dict)
+    """World-side tools the episode ran with (``candidates``, ``e2a``, ``rgpp``, ``oracle``)."""
     agent_stats: dict[str, RoleTraceStats] = Field(default_factory=dict)
     """Per role, totals of its decision traces (empty for scripted policies)."""
     decision_traces: list[StoredTrace] = Field(default_factory=list)
     """Every decision of model-backed policies, in the order the world applied them."""
+
+    @property
+    def candidate_tools(self) -> bool:
+        """The policy could annotate candidates (records are scored like summaries; see ACG)."""
+        return self.tools.get("candidates", True)
 
 
 class StepEvent(Model):

@@ -69,16 +69,16 @@ def test_prompts_label_every_image_and_carry_the_state(observations) -> None:
 def test_ugv_stages() -> None:
     cand = {"id": "C001", "status": "pending", "distance_m": 40.0}
 
-    class O:
+    class Obs:
         mode = "driving"
 
-    assert ugv_stage(O, None, [], rgpp=True) == "free_exploration"
-    assert ugv_stage(O, None, [[1.0, 2.0]], rgpp=True) == "post_rejection"
-    assert ugv_stage(O, cand, [], rgpp=True) == "candidate_reminder"
-    assert ugv_stage(O, {**cand, "status": "arrived"}, [], rgpp=True) == "arrival"
-    assert ugv_stage(O, {**cand, "distance_m": 8.0}, [], rgpp=False) == "arrival"  # no_rgpp: arrival by distance
-    O.mode = "stop_6view"
-    assert ugv_stage(O, cand, [], rgpp=True) == "six_view"
+    assert ugv_stage(Obs, None, [], rgpp=True) == "free_exploration"
+    assert ugv_stage(Obs, None, [[1.0, 2.0]], rgpp=True) == "post_rejection"
+    assert ugv_stage(Obs, cand, [], rgpp=True) == "candidate_reminder"
+    assert ugv_stage(Obs, {**cand, "status": "arrived"}, [], rgpp=True) == "arrival"
+    assert ugv_stage(Obs, {**cand, "distance_m": 8.0}, [], rgpp=False) == "arrival"  # no_rgpp: arrival by distance
+    Obs.mode = "stop_6view"
+    assert ugv_stage(Obs, cand, [], rgpp=True) == "six_view"
 
 
 def test_baseline_anchor_is_the_latest_uninspected_uav_coordinate(observations) -> None:

@@ -650,4 +650,5 @@ class EpisodeRunner:
             town_id=self.town.town_id, asset_sha256=self.town.sha256, seed=self.spec.seed,
             renderer=self.scene.renderer_name(), comm_profile=self.cfg.comm.name, timing_mode=self.cfg.timing_mode,
             link=self.channel.stats(self.candidates), ledger=self.channel.ledger, confirm_rejection=self.confirm_failure,
+            tools={"candidates": self.cfg.candidates, "e2a": self.cfg.e2a, "rgpp": self.cfg.rgpp, "oracle": self.cfg.oracle},
             agent_stats=trace_stats(self.traces), decision_traces=self.traces)
