@@ -88,16 +88,17 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
              vlm_standin: str | None = None) -> RunPlan:
     from agos.world.episodes import read_episodes, write_episodes
 
-    episodes = read_episodes(cfg.run.episodes_file) if cfg.run.episodes_file else generated_episodes(cfg)
+    # Everything that can be wrong with the command fails before episodes are generated.
     if run_dir is None:
         run_id = f"{cfg.run.run_id}-{datetime.now(UTC).strftime('%Y%m%d-%H%M%S')}" if stamp else cfg.run.run_id
         run_dir = cfg.run.runs_dir / run_id
     if (run_dir / "results.sqlite").exists():
         raise RunDirError(f"{run_dir}: already holds results; resume it with: agos eval --resume {run_dir}")
-    load_profile(comm)  # fail before starting anything
+    load_profile(comm)
     policies = {"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv}
     tools_for(policies)  # unknown policy names fail here too
     vlm = vlm_plan(cfg, policies, vlm_standin)
+    episodes = read_episodes(cfg.run.episodes_file) if cfg.run.episodes_file else generated_episodes(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_episodes(run_dir / "episodes.jsonl", episodes)
     plan = RunPlan(run_dir, episodes, policies, comm, timing_mode, vlm=vlm)
