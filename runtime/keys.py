@@ -16,7 +16,13 @@ Layout::
     agos/<run>/ep/<ep>/result                the episode record
     agos/<run>/ep/<ep>/ack                   evaluator -> world: the record is stored
     agos/<run>/live/<kind>/<id>              liveliness tokens
+    agos/<run>/viz/<ep>/events               visualisation (lossy): episode start, step records
+    agos/<run>/viz/<ep>/coord                visualisation (lossy): coordination truth
+    agos/<run>/viz/<ep>/frame/<role>         visualisation (lossy): a small JPEG of the role's view
     agos/assets/<sha256>                     queryable: frozen town assets
+
+Everything under ``viz/`` is published with congestion control DROP (runtime/bus.py): observers
+subscribe there, so a slow one loses frames instead of slowing the world.
 """
 
 from __future__ import annotations
@@ -49,6 +55,11 @@ def _run(run: str) -> str:
 def _ep(run: str, episode: str) -> str:
     ep = episode if episode == "*" else check_chunk(episode, what="episode id")
     return f"{_run(run)}/ep/{ep}"
+
+
+def episode_prefix(run: str, episode: str) -> str:
+    """What every key of one episode starts with (to forget its publishers when it is over)."""
+    return f"{_ep(run, episode)}/"
 
 
 def manifest(run: str) -> str:
@@ -93,6 +104,32 @@ def result_ack(run: str, episode: str) -> str:
 
 def live(run: str, kind: LiveKind, ident: str) -> str:
     return f"{_run(run)}/live/{kind}/{ident if ident == '*' else check_chunk(ident, what='id')}"
+
+
+def _viz(run: str, episode: str) -> str:
+    return f"{_run(run)}/viz/{episode if episode == '*' else check_chunk(episode, what='episode id')}"
+
+
+def viz_events(run: str, episode: str) -> str:
+    return f"{_viz(run, episode)}/events"
+
+
+def viz_coord(run: str, episode: str) -> str:
+    return f"{_viz(run, episode)}/coord"
+
+
+def viz_frame(run: str, episode: str, role: str) -> str:
+    return f"{_viz(run, episode)}/frame/{role}"
+
+
+def viz_prefix(run: str, episode: str) -> str:
+    """What every visualisation key of one episode starts with."""
+    return f"{_viz(run, episode)}/"
+
+
+def viz_all(run: str = "*") -> str:
+    """The whole visualisation stream of a run (of all runs by default): what observers watch."""
+    return f"{_run(run)}/viz/**"
 
 
 def asset(sha256: str) -> str:

@@ -6,7 +6,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from agos.runtime.codec import DecodeError, decode, decode_image, encode, encode_jpeg, encode_png
+from agos.runtime.codec import DecodeError, Decoder, Encoder, decode, decode_image, encode, encode_jpeg, encode_png
 from agos.runtime.schemas import (
     SCHEMA_VERSION,
     Action,
@@ -269,3 +269,82 @@ def test_jpeg_round_trip_close_and_rgb() -> None:
 def test_decode_image_rejects_garbage() -> None:
     with pytest.raises(ValueError, match="could not be decoded"):
         decode_image(b"definitely not an image")
+
+
+# ----- Encoder / Decoder: the decision hot path ------------------------------------------------
+
+
+def _big_observation(decision_index: int = 2, episode_id: str = "e1") -> Observation:
+    """An observation with reference views and a searchable area (the fields REPEATED caches)."""
+    obs = _observation()
+    refs = [ImageFrame(name=f"ref_{k}", kind="rgb", encoding="png", data=RAW + bytes([k]), metres_per_px=0.02)
+            for k in range(3)]
+    area = [Waypoint(waypoint_id=f"U{i}_{j}", position_world_m=(40.0 * i, 40.0 * j, 80.0), kind="uav_grid")
+            for i in range(4) for j in range(4)]
+    return obs.model_copy(update={"references": refs, "active_uav_waypoints": area, "decision_index": decision_index,
+                                  "episode_id": episode_id})
+
+
+def test_encoder_payload_is_the_same_map_as_encode() -> None:
+    encoder = Encoder()
+    for k in range(3):  # a miss, then hits on the same objects, then equal copies
+        obs = _big_observation(k + 1)
+        if k == 2:
+            obs = obs.model_copy(update={"active_uav_waypoints": [w.model_copy() for w in obs.active_uav_waypoints]})
+        payload = encoder.encode(obs)
+        assert msgpack.unpackb(payload, raw=False) == msgpack.unpackb(encode(obs), raw=False)
+        assert decode(payload) == obs
+
+
+def test_encoder_notices_a_changed_repeated_field() -> None:
+    encoder = Encoder()
+    obs = _big_observation()
+    encoder.encode(obs)
+    changed = obs.model_copy(update={"active_uav_waypoints": obs.active_uav_waypoints[:-1]})
+    assert decode(encoder.encode(changed)).active_uav_waypoints == obs.active_uav_waypoints[:-1]
+    obs.references.append(obs.references[0])  # mutated in place: same list object, new content
+    assert len(decode(encoder.encode(obs)).references) == 4
+
+
+def test_encoder_passes_other_messages_through() -> None:
+    assert Encoder().encode(_action()) == encode(_action())
+
+
+def test_decoder_matches_decode_and_reuses_repeated_parts() -> None:
+    decoder = Decoder()
+    first = decoder.decode(encode(_big_observation(1)))
+    second = decoder.decode(Encoder().encode(_big_observation(2)))
+    assert first == _big_observation(1) and second == _big_observation(2)
+    assert second.references[0] is first.references[0]  # validated once
+    assert second.active_uav_waypoints[5] is first.active_uav_waypoints[5]
+    other = decoder.decode(encode(_big_observation(1, episode_id="e2")))
+    assert other.references[0] is not first.references[0]  # per episode
+    changed = _big_observation(3)
+    changed.active_uav_waypoints[0].kind = "moved"
+    assert decoder.decode(encode(changed)).active_uav_waypoints[0].kind == "moved"
+    decoder.forget("e1")
+    assert decoder.decode(encode(_big_observation(4))).references[0] is not first.references[0]
+    for make in MESSAGES:
+        assert decoder.decode(encode(make())) == make()
+
+
+def test_decoder_errors_read_like_decode() -> None:
+    decoder = Decoder()
+    decoder.decode(encode(_big_observation()))
+    data = msgpack.unpackb(encode(_big_observation()), raw=False)
+    data["active_uav_waypoints"][1]["position_world_m"] = "north"
+    bad = [msgpack.packb(data), b"", b"\xc1", msgpack.packb([1]), encode(_action()) + b"\x00",
+           msgpack.packb({"v": 1, "type": "teleport"})]
+    for payload in bad:
+        with pytest.raises(DecodeError) as expected:
+            decode(payload)
+        with pytest.raises(DecodeError) as got:
+            decoder.decode(payload)
+        assert str(got.value) == str(expected.value)
+
+
+def test_decoder_cache_is_bounded() -> None:
+    decoder = Decoder(capacity=4)
+    for k in range(10):
+        decoder.decode(encode(_big_observation(episode_id=f"e{k}")))
+    assert len(decoder._seen) == 4

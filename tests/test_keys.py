@@ -26,6 +26,13 @@ EP = "grid-s7-easy-000-v1"
         (keys.live(RUN, "world", "w-01"), "agos/run-7.a_b/live/world/w-01"),
         (keys.live(RUN, "evaluator", "*"), "agos/run-7.a_b/live/evaluator/*"),
         (keys.asset("ab" * 32), "agos/assets/" + "ab" * 32),
+        (keys.viz_events(RUN, EP), "agos/run-7.a_b/viz/grid-s7-easy-000-v1/events"),
+        (keys.viz_coord(RUN, EP), "agos/run-7.a_b/viz/grid-s7-easy-000-v1/coord"),
+        (keys.viz_frame(RUN, EP, "ugv"), "agos/run-7.a_b/viz/grid-s7-easy-000-v1/frame/ugv"),
+        (keys.viz_prefix(RUN, EP), "agos/run-7.a_b/viz/grid-s7-easy-000-v1/"),
+        (keys.episode_prefix(RUN, EP), "agos/run-7.a_b/ep/grid-s7-easy-000-v1/"),
+        (keys.viz_all(), "agos/*/viz/**"),
+        (keys.viz_all(RUN), "agos/run-7.a_b/viz/**"),
     ],
 )
 def test_key_layout(key: str, expected: str) -> None:
