@@ -11,10 +11,13 @@ per check:
 * ``legal``: every action is one of the observation's legal actions;
 * ``arguments``: waypoint ids among the options, cells A1..E5, known candidate ids (the world
   accepted the action instead of turning it into a fallback);
+* ``model``: model-backed agents got a usable answer from their model (no fallback in the trace);
 * ``message``: messages to the teammate are at most 500 characters;
 * ``finished``: the episode ran to its end (confirm, false confirm or budget).
 
-The episode's budget is cut short (``--budget``); the exit status is 0 when every check passed.
+The episode's budget is cut short (``--budget``); ``--policy`` sets the world's tools to what that
+policy expects (Baseline: no candidates; ablations). The check episode's record is not published,
+so no evaluator stores it. The exit status is 0 when every check passed.
 """
 
 from __future__ import annotations
@@ -26,14 +29,13 @@ from dataclasses import dataclass, field
 from rich.console import Console
 from rich.table import Table
 
-from agos.runtime import keys
 from agos.runtime.bus import ZenohBus
 from agos.runtime.process import install_stop_handlers
 from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role, StepEvent
 from agos.runtime.settings import AgosConfig
 
 MESSAGE_LIMIT = 500
-CHECKS = ("subscribed", "answered", "legal", "arguments", "message", "finished")
+CHECKS = ("subscribed", "answered", "legal", "arguments", "model", "message", "finished")
 
 
 @dataclass
@@ -71,6 +73,8 @@ class CheckingSource:
             self.v.latency_s[role].append(action.agent_wall_latency_s or (time.monotonic() - started))
             self.v.check("legal", action.action in obs.legal_actions,
                          f"{where}: {action.action} is not legal (legal: {', '.join(obs.legal_actions)})")
+            if action.trace is not None:
+                self.v.check("model", not action.trace.fallback, f"{where}: {action.trace.fallback_reason}")
             self.v.check("message", len(action.message or "") <= MESSAGE_LIMIT,
                          f"{where}: message of {len(action.message or '')} characters (limit {MESSAGE_LIMIT})")
         return actions
@@ -96,9 +100,11 @@ class StepChecks:
         self.inner.message(message)
 
 
-def run_check(cfg: AgosConfig, *, budget: int, town_name: str, console: Console | None = None) -> int:
+def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "heuristic",
+              console: Console | None = None) -> int:
+    from agos.agents.policy import tools_for
     from agos.world.asset import open_town
-    from agos.world.episode import EpisodeRunner
+    from agos.world.episode import EpisodeRunner, EpisodeSettings
     from agos.world.episodes import generate_episodes
     from agos.world.scene import Scene
     from agos.world.worker import BusDecisionSource, BusSink, MissingAgent
@@ -120,8 +126,11 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, console: Console 
                                    agent_wait_s=cfg.run.agent_wait_s)
         sink = StepChecks(BusSink(bus, run_id, spec.episode_id), v)
         try:
-            record = EpisodeRunner(scene, town, spec, run_id=run_id, worker_id="check", sink=sink).run(
-                CheckingSource(source, v))
+            tools = tools_for({"uav": policy, "ugv": policy})
+            settings = EpisodeSettings(candidates=tools["candidates"], e2a=tools["e2a"], rgpp=tools["rgpp"],
+                                       oracle=tools["oracle"])
+            record = EpisodeRunner(scene, town, spec, run_id=run_id, worker_id="check", sink=sink,
+                                   settings=settings).run(CheckingSource(source, v))
             v.check("subscribed", True)
         except MissingAgent as exc:
             v.check("subscribed", False, str(exc))
@@ -129,7 +138,6 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, console: Console 
             source.close()
         if record is not None:
             v.check("finished", record.status == "finished", f"episode status {record.status}")
-            bus.publish(keys.result(run_id, spec.episode_id), record)  # lets the agents forget the episode
     finally:
         scene.close()
         bus.close()

@@ -125,6 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
     _common(check_agent)
     check_agent.add_argument("--budget", type=int, default=16, help="decisions in the check episode (default 16)")
     check_agent.add_argument("--town", default="grid-s7", help="procedural town of the check episode")
+    check_agent.add_argument("--policy", default="heuristic",
+                             help="policy the agents run, for the world's tools (baseline: no candidates; ablations)")
     check_agent.add_argument("--agent-wait", type=float, help="seconds to wait for each role's service (default 30)")
 
     from agos.agents.vlm.standin_server import add_parser as add_standin_parser
@@ -211,7 +213,7 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
         if args.command == "check":
             from agos.runtime.check import run_check
 
-            return run_check(cfg, budget=args.budget, town_name=args.town)
+            return run_check(cfg, budget=args.budget, town_name=args.town, policy=args.policy)
         if args.command == "evaluator":
             from agos.evaluator import service as evaluator_service
 

@@ -143,7 +143,7 @@ def _launch_all(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, endpoint: st
     console.print(f"zenoh endpoint: {endpoint}", highlight=False)
     launcher.start("evaluator", ["evaluator", "--connect", endpoint, "--runs-dir", str(plan.run_dir.parent)]
                    + (["--config", str(config_path)] if config_path else []))
-    vlm_args = _start_vlm(plan, launcher, console)
+    vlm_args = _start_vlm(cfg, plan, launcher, console)
     if vlm_args is None:
         return False
     launcher.start("agent-uav", ["agent", "--role", "uav", "--policy", plan.policies["uav"], *common, *vlm_args])
@@ -153,13 +153,24 @@ def _launch_all(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, endpoint: st
     return True
 
 
-def _start_vlm(plan: RunPlan, launcher: Launcher, console: Console) -> list[str] | None:
+def _client_flags(cfg: AgosConfig) -> list[str]:
+    """The VLM client settings of this command, as flags for the agent processes it starts."""
+    v = cfg.vlm
+    flags = ["--vlm-api-key-env", v.api_key_env, "--vlm-timeout", str(v.timeout_s), "--vlm-max-retries", str(v.max_retries)]
+    if not v.structured:
+        flags.append("--vlm-no-structured")
+    if v.trace_file is not None:
+        flags += ["--vlm-trace", str(v.trace_file)]
+    return flags
+
+
+def _start_vlm(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, console: Console) -> list[str] | None:
     """Agent flags for the run's model endpoint; starts the stand-in server when the plan asks for it.
     None when the stand-in did not come up."""
     if not plan.vlm:
         return []
     if "standin" not in plan.vlm:
-        return ["--vlm-base-url", plan.vlm["base_url"], "--model", plan.vlm["model"]]
+        return ["--vlm-base-url", plan.vlm["base_url"], "--model", plan.vlm["model"], *_client_flags(cfg)]
     port = free_port(8000)
     faults = ["--faults", plan.vlm["standin"]] if plan.vlm["standin"] else []
     launcher.start("vlm-standin", ["vlm-standin", "--port", str(port), "--model", STANDIN_MODEL, *faults,
@@ -171,7 +182,8 @@ def _start_vlm(plan: RunPlan, launcher: Launcher, console: Console) -> list[str]
     console.print(f"VLM stand-in: {url} (faults: {plan.vlm['standin'] or 'none'})", highlight=False)
     # Injected timeouts hang 5 s; a 2 s attempt timeout makes the client retry them quickly, and ten
     # retries make a decision that never gets an answer rare even at high injected fault rates.
-    return ["--vlm-base-url", url, "--model", STANDIN_MODEL, "--vlm-timeout", "2", "--vlm-max-retries", "10"]
+    return ["--vlm-base-url", url, "--model", STANDIN_MODEL, *_client_flags(cfg), "--vlm-timeout", "2",
+            "--vlm-max-retries", "10"]
 
 
 def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, port: int | None = None,

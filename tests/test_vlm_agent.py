@@ -148,3 +148,72 @@ def test_the_async_path_shares_one_client_across_concurrent_decisions(observatio
         actions = asyncio.run(all_at_once())
         assert server.stats()["max_in_flight"] > 1  # overlapped, not serialised
     assert [a.decision_index for a in actions] == [o.decision_index for o in uavs]
+
+
+def test_a_re_sent_observation_is_answered_once(observations) -> None:
+    """The world re-sends an unanswered observation every 5 s; a slow model must not be asked twice."""
+    uav = next(o for o in observations if o.role == "uav")
+    with StandinServer(latency_ms=300) as server:
+        agent = _agent(server.url)
+
+        async def twice():
+            try:
+                first, second = await asyncio.gather(agent.act_async(uav), agent.act_async(uav))
+                third = await agent.act_async(uav)  # after the answer: the same answer again
+                return first, second, third
+            finally:
+                await agent.aclose()
+
+        first, second, third = asyncio.run(twice())
+        assert server.stats()["chat_completions"] == 1
+    assert first.action == second.action == third.action
+    assert list(agent._memory[uav.episode_id].recent) == [f"step 1: {first.action} {first.waypoint_id or ''}".rstrip()]
+
+
+@pytest.mark.parametrize("body", [
+    [1, 2],
+    {"choices": [None]},
+    {"choices": []},
+    {"choices": [{"message": {"content": 7}}], "usage": {"prompt_tokens": "many"}},
+])
+def test_odd_reply_shapes_become_traced_fallbacks(observations, body) -> None:
+    import httpx
+
+    from agos.agents.vlm.client import VlmClient
+
+    uav = next(o for o in observations if o.role == "uav")
+    agent = _agent("http://stand.in/v1", reasks=0)
+    agent._client = VlmClient("http://stand.in/v1", "agos-standin", max_retries=1, backoff_base_s=0.0,
+                              transport=httpx.MockTransport(lambda request: httpx.Response(200, json=body)))
+    action = asyncio.run(agent.act_async(uav))
+    assert action.action == "WAIT" and action.trace.fallback and action.trace.fallback_reason
+
+
+def test_content_parts_and_string_counts_are_read(observations) -> None:
+    import httpx
+
+    from agos.agents.vlm.client import VlmClient
+
+    uav = next(o for o in observations if o.role == "uav")
+    body = {"choices": [{"message": {"content": [{"type": "text", "text": '{"action": "WAIT"}'}]},
+                         "finish_reason": "stop"}], "usage": {"prompt_tokens": "812", "completion_tokens": 9}}
+    agent = _agent("http://stand.in/v1")
+    agent._client = VlmClient("http://stand.in/v1", "agos-standin",
+                              transport=httpx.MockTransport(lambda request: httpx.Response(200, json=body)))
+    action = asyncio.run(agent.act_async(uav))
+    assert action.action == "WAIT" and not action.trace.fallback and action.trace.prompt_tokens == 812
+
+
+def test_an_echoed_key_is_redacted_from_errors(observations, monkeypatch) -> None:
+    import httpx
+
+    from agos.agents.vlm.client import VlmClient
+
+    secret = "sk-echo-987654321"
+    monkeypatch.setenv("AGOS_TEST_KEY", secret)
+    uav = next(o for o in observations if o.role == "uav")
+    echo = httpx.MockTransport(lambda request: httpx.Response(401, text=f"bad key {request.headers['authorization']}"))
+    agent = _agent("http://stand.in/v1", api_key_env="AGOS_TEST_KEY")
+    agent._client = VlmClient("http://stand.in/v1", "agos-standin", api_key_env="AGOS_TEST_KEY", transport=echo)
+    action = asyncio.run(agent.act_async(uav))
+    assert action.trace.fallback and "401" in action.trace.error and secret not in action.model_dump_json()

@@ -21,12 +21,15 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from agos.agents.policy import split_name
 from agos.agents.vlm import agos_prompts, baseline_prompts
 from agos.agents.vlm.client import VlmClient, VlmError, image_part
 from agos.agents.vlm.parse import Parsed, to_action
 from agos.agents.vlm.protocol import action_schema
 from agos.agents.vlm.request import Memory, Prompt
+from agos.runtime.codec import encode_png
 from agos.runtime.schemas import Action, DecisionTrace, Observation, Role
 from agos.runtime.settings import VlmOptions
 
@@ -37,10 +40,8 @@ UAV_AT_WAYPOINT_M = 1.0
 MAX_IMAGES = {("uav", "all"): 7, ("ugv", "all"): 12, ("uav", "view_only"): 2, ("ugv", "view_only"): 7}
 """Most images one request of a role carries: UAV view + map + 5 references; UGV six panels + map + 5."""
 
-TINY_PNG = bytes.fromhex(
-    "89504e470d0a1a0a0000000d4948445200000001000000010802000000907753de0000000a49444154081d6300020000"
-    "0400010d3ba4b90000000049454e44ae426082")
-"""A valid 1 x 1 PNG, for the image-limit probe."""
+PROBE_PX = 64
+"""Side of the preflight's probe images: some VLM image processors refuse images under 28-32 px."""
 
 Builder = Callable[..., Prompt]
 BUILDERS: dict[tuple[str, Role], Builder] = {
@@ -61,6 +62,8 @@ class VlmAgent:
         self.build = BUILDERS[(base, role)]
         self._client = client
         self._memory: dict[str, Memory] = {}
+        self._answers: dict[str, dict[int, asyncio.Future[Action]]] = {}
+        """Per episode: the decision being answered (or answered last), for repeated requests."""
         self._trace_path: Path | None = options.trace_file
 
     # ----- lifecycle --------------------------------------------------------------------------
@@ -82,25 +85,29 @@ class VlmAgent:
         (as many images as a six-view decision sends). Raises VlmError saying what to change."""
         o = self.options
         client = VlmClient(str(o.base_url), str(o.model), api_key_env=o.api_key_env, timeout_s=o.timeout_s,
-                           max_retries=min(o.max_retries, 2), structured=False, max_tokens=16)
+                           max_retries=min(o.max_retries, 2), structured=o.structured, max_tokens=32)
         try:
             models = await client.preflight()
             n = MAX_IMAGES[(self.role, o.images)]
+            probe = encode_png(np.full((PROBE_PX, PROBE_PX, 3), 128, np.uint8))
             parts: list[dict] = [{"type": "text", "text": "Connectivity check: reply with {\"action\": \"WAIT\"}."}]
-            parts += [image_part(TINY_PNG, "png") for _ in range(n)]
+            parts += [image_part(probe, "png") for _ in range(n)]
             try:
-                await client.complete([{"role": "user", "content": parts}])
+                await client.complete([{"role": "user", "content": parts}], schema=action_schema(["WAIT"]))
             except VlmError as exc:
-                raise VlmError(f"{exc}\n{o.base_url} refused a request with {n} images, which a {self.role} decision "
-                               "needs. For vLLM start the server with --limit-mm-per-prompt '{\"image\": "
-                               f"{n}}}'; or set [vlm] images = \"view_only\" (AGOS_VLM__IMAGES=view_only) to send fewer."
-                               ) from None
+                raise VlmError(
+                    f"{exc}\n{o.base_url} refused a request like a {self.role} decision ({n} images"
+                    + (", a JSON-schema response_format" if o.structured else "") + "). For vLLM, start the server with "
+                    f"--limit-mm-per-prompt '{{\"image\": {n}}}'; or send fewer images with [vlm] images = \"view_only\" "
+                    "(AGOS_VLM__IMAGES=view_only)" + ("; if the server rejects response_format, add --vlm-no-structured"
+                                                     if o.structured else "") + ".") from None
             return models
         finally:
             await client.close()
 
     def end_episode(self, episode_id: str) -> None:
         self._memory.pop(episode_id, None)
+        self._answers.pop(episode_id, None)
 
     def act(self, obs: Observation) -> Action:
         """Synchronous use (in-process runners): one event loop and one HTTP client per call."""
@@ -115,6 +122,35 @@ class VlmAgent:
 
     # ----- one decision -----------------------------------------------------------------------
     async def act_async(self, obs: Observation) -> Action:
+        """The action for ``obs``. The world re-sends an unanswered observation every few seconds (a
+        slow model is normal): a repeat of a decision in progress waits for the same answer, and a
+        repeat of an answered one gets that answer again, so the model is asked once per decision and
+        memory is updated once."""
+        answers = self._answers.setdefault(obs.episode_id, {})
+        pending = answers.get(obs.decision_index)
+        if pending is not None and pending.done():
+            return pending.result().model_copy(deep=True)
+        if pending is None or pending.get_loop() is not asyncio.get_running_loop():
+            pending = asyncio.ensure_future(self._decide_safely(obs))
+            for old in [k for k in answers if k < obs.decision_index]:
+                del answers[old]  # only the latest decision of an episode can be asked again
+            answers[obs.decision_index] = pending
+        action = await asyncio.shield(pending)
+        return action.model_copy(deep=True)
+
+    async def _decide_safely(self, obs: Observation) -> Action:
+        try:
+            return await self._decide(obs)
+        except Exception as exc:  # a bug or an unforeseen reply shape costs a decision, never the episode
+            log.exception("%s %s #%d: decision failed; fallback WAIT", obs.episode_id, self.role, obs.decision_index)
+            action = to_action(None, obs).action
+            action.trace = DecisionTrace(
+                policy=self.name, model=str(self.options.model), stage="unknown", prompt_sha256="", image_bytes={},
+                raw_reply=None, parsed_action=action.action, fallback=True,
+                fallback_reason=f"agent error: {type(exc).__name__}: {exc}"[:300], error=type(exc).__name__)
+            return action
+
+    async def _decide(self, obs: Observation) -> Action:
         memory = self._memory.setdefault(obs.episode_id, Memory())
         self._locate(obs, memory)
         prompt = self.build(obs, memory, images=self.options.images)

@@ -43,12 +43,12 @@ reference pictures.
 
 Your image of the ground carries a 5 x 5 grid: rows A (top) to E (bottom), columns 1 (left) to 5 (right), \
 so A1 is the top-left cell and E5 the bottom-right one. Compare the cars you see with the reference: paint \
-colour first, then body type, length and shape. The target is always parked on a drivable road, so a match \
-on a road or at a junction is far more likely than one on a pavement, a lawn or a roof.
+colour first, then body type, length and shape. The target always stands on a street where cars drive, so a \
+match on a road or at a junction is far more likely than one on a pavement, a lawn or a roof.
 
 What you can do:
 - MOVE_TO_UAV_WAYPOINT: fly to one of the listed neighbouring waypoints to see another part of the region.
-- ANNOTATE_CANDIDATE: mark exactly one grid cell that contains a car matching the target. A tool turns the \
+- ANNOTATE_CANDIDATE: name the single grid cell holding a car that matches the target. A tool turns the \
 cell into a region on the ground and the UGV drives there to check it. Annotations are limited, so only \
 annotate with concrete evidence: matching colour AND matching body type or size.
 - NO_RELIABLE_CANDIDATE: say that nothing here is convincing (you then stay and decide again shortly).
@@ -175,7 +175,7 @@ def _ugv_stage_text(stage: str, active: dict[str, Any] | None, rejected: list, *
         if rgpp:
             return (f"STAGE: PRIORITY. The UAV reported candidate {active['id']} (cell {active['cell']}, centre "
                     f"({active['center_m'][0]:.0f}, {active['center_m'][1]:.0f}) m, {active['distance_m']:.0f} m away). "
-                    f"Checking it comes first: the recommended action is GO_TO_CANDIDATE with candidate_id {active['id']}.")
+                    f"Nothing matters more now than checking it: answer GO_TO_CANDIDATE, candidate_id {active['id']}.")
         return (f"STAGE: PRIORITY. The UAV reported candidate {active['id']} around ({active['center_m'][0]:.0f}, "
                 f"{active['center_m'][1]:.0f}) m, {active['distance_m']:.0f} m away. There is no route tool: pick the "
                 "road waypoint whose distance_to_candidate_m is smallest (avoid ones you visited) and STOP_OBSERVE "
@@ -185,4 +185,4 @@ def _ugv_stage_text(stage: str, active: dict[str, Any] | None, rejected: list, *
         return (f"STAGE: the candidate(s) around {regions} m were rejected; do not go back there. Explore other roads "
                 "or wait for a new candidate from the UAV; stop and look if a car like the target appears ahead.")
     return ("STAGE: free exploration. No candidate yet. Explore the roads, or wait for the UAV's report. If the "
-            "forward view shows a car that strongly resembles the target, STOP_OBSERVE to inspect it.")
+            "forward view shows a car that looks very much like the reference, STOP_OBSERVE and look around.")

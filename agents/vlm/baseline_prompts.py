@@ -60,7 +60,8 @@ position (x, y) in metres: treat the latest one as an approximate place to searc
 While driving you see only a forward camera. Drive towards the UAV's position by choosing road waypoints \
 that bring you closer to it. Stop with STOP_OBSERVE when you are near that position or when a car like the \
 target appears ahead. After STOP_OBSERVE you get six views (front-left, front, front-right, back-left, back, \
-back-right). Then CONFIRM only if a nearby car clearly matches the target; otherwise REJECT and carry on. A \
+back-right). Say CONFIRM only when one of them shows, close by, a car that is without doubt the target; if \
+none does, REJECT and carry on. A \
 wrong CONFIRM ends the task as a failure. Never use candidate ids, grid cells, boxes or target coordinates."""
 
 

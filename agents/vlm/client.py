@@ -66,6 +66,7 @@ class VlmClient:
         self._limit = asyncio.Semaphore(concurrency)
         self._rng = rng or random.Random()
         key = os.environ.get(api_key_env)
+        self._secret = key or None
         headers = {"Authorization": f"Bearer {key}"} if key else {}
         self._http = httpx.AsyncClient(base_url=self.base_url, headers=headers, timeout=timeout_s, transport=transport)
 
@@ -119,24 +120,47 @@ class VlmClient:
                     if response.status_code in RETRY_STATUS:
                         last_error = f"HTTP {response.status_code}"
                     elif response.is_error:
-                        raise VlmError(f"{self.base_url}: HTTP {response.status_code}: {response.text[:200]}",
+                        raise VlmError(f"{self.base_url}: HTTP {response.status_code}: {self._redact(response.text[:200])}",
                                        attempts=attempt + 1)
                     else:
                         return self._reply(response.json(), started, attempt + 1)
-                except (httpx.TimeoutException, httpx.TransportError) as exc:
+                except httpx.HTTPError as exc:  # timeouts, connection and protocol errors, undecodable bodies
                     last_error = type(exc).__name__
-                except ValueError as exc:  # a 200 whose body is not JSON
-                    last_error = f"invalid JSON body ({exc})"
+                except ValueError as exc:  # a 200 whose body is not JSON, or not a chat completion
+                    last_error = self._redact(f"invalid reply body ({exc})")
                 if attempt < self.max_retries:
                     await asyncio.sleep(self._delay(attempt, response))
         raise VlmError(f"{self.base_url}: no answer after {self.max_retries + 1} attempts ({last_error})",
                        attempts=self.max_retries + 1)
 
+    def _redact(self, text: str) -> str:
+        """Error text with the API key removed (a server may echo the request's headers)."""
+        return text.replace(self._secret, "<redacted>") if self._secret else text
+
     @staticmethod
-    def _reply(data: dict[str, Any], started: float, attempts: int) -> Reply:
-        choice = (data.get("choices") or [{}])[0]
-        message = choice.get("message") or {}
-        usage = data.get("usage") or {}
-        return Reply(text=message.get("content"), finish_reason=choice.get("finish_reason"),
-                     prompt_tokens=usage.get("prompt_tokens"), completion_tokens=usage.get("completion_tokens"),
+    def _reply(data: Any, started: float, attempts: int) -> Reply:
+        """A chat completion body -> Reply; ValueError when its shape is not one (retried like a bad body)."""
+        if not isinstance(data, dict):
+            raise ValueError(f"expected a JSON object, got {type(data).__name__}")
+        choices = data.get("choices")
+        choice = choices[0] if isinstance(choices, list) and choices else None
+        if not isinstance(choice, dict):
+            raise ValueError("no choices[0] object")
+        message = choice.get("message") if isinstance(choice.get("message"), dict) else {}
+        content = message.get("content")
+        if isinstance(content, list):  # content parts: keep the text ones
+            content = "".join(str(p.get("text", "")) for p in content if isinstance(p, dict))
+        elif content is not None and not isinstance(content, str):
+            content = str(content)
+        usage = data.get("usage") if isinstance(data.get("usage"), dict) else {}
+        reason = choice.get("finish_reason")
+        return Reply(text=content, finish_reason=reason if isinstance(reason, str) else None,
+                     prompt_tokens=_count(usage.get("prompt_tokens")), completion_tokens=_count(usage.get("completion_tokens")),
                      latency_s=round(time.monotonic() - started, 4), attempts=attempts, raw=data)
+
+
+def _count(value: Any) -> int | None:
+    try:
+        return None if value is None else max(0, int(value))
+    except (TypeError, ValueError):
+        return None

@@ -52,13 +52,15 @@ def extract_json(text: str | None) -> tuple[dict[str, Any] | None, bool]:
 
 
 def _object_at(text: str, start: int) -> tuple[dict[str, Any] | None, bool]:
-    depth, in_str, quote, end = 0, False, "", None
+    depth, in_str, quote, end, escaped = 0, False, "", None, False
     for i in range(start, len(text)):
         ch = text[i]
         if in_str:
-            if ch == "\\":
-                continue
-            if ch == quote and text[i - 1] != "\\":
+            if escaped:
+                escaped = False
+            elif ch == "\\":
+                escaped = True
+            elif ch == quote:
                 in_str = False
         elif ch in "\"'":
             in_str, quote = True, ch

@@ -32,7 +32,6 @@ FORWARD = "forward"
 SIX_VIEWS = ("front_left", "front", "front_right", "back_left", "back", "back_right")
 REFERENCE_PREFIX = "target_ref_"
 """``target_ref_top`` (with a metric scale in the state), ``target_ref_front`` ..."""
-TEAMMATE = "teammate_ref"
 
 
 def image_caption(label: str, note: str = "") -> str:
