@@ -1,11 +1,18 @@
 """Runtime benchmarks (issue 5); every figure is a ratio against a baseline from the same run.
 
-1. Decision round trip: the world encodes an observation with real encoded images, an agent
-   service (a separate process, zero-latency stand-in policy) decodes it and answers, the world
-   decodes the action — against a raw zenoh ping-pong of the same bytes through the same router.
-   Goal <= 1.3x.
-2. A slow observer: the same round trip while a client subscribed to ``agos/**`` spends 20 ms in
-   every sample callback. Goal: within 10 % of the round trip without it.
+1. Decision round trip: the world's own code (``BusDecisionSource.decide``) encodes an
+   observation with real encoded images, an agent service (a separate process, zero-latency
+   stand-in policy) decodes it and answers, the world decodes the action — against a raw zenoh
+   ping-pong of the same bytes through the same router. Goal <= 1.3x.
+2. Slow observers: world ticks (the decision, then the step event and coordination state on the
+   control and visualisation keys, a frame offered to viewers) for a fixed time with and without
+   an observer that spends 20 ms on every sample: the agos Observer (ring buffer, visualisation
+   stream), a callback sleeping on the visualisation stream (DROP: the world must not notice; goal
+   within 10 %), and, for contrast, a callback sleeping on ``agos/**`` (the control stream is
+   BLOCK: that observer back-pressures the world). Time per tick is the mean over the phase
+   (a median hides the ticks that wait once queues are full). Then the QoS itself: the longest
+   single ``put`` of step-sized samples to a subscriber that sleeps 20 ms per sample, with the
+   visualisation QoS (DROP, express, low priority) against the same with BLOCK.
 3. Agent concurrency: 32 concurrent episodes against one agent service with a fixed 200 ms
    stand-in policy: decisions per second against the ideal 32 / 0.2 s = 160. Goal >= 90 %.
 4. Throughput: episodes per minute with 2 world workers against 1 on this machine (``agos eval``
@@ -30,7 +37,10 @@ from agos.runtime import keys
 from agos.runtime.bus import Inbox, ZenohBus
 from agos.runtime.codec import decode, encode
 from agos.runtime.launcher import free_port, wait_listening
-from agos.runtime.schemas import Action, Observation
+from agos.runtime.process import StopFlag
+from agos.runtime.schemas import Observation, StepEvent
+from agos.runtime.viz import FrameStream
+from agos.world.worker import BusDecisionSource, BusSink
 
 AGOS = [sys.executable, "-m", "agos.runtime.cli"]
 ECHO = """
@@ -42,18 +52,31 @@ sub = s.declare_subscriber("bench/ping", lambda sample: pub.put(sample.payload))
 while True:
     time.sleep(1)
 """
-SLOW_OBSERVER = """
-import sys, time
+OBSERVER = """
+import sys, time, zenoh
+from agos.runtime import keys
+from agos.runtime.bus import zenoh_config
 from agos.runtime.observer import Observer
-Observer(sys.argv[1], lambda key, payload: time.sleep(0.02))  # 20 ms of work per sample
-while True:
-    time.sleep(1)
+endpoint, kind = sys.argv[1], sys.argv[2]
+session = zenoh.open(zenoh_config(connect=[endpoint]))
+current = None
+for line in sys.stdin:  # "on" / "off", answered with "ok" once done
+    if line.strip() == "on":
+        if kind == "observer":  # the agos Observer: 20 ms of work per sample, off its ring buffer
+            current = Observer(endpoint, lambda key, payload: time.sleep(0.02))
+        else:  # blocks its zenoh callback for 20 ms per sample
+            current = session.declare_subscriber(keys.viz_all() if kind == "viz" else "agos/**",
+                                                 lambda sample: time.sleep(0.02))
+    elif current is not None:
+        current.close() if kind == "observer" else current.undeclare()
+        current = None
+    print("ok", flush=True)
 """
-CALLBACK_OBSERVER = """
+SLEEPER = """
 import sys, time, zenoh
 from agos.runtime.bus import zenoh_config
 s = zenoh.open(zenoh_config(connect=[sys.argv[1]]))
-sub = s.declare_subscriber("agos/**", lambda sample: time.sleep(0.02))  # the anti-pattern
+sub = s.declare_subscriber(sys.argv[2], lambda sample: time.sleep(0.02))
 while True:
     time.sleep(1)
 """
@@ -83,24 +106,54 @@ def sample_observation() -> Observation:
     return captured[0].model_copy(update={"run_id": "bench", "episode_id": "e0"})
 
 
-def round_trips(bus: ZenohBus, obs: Observation, n: int) -> list[float]:
-    inbox = Inbox()
-    handle = bus.subscribe(keys.act("bench", "e0", "uav"), inbox)
-    key = keys.obs("bench", "e0", "uav")
-    bus.wait_for_subscriber(key, 10.0)
-    times = []
-    for k in range(n):
-        start = time.perf_counter()
-        bus.publish(key, encode(obs.model_copy(update={"decision_index": k + 1})))
-        while True:
-            sample = inbox.get(5.0)
-            assert sample is not None, "no action from the agent service"
-            action = decode(sample.payload)
-            if isinstance(action, Action) and action.decision_index == k + 1:
-                break
-        times.append(time.perf_counter() - start)
-    bus.unsubscribe(handle)
-    return times
+class World:
+    """One episode's decisions made by the world worker's own code (world/worker.py)."""
+
+    def __init__(self, bus: ZenohBus, obs: Observation, episode: str = "e0") -> None:
+        self.obs = obs.model_copy(update={"episode_id": episode})
+        self.frames = FrameStream(bus)
+        self.source = BusDecisionSource(bus, "bench", episode, timeout_s=5.0, stop=StopFlag(), frames=self.frames)
+        self.sink = BusSink(bus, "bench", episode)
+        self.index = 0
+
+    def _next(self) -> Observation:
+        # world/episode.py builds the searchable area afresh for every observation: so do we
+        # (outside the timed part), so the encoder's cache is hit no more often than in a run.
+        self.index += 1
+        return self.obs.model_copy(update={"decision_index": self.index, "active_uav_waypoints": [
+            w.model_copy() for w in self.obs.active_uav_waypoints]})
+
+    def round_trips(self, n: int) -> list[float]:
+        """Encode with the episode's encoder, publish, wait for the action, decode it."""
+        times = []
+        for _ in range(n):
+            obs = self._next()
+            start = time.perf_counter()
+            action = self.source.decide({"uav": obs})["uav"]
+            times.append(time.perf_counter() - start)
+            assert action is not None, "no action from the agent service"
+        return times
+
+    def ticks(self, seconds: float) -> tuple[float, float]:
+        """Decision ticks for ``seconds``: the decision, then the step event and coordination state
+        (control and visualisation keys) as after every decision. Returns the mean wall time of a
+        tick and of its decision (a median would hide the ticks that wait once queues are full)."""
+        count, decisions, start = 0, 0.0, time.perf_counter()
+        while time.perf_counter() - start < seconds:
+            obs = self._next()
+            t0 = time.perf_counter()
+            action = self.source.decide({"uav": obs})["uav"]
+            decisions += time.perf_counter() - t0
+            self.sink.step(StepEvent(run_id="bench", episode_id=obs.episode_id, role="uav",
+                                     decision_index=obs.decision_index, episode_step=obs.decision_index,
+                                     sim_time_s=obs.sim_time_s, requested=action, applied="WAIT", pose_after=obs.pose))
+            self.sink.coordination(obs.coordination, {"uav": obs.coordination, "ugv": obs.coordination})
+            count += 1
+        return (time.perf_counter() - start) / count, decisions / count
+
+    def close(self) -> None:
+        self.source.close()
+        self.frames.close()
 
 
 def ping_pongs(bus: ZenohBus, payload: bytes, n: int) -> list[float]:
@@ -124,6 +177,30 @@ def interleaved(a, b, rounds: int = 10, n: int = 20) -> tuple[float, float]:
         ta += a(n)
         tb += b(n)
     return statistics.median(ta), statistics.median(tb)
+
+
+STUCK_N, STUCK_BYTES = 8000, 1300
+
+
+def worst_put(bus: ZenohBus, key: str, *, drop: bool) -> float:
+    """The longest single put of ``STUCK_N`` step-sized samples, 0.5 ms apart, to a subscriber
+    that sleeps 20 ms per sample (it takes 50 a second): through ``publish_viz`` (DROP), or with
+    the same QoS but congestion control BLOCK."""
+    import zenoh
+
+    put = (lambda payload: bus.publish_viz(key, payload)) if drop else bus.session.declare_publisher(
+        key, congestion_control=zenoh.CongestionControl.BLOCK, express=True, priority=zenoh.Priority.DATA_LOW).put
+    deadline = time.monotonic() + 10.0
+    while not bus.watched(key) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    payload, worst = b"x" * STUCK_BYTES, 0.0
+    for _ in range(STUCK_N):
+        start = time.perf_counter()
+        put(payload)
+        worst = max(worst, time.perf_counter() - start)
+        time.sleep(0.0005)
+    bus.close()
+    return worst
 
 
 def concurrency_rate(endpoint: str, obs: Observation, episodes: int = 32, seconds: float = 8.0) -> float:
@@ -191,6 +268,14 @@ class Cluster:
             p.wait()
 
 
+def toggle(observer: subprocess.Popen, world: World, state: str) -> None:
+    """Subscribe or unsubscribe the observer process, keeping the world busy meanwhile."""
+    observer.stdin.write(state + "\n")
+    observer.stdin.flush()
+    observer.stdout.readline()
+    world.ticks(0.3)  # while the (un)subscription reaches the world; not measured
+
+
 def agent(policy: str, concurrency: int) -> list[str]:
     return [*AGOS, "agent", "--role", "uav", "--policy", policy, "--connect", "{EP}", "--run", "bench",
             "--concurrency", str(concurrency)]
@@ -206,28 +291,47 @@ def main() -> None:
 
     with Cluster([sys.executable, "-c", ECHO, "{EP}"], agent("standin-0ms", 64)) as cluster:
         bus = ZenohBus.connect(cluster.endpoint)
-        t_ping, t_rt = interleaved(lambda n: ping_pongs(bus, payload, n), lambda n: round_trips(bus, obs, n))
+        world = World(bus, obs)
+        t_ping, t_rt = interleaved(lambda n: ping_pongs(bus, payload, n), world.round_trips)
         print(f"decision round trip      {1000 * t_rt:7.2f} ms vs raw zenoh ping-pong of the same {len(payload) / 1024:.0f} KB "
               f"{1000 * t_ping:.2f} ms: {t_rt / t_ping:.2f}x (goal <= 1.3: {'met' if t_rt / t_ping <= 1.3 else 'NOT met'})")
+        world.close()
         bus.close()
 
-    for label, script in (("agos Observer, 20 ms/sample", SLOW_OBSERVER), ("callback sleeping 20 ms", CALLBACK_OBSERVER)):
+    for kind, label in (("observer", "agos Observer, 20 ms/sample"), ("viz", "viz callback sleeping 20 ms"),
+                        ("all", "agos/** callback sleeping 20 ms")):
         with Cluster(agent("standin-0ms", 64)) as cluster:
             bus = ZenohBus.connect(cluster.endpoint)
+            world = World(bus, obs)
+            world.round_trips(20)  # warm-up
+            observer = subprocess.Popen([sys.executable, "-c", OBSERVER, cluster.endpoint, kind], text=True,
+                                        stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+
             without, with_ = [], []
-            for _ in range(4):  # observer off and on in alternation
-                without += round_trips(bus, obs, 40)
-                observer = subprocess.Popen([sys.executable, "-c", script, cluster.endpoint])
-                time.sleep(1.0)
-                with_ += round_trips(bus, obs, 40)
-                observer.terminate()
-                observer.wait()
-                time.sleep(0.5)
+            # Observer off and on in alternation. Blocking on agos/** wedges the control stream
+            # (BLOCK) for long after, so that contrast gets one round, last.
+            for _ in range(8 if kind != "all" else 1):
+                without.append(world.ticks(0.6))
+                toggle(observer, world, "on")
+                with_.append(world.ticks(0.6))
+                toggle(observer, world, "off")
+            observer.kill()
+            observer.wait()
+            world.close()
             bus.close()
-        t_off, t_on = statistics.median(without), statistics.median(with_)
-        change = t_on / t_off - 1
-        goal = f"(goal within 10 %: {'met' if abs(change) <= 0.10 else 'NOT met'})" if "agos" in label else "(for contrast)"
-        print(f"observer: {label:28s} {1000 * t_on:5.2f} ms vs {1000 * t_off:.2f} ms without: {100 * change:+.1f} % {goal}")
+        (tick_off, dec_off), (tick_on, dec_on) = (tuple(map(statistics.mean, zip(*x, strict=True))) for x in (without, with_))
+        goal = (f"(goal within 10 %: {'met' if abs(dec_on / dec_off - 1) <= 0.10 else 'NOT met'})" if kind != "all"
+                else "(for contrast: control traffic is BLOCK)")
+        print(f"observer: {label:32s} decision {1000 * dec_on:6.2f} ms vs {1000 * dec_off:.2f} ms without: "
+              f"{dec_on / dec_off:.2f}x; whole tick {tick_on / tick_off:.2f}x {goal}")
+
+    worst = {}
+    for drop in (True, False):
+        key = keys.viz_events("bench", "q")
+        with Cluster([sys.executable, "-c", SLEEPER, "{EP}", key]) as cluster:
+            worst[drop] = worst_put(ZenohBus.connect(cluster.endpoint), key, drop=drop)
+    print(f"stuck viz subscriber, {STUCK_N} puts of {STUCK_BYTES} B: longest put {1000 * worst[True]:.1f} ms with DROP "
+          f"(the viz QoS) vs {1000 * worst[False]:.0f} ms with BLOCK")
 
     with Cluster(agent("standin-200ms", 32)) as cluster:
         rate = concurrency_rate(cluster.endpoint, obs)

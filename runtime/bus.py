@@ -1,8 +1,16 @@
 """The transport: a zenoh session with the few operations agos needs, and an in-memory fake.
 
-Every process is a client of a router (multicast scouting off unless asked). Control traffic
-(observations, actions, coordination, events, results, acks) is published reliable with
-congestion control BLOCK: DROP loses messages under load even over TCP (ZENOH_NOTES.md).
+Every process is a client of a router (multicast scouting off unless asked). Two kinds of QoS:
+
+* ``publish``: control traffic (observations, actions, coordination, events, results, acks),
+  reliable with congestion control BLOCK: DROP loses messages under load even over TCP
+  (ZENOH_NOTES.md), and none of these may be lost.
+* ``publish_viz``: the visualisation stream (``agos/<run>/viz/...``), congestion control DROP,
+  express (not batched), priority DATA_LOW, best effort. A router whose queue towards a slow observer is
+  full drops these instead of waiting, so an observer can never slow the world; control traffic
+  goes first. ``watched`` says whether anyone subscribes, so costly samples (frames) are made
+  only for someone.
+
 Subscriber callbacks only hand ``(key, bytes)`` to a queue; all work happens in the caller's
 thread (a slow callback stalls every other key of the session).
 """
@@ -64,6 +72,8 @@ class Query(Protocol):
 
 class Bus(Protocol):
     def publish(self, key: str, message: Any) -> None: ...
+    def publish_viz(self, key: str, message: Any) -> None: ...
+    def watched(self, key: str) -> bool: ...
     def subscribe(self, key_expr: str, inbox: Inbox) -> None: ...
     def serve(self, key_expr: str) -> Inbox: ...
     def request(self, key: str, message: Any, timeout_s: float) -> list[bytes]: ...
@@ -112,17 +122,33 @@ class ZenohBus:
     def connect(cls, endpoint: str, *, connect_timeout_s: float = 10.0) -> ZenohBus:
         return cls(zenoh_config(connect=[endpoint], connect_timeout_s=connect_timeout_s))
 
-    def _publisher(self, key: str) -> zenoh.Publisher:
+    def _publisher(self, key: str, *, viz: bool = False) -> zenoh.Publisher:
         with self._lock:
             pub = self._publishers.get(key)
             if pub is None:
-                pub = self.session.declare_publisher(
-                    key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
+                if viz:
+                    pub = self.session.declare_publisher(
+                        key, congestion_control=zenoh.CongestionControl.DROP, express=True,
+                        priority=zenoh.Priority.DATA_LOW, reliability=zenoh.Reliability.BEST_EFFORT)
+                else:
+                    pub = self.session.declare_publisher(
+                        key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
                 self._publishers[key] = pub
             return pub
 
     def publish(self, key: str, message: Any) -> None:
+        """Control traffic: reliable, congestion control BLOCK (never lost, may wait)."""
         self._publisher(key).put(message if isinstance(message, bytes) else encode(message))
+
+    def watched(self, key: str) -> bool:
+        """Whether anyone subscribes to the visualisation key ``key`` (known a round trip after the
+        key's first use, so the first sample on a new key is not made)."""
+        return self._publisher(key, viz=True).matching_status.matching
+
+    def publish_viz(self, key: str, message: Any) -> None:
+        """Visualisation traffic: congestion control DROP, express, low priority, best effort.
+        Never waits for a slow observer; a sample nobody can take is dropped."""
+        self._publisher(key, viz=True).put(message if isinstance(message, bytes) else encode(message))
 
     def forget(self, key_prefix: str) -> None:
         """Undeclare the publishers under a prefix (an episode that is over)."""
@@ -206,6 +232,15 @@ class MemoryBus:
         for expr, inbox in self._subs:
             if _matches(expr, key):
                 inbox.put(Sample(key, payload))
+
+    def publish_viz(self, key: str, message: Any) -> None:
+        self.publish(key, message)
+
+    def watched(self, key: str) -> bool:
+        return any(_matches(expr, key) for expr, _ in self._subs)
+
+    def forget(self, key_prefix: str) -> None:
+        pass
 
     def subscribe(self, key_expr: str, inbox: Inbox) -> None:
         self._subs.append((key_expr, inbox))

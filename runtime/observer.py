@@ -1,11 +1,13 @@
 """Read-only observers of a run: ``agos watch`` and the base for recorders and consoles.
 
-Control traffic (observations, actions, coordination, events, results) is published reliable with
-congestion control BLOCK, so a subscriber that stops reading can back-pressure the router and
-slow every process (measured: +76 % decision latency with an observer sleeping 20 ms inside its
-callback). An :class:`Observer` therefore never works in the zenoh callback: samples go to a
-bounded ring buffer (zenoh's ``RingChannel``, oldest dropped when full) and are processed on the
-observer's own thread. A slow observer loses samples; the world never waits for it.
+An :class:`Observer` watches the visualisation stream by default (``agos/*/viz/**``: step events,
+coordination truth, small frames; runtime/viz.py), which the world publishes with congestion
+control DROP: a slow observer loses samples there and the world never waits for it. It may also
+watch control traffic (``key_expr="agos/**"``), which is reliable with congestion control BLOCK:
+a subscriber that stops reading back-pressures the router and slows every process. So an
+Observer never works in the zenoh callback either way: samples go to a bounded ring buffer
+(zenoh's ``RingChannel``, oldest dropped when full) and are processed on the observer's own
+thread.
 """
 
 from __future__ import annotations
@@ -16,12 +18,14 @@ from collections.abc import Callable
 import msgpack
 import zenoh
 
+from agos.runtime import keys
 from agos.runtime.bus import zenoh_config
 
 
 class Observer:
-    def __init__(self, endpoint: str, handle: Callable[[str, bytes], None], *, key_expr: str = "agos/**",
+    def __init__(self, endpoint: str, handle: Callable[[str, bytes], None], *, key_expr: str | None = None,
                  capacity: int = 256) -> None:
+        key_expr = key_expr or keys.viz_all()
         self.session = zenoh.open(zenoh_config(connect=[endpoint]))
         self.subscriber = self.session.declare_subscriber(key_expr, zenoh.handlers.RingChannel(capacity))
         self.handle = handle
@@ -61,10 +65,15 @@ def describe(key: str, payload: bytes) -> str:
         extra = f" {data.get('role')}#{data.get('decision_index')} {data.get('applied')} t={data.get('sim_time_s')}"
     elif data.get("type") == "episode_record":
         extra = f" {data.get('termination')} success={data.get('success')}"
+    elif data.get("type") == "viz_frame":
+        extra = f" {data.get('role')}#{data.get('decision_index')} t={data.get('sim_time_s')}"
+    elif data.get("type") == "coordination_state":
+        extra = f" t={data.get('sim_time_s')} candidates={len(data.get('candidates') or [])}"
     return f"{key}  v{data.get('v')} {data.get('type')}{extra}  ({len(payload)} B)"
 
 
-def main(endpoint: str, key_expr: str = "agos/**") -> int:
+def main(endpoint: str, key_expr: str | None = None) -> int:
+    """``agos watch``: print every sample of the visualisation stream (or of ``key_expr``)."""
     import signal
 
     stop = threading.Event()

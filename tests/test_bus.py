@@ -25,3 +25,15 @@ def test_memory_bus_delivers_encoded_messages() -> None:
     assert sample is not None and sample.key == "agos/r/ep/e/ack"
     assert decode(sample.payload) == ResultAck(run_id="r", episode_id="e", newly_stored=True)
     assert inbox.get(0.0) is None
+
+
+def test_memory_bus_visualisation_stream() -> None:
+    bus = MemoryBus()
+    key = keys.viz_events("r", "e")
+    assert not bus.watched(key)
+    inbox = Inbox()
+    bus.subscribe(keys.viz_all(), inbox)
+    assert bus.watched(key) and not bus.watched(keys.events("r", "e"))
+    bus.publish_viz(key, ResultAck(run_id="r", episode_id="e", newly_stored=False))
+    sample = inbox.get(0.1)
+    assert sample is not None and sample.key == "agos/r/viz/e/events"

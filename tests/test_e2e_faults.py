@@ -21,6 +21,7 @@ import msgpack
 import pytest
 import zenoh
 
+from agos.runtime import keys
 from agos.runtime.bus import zenoh_config
 from agos.runtime.launcher import free_port, wait_listening
 
@@ -188,19 +189,66 @@ def _summaries(records: list[dict]) -> dict[str, dict]:
     return {r["episode_id"]: {k: v for k, v in r.items() if k not in volatile} for r in records}
 
 
-def test_same_results_with_one_or_two_workers_and_with_a_slow_observer(tmp_path: Path, episodes: Path) -> None:
+class VizWatcher:
+    """Observers that block their zenoh callback on the visualisation stream (the anti-pattern
+    that back-pressures on the BLOCK control stream): one sleeps 20 ms per sample, one never
+    returns from its first sample until released."""
+
+    def __init__(self, endpoint: str) -> None:
+        self.kinds: dict[str, set[str]] = {}
+        self.samples = 0
+        self.frozen_samples = 0
+        self.release = threading.Event()
+        self.lock = threading.Lock()
+        self.sessions = [zenoh.open(zenoh_config(connect=[endpoint])) for _ in range(2)]
+        self.subs = [self.sessions[0].declare_subscriber(keys.viz_all(), self._slow),
+                     self.sessions[1].declare_subscriber(keys.viz_all(), self._frozen)]
+
+    def _slow(self, sample: zenoh.Sample) -> None:
+        time.sleep(0.02)
+        data = msgpack.unpackb(sample.payload.to_bytes(), raw=False)
+        with self.lock:
+            self.samples += 1
+            self.kinds.setdefault(str(sample.key_expr).split("/", 4)[4].split("/")[0], set()).add(data["type"])
+
+    def _frozen(self, sample: zenoh.Sample) -> None:
+        with self.lock:
+            self.frozen_samples += 1
+        self.release.wait(600)
+
+    def close(self) -> None:
+        self.release.set()
+        for sub in self.subs:
+            sub.undeclare()
+        for session in self.sessions:
+            session.close()
+
+
+def test_same_results_with_one_or_two_workers_and_with_slow_observers(tmp_path: Path, episodes: Path) -> None:
     results = {}
-    for name, workers, slow_observer in (("one", 1, False), ("two", 2, False), ("observed", 1, True)):
+    viz = None
+    for name, workers, observer in (("one", 1, None), ("two", 2, None), ("observed", 1, "control"), ("viz", 1, "viz")):
         run_dir = tmp_path / name
         run_dir.mkdir()
         cluster = Cluster(run_dir, f"det-{name}", workers=workers)
-        watcher = Watcher(cluster.endpoint, delay_s=0.02) if slow_observer else None
+        watcher = Watcher(cluster.endpoint, delay_s=0.02) if observer == "control" else None
+        viz = VizWatcher(cluster.endpoint) if observer == "viz" else viz
         try:
             _finish(cluster.eval(episodes, "--comm", "lossy"))
             results[name] = _summaries(cluster.records())
+            if observer == "viz":
+                # The run finished while one observer was still stuck in its first callback: the
+                # world never waited for it (its samples were dropped, not queued back to the world).
+                assert viz.frozen_samples == 1 and not viz.release.is_set()
         finally:
             if watcher:
                 watcher.close()
+            if observer == "viz":
+                viz.close()
             cluster.close()
     assert len(results["one"]) == 4
-    assert results["one"] == results["two"] == results["observed"]
+    assert results["one"] == results["two"] == results["observed"] == results["viz"]
+    assert viz is not None and viz.samples > 0
+    assert {"episode_started", "step"} <= viz.kinds.get("events", set()), viz.kinds
+    assert viz.kinds.get("coord") == {"coordination_state"}, viz.kinds
+    assert viz.kinds.get("frame") == {"viz_frame"}, viz.kinds

@@ -18,7 +18,7 @@ import traceback
 
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, ZenohBus, zenoh_config
-from agos.runtime.codec import DecodeError, decode, encode
+from agos.runtime.codec import DecodeError, Encoder, decode, encode
 from agos.runtime.links import CommProfile
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.records import failure_record
@@ -37,6 +37,7 @@ from agos.runtime.schemas import (
     StepEvent,
 )
 from agos.runtime.settings import AgosConfig
+from agos.runtime.viz import FrameStream
 from agos.world.asset import AssetError, AssetMismatch, Town, town_for
 from agos.world.episode import EpisodeRunner
 from agos.world.scene import Scene
@@ -51,16 +52,21 @@ an agent service that restarted picks it up; the decision is counted once."""
 
 
 class BusSink:
-    """Publishes the runner's reports on the episode's keys."""
+    """Publishes the runner's reports on the episode's keys, and mirrors steps and the
+    coordination truth on the visualisation stream (lossy, only while watched)."""
 
     def __init__(self, bus: ZenohBus, run_id: str, episode_id: str) -> None:
         self.bus, self.run_id, self.episode_id = bus, run_id, episode_id
 
     def step(self, event: StepEvent) -> None:
-        self.bus.publish(keys.events(self.run_id, self.episode_id), event)
+        payload = encode(event)
+        self.bus.publish(keys.events(self.run_id, self.episode_id), payload)
+        self.bus.publish_viz(keys.viz_events(self.run_id, self.episode_id), payload)
 
     def coordination(self, truth: CoordinationState, views: dict[Role, CoordinationState]) -> None:
-        self.bus.publish(keys.coord_truth(self.run_id, self.episode_id), truth)
+        payload = encode(truth)
+        self.bus.publish(keys.coord_truth(self.run_id, self.episode_id), payload)
+        self.bus.publish_viz(keys.viz_coord(self.run_id, self.episode_id), payload)
         for role, view in views.items():
             self.bus.publish(keys.coord_view(self.run_id, self.episode_id, role), view)
 
@@ -71,11 +77,14 @@ class BusSink:
 class BusDecisionSource:
     """Asks the agent services for decisions over zenoh (lockstep: the sim clock waits)."""
 
-    def __init__(self, bus: ZenohBus, run_id: str, episode_id: str, *, timeout_s: float, stop: StopFlag) -> None:
+    def __init__(self, bus: ZenohBus, run_id: str, episode_id: str, *, timeout_s: float, stop: StopFlag,
+                 frames: FrameStream | None = None) -> None:
         self.bus, self.run_id, self.episode_id = bus, run_id, episode_id
         self.timeout_s, self.stop = timeout_s, stop
+        self.frames = frames  # thumbnails for observers (runtime/viz.py)
         self.inbox = Inbox()
         self._handle = bus.subscribe(keys.act(run_id, episode_id, "*"), self.inbox)
+        self.encoder = Encoder()  # packs the episode's reference views and searchable area once
 
     def close(self) -> None:
         self.bus.unsubscribe(self._handle)
@@ -86,8 +95,10 @@ class BusDecisionSource:
             key = keys.obs(self.run_id, self.episode_id, role)
             if obs.decision_index == 1 and not self.bus.wait_for_subscriber(key, AGENT_WAIT_S):
                 log.warning("%s: no %s agent subscribed after %.0f s", self.episode_id, role, AGENT_WAIT_S)
-            payloads[role] = encode(obs)
+            payloads[role] = self.encoder.encode(obs)
             self.bus.publish(key, payloads[role])
+            if self.frames is not None:
+                self.frames.offer(keys.viz_frame(self.run_id, self.episode_id, role), obs)
         pending = {role: obs.decision_index for role, obs in observations.items()}
         actions: dict[Role, Action | None] = dict.fromkeys(observations)
         deadline = time.monotonic() + self.timeout_s
@@ -122,6 +133,7 @@ class WorldWorker:
         self.cfg, self.bus, self.stop, self.worker_id = cfg, bus, stop, worker_id
         self.run_id = cfg.run.run_id
         self._scenes: dict[tuple[str, int], tuple[Town, Scene]] = {}
+        self.frames = FrameStream(bus)
 
     def serve(self) -> int:
         self.bus.declare_token(keys.live(self.run_id, "world", self.worker_id))
@@ -146,6 +158,7 @@ class WorldWorker:
             self.run_episode(grant.episode, grant)
         for _, scene in self._scenes.values():
             scene.close()
+        self.frames.close()
         return 0
 
     def _scene(self, spec: EpisodeSpec) -> tuple[Town, Scene]:
@@ -175,11 +188,13 @@ class WorldWorker:
         source = None
         try:
             town, scene = self._scene(spec)
-            self.bus.publish(keys.events(self.run_id, spec.episode_id), EpisodeStarted(
+            started_msg = encode(EpisodeStarted(
                 run_id=self.run_id, episode_id=spec.episode_id, difficulty=spec.difficulty,
                 worker_id=self.worker_id, town_id=town.town_id, asset_sha256=town.sha256))
+            self.bus.publish(keys.events(self.run_id, spec.episode_id), started_msg)
+            self.bus.publish_viz(keys.viz_events(self.run_id, spec.episode_id), started_msg)
             source = BusDecisionSource(self.bus, self.run_id, spec.episode_id,
-                                       timeout_s=self.cfg.run.decision_timeout_s, stop=self.stop)
+                                       timeout_s=self.cfg.run.decision_timeout_s, stop=self.stop, frames=self.frames)
             runner = EpisodeRunner(scene, town, spec, run_id=self.run_id, worker_id=self.worker_id,
                                    settings=settings,
                                    sink=BusSink(self.bus, self.run_id, spec.episode_id))
@@ -195,7 +210,9 @@ class WorldWorker:
         finally:
             if source is not None:
                 source.close()
-            self.bus.forget(f"{keys.ROOT}/{self.run_id}/ep/{spec.episode_id}/")
+            self.frames.forget(keys.viz_prefix(self.run_id, spec.episode_id))
+            self.bus.forget(keys.episode_prefix(self.run_id, spec.episode_id))
+            self.bus.forget(keys.viz_prefix(self.run_id, spec.episode_id))
         self.submit(record)
         log.info("episode %s: %s (%s) in %.1f s", spec.episode_id, record.termination,
                  "success" if record.success else "failure", time.monotonic() - started)

@@ -1,0 +1,154 @@
+"""The visualisation stream: what observers watch, published so that they can never slow the world.
+
+The world worker mirrors what a viewer needs under ``agos/<run>/viz/<ep>/`` (runtime/keys.py):
+``events`` (``EpisodeStarted`` and every ``StepEvent``: applied action, pose, oracle flags),
+``coord`` (the coordination truth: candidates, poses, budget) and ``frame/<role>`` (a
+:class:`VizFrame`: the role's camera view as a JPEG of at most ``THUMB_PX`` pixels a side, a few
+KB). All of it goes out with congestion control DROP, express and low priority
+(``ZenohBus.publish_viz``): a slow or stuck observer loses samples, the world never waits for
+it. Control traffic (``ep/<ep>/...``) stays reliable with BLOCK for those that must not miss
+anything (evaluator, orchestrator, agents).
+
+Frames are made on a background thread from the latest observation only (:class:`FrameStream`;
+OpenCV releases the GIL), and only while someone subscribes to them, so even an attached viewer
+costs the decision loop next to nothing.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any, Literal
+
+import cv2
+import msgpack
+import numpy as np
+from pydantic import ValidationError
+
+from agos.runtime.codec import DecodeError, decode
+from agos.runtime.schemas import SCHEMA_VERSION, ImageFrame, Model, Observation, Pose, Role
+
+log = logging.getLogger(__name__)
+THUMB_PX = 160
+"""Longest side of a frame on the visualisation stream."""
+JPEG_QUALITY = 70
+MIN_INTERVAL_S = 0.05
+"""At most one frame per this much wall time from one worker (both roles together)."""
+
+
+class VizFrame(Model):
+    """World -> observers (lossy): one role's camera view at one decision, small."""
+
+    v: int = SCHEMA_VERSION
+    type: Literal["viz_frame"] = "viz_frame"
+    run_id: str
+    episode_id: str
+    role: Role
+    decision_index: int
+    sim_time_s: float
+    pose: Pose
+    image: ImageFrame
+    """JPEG, at most ``THUMB_PX`` a side; the camera pose as in the observation, no intrinsics."""
+
+
+def decode_viz(payload: bytes) -> Any:
+    """Any payload of the visualisation stream: a :class:`VizFrame` or a model ``codec.decode`` reads."""
+    try:
+        data = msgpack.unpackb(payload, raw=False)
+    except Exception:
+        data = None  # decode() below names the problem
+    if isinstance(data, dict) and data.get("type") == "viz_frame":
+        try:
+            return VizFrame.model_validate(data)
+        except ValidationError as exc:
+            raise DecodeError(f"viz_frame: {exc.errors()[0]['msg']}") from exc
+    return decode(payload)
+
+
+def thumbnail(obs: Observation, size_px: int = THUMB_PX) -> VizFrame | None:
+    """The observation's first RGB view (UAV nadir, UGV forward or first of six), scaled down."""
+    frame = next((f for f in obs.images if f.kind == "rgb"), None)
+    if frame is None:
+        return None
+    side = max(frame.intrinsics.width_px, frame.intrinsics.height_px) if frame.intrinsics else 0
+    reduce = next((n for n in (8, 4, 2) if side // n >= size_px), 1)  # JPEG decodes at 1/n for nearly free
+    flag = {8: cv2.IMREAD_REDUCED_COLOR_8, 4: cv2.IMREAD_REDUCED_COLOR_4, 2: cv2.IMREAD_REDUCED_COLOR_2}.get(
+        reduce, cv2.IMREAD_COLOR)
+    bgr = cv2.imdecode(np.frombuffer(frame.data, np.uint8), flag)
+    if bgr is None:
+        return None
+    scale = size_px / max(bgr.shape[:2])
+    if scale < 1.0:
+        bgr = cv2.resize(bgr, (max(1, round(bgr.shape[1] * scale)), max(1, round(bgr.shape[0] * scale))),
+                         interpolation=cv2.INTER_AREA)
+    ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    if not ok:
+        return None
+    image = ImageFrame(name=frame.name, kind="rgb", encoding="jpeg", data=jpeg.tobytes(),
+                       world_from_camera=frame.world_from_camera)
+    return VizFrame(run_id=obs.run_id, episode_id=obs.episode_id, role=obs.role, decision_index=obs.decision_index,
+                    sim_time_s=obs.sim_time_s, pose=obs.pose, image=image)
+
+
+class FrameStream:
+    """Publishes thumbnails of observations on ``viz/<ep>/frame/<role>`` from a background thread.
+
+    :meth:`offer` costs the caller a subscription check and a dict store: nothing when nobody
+    watches; otherwise only the latest observation per key waits, older ones are skipped, and
+    frames are made at most every ``min_interval_s``, so watching costs a bounded share of a core.
+    """
+
+    def __init__(self, bus: Any, min_interval_s: float = MIN_INTERVAL_S) -> None:
+        self.bus, self.min_interval_s = bus, min_interval_s
+        self._pending: dict[str, Observation] = {}
+        self._busy = False
+        self._closed = False
+        self._cond = threading.Condition()
+        self._thread: threading.Thread | None = None
+
+    def offer(self, key: str, obs: Observation) -> None:
+        if not self.bus.watched(key):
+            return
+        with self._cond:
+            if self._closed:
+                return
+            self._pending[key] = obs
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="viz-frames", daemon=True)
+                self._thread.start()
+            self._cond.notify()
+
+    def forget(self, key_prefix: str) -> None:
+        """Drop what waits under ``key_prefix`` and wait for a frame in flight (an episode is over)."""
+        with self._cond:
+            for key in [k for k in self._pending if k.startswith(key_prefix)]:
+                del self._pending[key]
+            self._cond.wait_for(lambda: not self._busy, timeout=5.0)
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._pending.clear()
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._pending or self._closed)
+                if self._closed:
+                    return
+                key, obs = self._pending.popitem()
+                self._busy = True
+            try:
+                frame = thumbnail(obs)
+                if frame is not None:
+                    self.bus.publish_viz(key, frame)
+            except Exception:  # a visualisation problem must never touch the episode
+                log.debug("frame for %s not published", key, exc_info=True)
+            finally:
+                with self._cond:
+                    self._busy = False
+                    self._cond.notify_all()
+                    self._cond.wait_for(lambda: self._closed, timeout=self.min_interval_s)
