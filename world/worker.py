@@ -45,7 +45,6 @@ from agos.world.scene import Scene
 log = logging.getLogger("agos.world")
 ACK_WAIT_S = 3.0
 SUBMIT_ATTEMPTS = 20
-AGENT_WAIT_S = 30.0
 RESEND_S = 5.0
 """An observation still unanswered after this long is published again (same decision index), so
 an agent service that restarted picks it up; the decision is counted once."""
@@ -74,13 +73,24 @@ class BusSink:
         self.bus.publish(keys.message(self.run_id, self.episode_id, message.sender, message.receiver), message)
 
 
+class MissingAgent(RuntimeError):
+    """No agent service of some role answers for this run."""
+
+    def __init__(self, roles: list[Role], run_id: str, waited_s: float) -> None:
+        names = " and ".join(r.upper() for r in roles)
+        hint = "; ".join(f"agos agent --role {r} --run {run_id} --connect <router> --policy <name>" for r in roles)
+        super().__init__(f"no {names} agent service subscribed to run {run_id!r} within {waited_s:.0f} s "
+                         f"(start one: {hint})")
+        self.roles = roles
+
+
 class BusDecisionSource:
     """Asks the agent services for decisions over zenoh (lockstep: the sim clock waits)."""
 
     def __init__(self, bus: ZenohBus, run_id: str, episode_id: str, *, timeout_s: float, stop: StopFlag,
-                 frames: FrameStream | None = None) -> None:
+                 agent_wait_s: float = 30.0, frames: FrameStream | None = None) -> None:
         self.bus, self.run_id, self.episode_id = bus, run_id, episode_id
-        self.timeout_s, self.stop = timeout_s, stop
+        self.timeout_s, self.stop, self.agent_wait_s = timeout_s, stop, agent_wait_s
         self.frames = frames  # thumbnails for observers (runtime/viz.py)
         self.inbox = Inbox()
         self._handle = bus.subscribe(keys.act(run_id, episode_id, "*"), self.inbox)
@@ -89,12 +99,23 @@ class BusDecisionSource:
     def close(self) -> None:
         self.bus.unsubscribe(self._handle)
 
+    def _check_agents(self, observations: dict[Role, Observation]) -> None:
+        """At an episode's first decisions: wait up to ``agent_wait_s`` for an agent service of each
+        role; raise :class:`MissingAgent` naming the roles nobody serves."""
+        first = [role for role, obs in observations.items() if obs.decision_index == 1]
+        if not first:
+            return
+        deadline = time.monotonic() + self.agent_wait_s
+        missing = [role for role in first if not self.bus.wait_for_subscriber(
+            keys.obs(self.run_id, self.episode_id, role), max(0.0, deadline - time.monotonic()))]
+        if missing:
+            raise MissingAgent(missing, self.run_id, self.agent_wait_s)
+
     def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
         payloads = {}
+        self._check_agents(observations)
         for role, obs in observations.items():
             key = keys.obs(self.run_id, self.episode_id, role)
-            if obs.decision_index == 1 and not self.bus.wait_for_subscriber(key, AGENT_WAIT_S):
-                log.warning("%s: no %s agent subscribed after %.0f s", self.episode_id, role, AGENT_WAIT_S)
             payloads[role] = self.encoder.encode(obs)
             self.bus.publish(key, payloads[role])
             if self.frames is not None:
@@ -183,6 +204,7 @@ class WorldWorker:
         if grant is not None:
             comm = CommProfile.model_validate(grant.comm_profile) if grant.comm_profile else settings.comm
             settings = dataclasses.replace(settings, comm=comm, timing_mode=grant.timing_mode,
+                                           candidates=grant.tools.get("candidates", True),
                                            e2a=grant.tools.get("e2a", True), rgpp=grant.tools.get("rgpp", True),
                                            oracle=grant.tools.get("oracle", False))
         source = None
@@ -194,7 +216,8 @@ class WorldWorker:
             self.bus.publish(keys.events(self.run_id, spec.episode_id), started_msg)
             self.bus.publish_viz(keys.viz_events(self.run_id, spec.episode_id), started_msg)
             source = BusDecisionSource(self.bus, self.run_id, spec.episode_id,
-                                       timeout_s=self.cfg.run.decision_timeout_s, stop=self.stop, frames=self.frames)
+                                       timeout_s=self.cfg.run.decision_timeout_s, stop=self.stop,
+                                       agent_wait_s=self.cfg.run.agent_wait_s, frames=self.frames)
             runner = EpisodeRunner(scene, town, spec, run_id=self.run_id, worker_id=self.worker_id,
                                    settings=settings,
                                    sink=BusSink(self.bus, self.run_id, spec.episode_id))
@@ -204,6 +227,9 @@ class WorldWorker:
                 return
         except (AssetMismatch, AssetError) as exc:
             record = self._failed(spec, "invalid", str(exc), started)
+        except MissingAgent as exc:
+            log.error("episode %s: %s", spec.episode_id, exc)
+            record = self._failed(spec, "agent_crashed", str(exc), started)
         except Exception as exc:
             log.error("episode %s crashed:\n%s", spec.episode_id, traceback.format_exc())
             record = self._failed(spec, "world_crashed", f"{type(exc).__name__}: {exc}", started)
