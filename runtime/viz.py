@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 THUMB_PX = 160
 """Longest side of a frame on the visualisation stream."""
 JPEG_QUALITY = 70
-MIN_INTERVAL_S = 0.05
+MIN_INTERVAL_S = 0.1
 """At most one frame per this much wall time from one worker (both roles together)."""
 
 
