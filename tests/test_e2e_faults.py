@@ -192,17 +192,19 @@ def _summaries(records: list[dict]) -> dict[str, dict]:
 class VizWatcher:
     """Observers that block their zenoh callback on the visualisation stream (the anti-pattern
     that back-pressures on the BLOCK control stream): one sleeps 20 ms per sample, one never
-    returns from its first sample until released."""
+    returns from its first sample until released; and one that only counts frames."""
 
     def __init__(self, endpoint: str) -> None:
         self.kinds: dict[str, set[str]] = {}
         self.samples = 0
         self.frozen_samples = 0
+        self.frames = 0
         self.release = threading.Event()
         self.lock = threading.Lock()
-        self.sessions = [zenoh.open(zenoh_config(connect=[endpoint])) for _ in range(2)]
+        self.sessions = [zenoh.open(zenoh_config(connect=[endpoint])) for _ in range(3)]
         self.subs = [self.sessions[0].declare_subscriber(keys.viz_all(), self._slow),
-                     self.sessions[1].declare_subscriber(keys.viz_all(), self._frozen)]
+                     self.sessions[1].declare_subscriber(keys.viz_all(), self._frozen),
+                     self.sessions[2].declare_subscriber(keys.viz_frame("*", "*", "*"), self._frame)]
 
     def _slow(self, sample: zenoh.Sample) -> None:
         time.sleep(0.02)
@@ -210,6 +212,11 @@ class VizWatcher:
         with self.lock:
             self.samples += 1
             self.kinds.setdefault(str(sample.key_expr).split("/", 4)[4].split("/")[0], set()).add(data["type"])
+
+    def _frame(self, sample: zenoh.Sample) -> None:
+        if msgpack.unpackb(sample.payload.to_bytes(), raw=False).get("type") == "viz_frame":
+            with self.lock:
+                self.frames += 1
 
     def _frozen(self, sample: zenoh.Sample) -> None:
         with self.lock:
@@ -239,7 +246,7 @@ def test_same_results_with_one_or_two_workers_and_with_slow_observers(tmp_path: 
             if observer == "viz":
                 # The run finished while one observer was still stuck in its first callback: the
                 # world never waited for it (its samples were dropped, not queued back to the world).
-                assert viz.frozen_samples == 1 and not viz.release.is_set()
+                assert viz.frozen_samples >= 1 and not viz.release.is_set()
         finally:
             if watcher:
                 watcher.close()
@@ -251,4 +258,5 @@ def test_same_results_with_one_or_two_workers_and_with_slow_observers(tmp_path: 
     assert viz is not None and viz.samples > 0
     assert {"episode_started", "step"} <= viz.kinds.get("events", set()), viz.kinds
     assert viz.kinds.get("coord") == {"coordination_state"}, viz.kinds
-    assert viz.kinds.get("frame") == {"viz_frame"}, viz.kinds
+    assert viz.kinds.get("frame", {"viz_frame"}) == {"viz_frame"}, viz.kinds  # the slow one may miss them all
+    assert viz.frames > 0
