@@ -75,7 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     watch = sub.add_parser("watch", help="print every message under agos/** (a read-only observer)")
     watch.add_argument("--connect", default="tcp/127.0.0.1:7447")
-    watch.add_argument("--key", default="agos/**")
+    watch.add_argument("--key", help="key expression to watch instead of the visualisation stream, e.g. 'agos/**'")
 
     router = sub.add_parser("router", help="zenoh router")
     router.add_argument("--config", type=Path)
