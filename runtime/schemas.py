@@ -430,6 +430,21 @@ class StepEvent(Model):
     """Age of the teammate information in this role's view when it decided."""
 
 
+class VizFrame(Model):
+    """World -> observers (visualisation stream, lossy): one role's camera view at one decision, small."""
+
+    v: int = SCHEMA_VERSION
+    type: Literal["viz_frame"] = "viz_frame"
+    run_id: str
+    episode_id: str
+    role: Role
+    decision_index: int
+    sim_time_s: float
+    pose: Pose
+    image: ImageFrame
+    """JPEG, at most ``runtime.viz.THUMB_PX`` a side; the camera pose as in the observation, no intrinsics."""
+
+
 class EpisodeStarted(Model):
     v: int = SCHEMA_VERSION
     type: Literal["episode_started"] = "episode_started"
@@ -498,6 +513,7 @@ WireMessage = Annotated[
     | ResultAck
     | RunManifest
     | JobRequest
-    | JobGrant,
+    | JobGrant
+    | VizFrame,
     Field(discriminator="type"),
 ]

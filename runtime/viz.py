@@ -18,15 +18,13 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Any, Literal
+from typing import Any
 
 import cv2
-import msgpack
 import numpy as np
-from pydantic import ValidationError
 
-from agos.runtime.codec import DecodeError, decode
-from agos.runtime.schemas import SCHEMA_VERSION, ImageFrame, Model, Observation, Pose, Role
+from agos.runtime.codec import decode
+from agos.runtime.schemas import ImageFrame, Observation, VizFrame
 
 log = logging.getLogger(__name__)
 THUMB_PX = 160
@@ -36,32 +34,8 @@ MIN_INTERVAL_S = 0.1
 """At most one frame per this much wall time from one worker (both roles together)."""
 
 
-class VizFrame(Model):
-    """World -> observers (lossy): one role's camera view at one decision, small."""
-
-    v: int = SCHEMA_VERSION
-    type: Literal["viz_frame"] = "viz_frame"
-    run_id: str
-    episode_id: str
-    role: Role
-    decision_index: int
-    sim_time_s: float
-    pose: Pose
-    image: ImageFrame
-    """JPEG, at most ``THUMB_PX`` a side; the camera pose as in the observation, no intrinsics."""
-
-
 def decode_viz(payload: bytes) -> Any:
-    """Any payload of the visualisation stream: a :class:`VizFrame` or a model ``codec.decode`` reads."""
-    try:
-        data = msgpack.unpackb(payload, raw=False)
-    except Exception:
-        data = None  # decode() below names the problem
-    if isinstance(data, dict) and data.get("type") == "viz_frame":
-        try:
-            return VizFrame.model_validate(data)
-        except ValidationError as exc:
-            raise DecodeError(f"viz_frame: {exc.errors()[0]['msg']}") from exc
+    """Any payload of the visualisation stream (the same decoder as every other message)."""
     return decode(payload)
 
 
