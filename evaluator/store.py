@@ -38,13 +38,24 @@ class ResultStore:
         self.path = path
 
     def add(self, record: EpisodeRecord) -> bool:
-        """Store a record; return False if this (run, episode) was already stored."""
+        """Store a record once per (run, episode); return False when nothing changed.
+
+        A ``finished`` record replaces an infrastructure-failure record of the same episode (a resumed
+        run re-plays episodes that failed for reasons outside the agents); nothing ever replaces a
+        ``finished`` record, and a repeated submission is ignored."""
+        row = (record.run_id, record.episode_id, record.difficulty, record.status, int(record.success),
+               record.model_dump_json(), datetime.now(UTC).isoformat(timespec="seconds"))
         with self._db:
-            cur = self._db.execute(
-                "INSERT OR IGNORE INTO episodes VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (record.run_id, record.episode_id, record.difficulty, record.status, int(record.success),
-                 record.model_dump_json(), datetime.now(UTC).isoformat(timespec="seconds")))
+            cur = self._db.execute("INSERT OR IGNORE INTO episodes VALUES (?, ?, ?, ?, ?, ?, ?)", row)
+            if cur.rowcount == 0 and record.status == "finished":
+                cur = self._db.execute(
+                    "UPDATE episodes SET difficulty = ?, status = ?, success = ?, record_json = ?, stored_utc = ? "
+                    "WHERE run_id = ? AND episode_id = ? AND status != 'finished'", (*row[2:], *row[:2]))
         return cur.rowcount == 1
+
+    def finished_ids(self) -> set[str]:
+        """Episodes with a ``finished`` record (what ``agos eval --resume`` does not run again)."""
+        return {r[0] for r in self._db.execute("SELECT episode_id FROM episodes WHERE status = 'finished'")}
 
     def records(self, run_id: str | None = None) -> list[EpisodeRecord]:
         sql = "SELECT record_json FROM episodes" + (" WHERE run_id = ?" if run_id else "") + " ORDER BY episode_id"

@@ -123,12 +123,14 @@ def resume_plan(run_dir: Path) -> RunPlan:
 
 
 def stored_episodes(run_dir: Path) -> set[str]:
+    """Episodes of a run directory with a ``finished`` record: a resume skips them and plays the rest,
+    including episodes stored as infrastructure failures (a missing agent, a crashed world)."""
     path = run_dir / "results.sqlite"
     if not path.exists():
         return set()
     store = ResultStore(path, create=False)
     try:
-        return {eid for eid, _ in store.raw_records()}
+        return store.finished_ids()
     finally:
         store.close()
 
@@ -213,7 +215,8 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
                             tools=tools_for(plan.policies))
         orch.publish_manifest("running")
         if done_before:
-            console.print(f"resuming {plan.run_dir}: {len(orch.stored)} of {orch.total} episodes already stored")
+            console.print(f"resuming {plan.run_dir}: {len(orch.stored)} of {orch.total} episodes already finished; "
+                          "the others (infrastructure failures included) run now")
         successes = 0
         columns = (TextColumn("[bold]episodes"), BarColumn(), MofNCompleteColumn(),
                    TextColumn("SR so far {task.fields[sr]}"), TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn())

@@ -34,6 +34,19 @@ def test_store_is_idempotent_per_run_and_episode(tmp_path: Path) -> None:
     assert len(reopened.records()) == 3
 
 
+def test_a_finished_record_replaces_an_infrastructure_failure_never_the_reverse(tmp_path: Path) -> None:
+    store = ResultStore(tmp_path / "results.sqlite")
+    failed = record("e1", status="agent_crashed", termination="error", success=False, error="no UGV agent service")
+    assert store.add(failed) is True
+    assert store.finished_ids() == set()
+    assert store.add(failed) is False  # the same failure again: nothing changes
+    assert store.add(record("e1")) is True  # a resumed run finished it
+    assert store.finished_ids() == {"e1"} and store.records()[0].status == "finished"
+    assert store.add(failed) is False  # nothing replaces a finished record
+    assert store.add(record("e1", success=False)) is False
+    assert store.records()[0].success is True and len(store.records()) == 1
+
+
 @pytest.mark.parametrize(("kw", "expected"), [
     ({}, 0.5),                                                      # 50 / max(100, 50)
     ({"success": False}, 0.0),

@@ -1,0 +1,53 @@
+"""`agos eval` interrupted with Ctrl-C, then `--resume`: every episode stored exactly once."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from agos.runtime.launcher import free_port
+
+pytestmark = pytest.mark.e2e
+AGOS = [sys.executable, "-m", "agos.runtime.cli"]
+
+
+def _rows(db: Path) -> list[tuple[str, str]]:
+    if not db.exists():
+        return []
+    with sqlite3.connect(db) as conn:
+        return list(conn.execute("SELECT episode_id, status FROM episodes"))
+
+
+def test_interrupted_eval_resumes_and_stores_each_episode_once(tmp_path) -> None:
+    episodes = tmp_path / "eps.jsonl"
+    subprocess.run([*AGOS, "episodes", "sample", "--town", "grid-s7", "--difficulty", "mid", "-n", "4", "--seed", "5",
+                    "--out", str(episodes)], check=True, capture_output=True, timeout=120)
+    run_dir = tmp_path / "run"
+    db = run_dir / "results.sqlite"
+    port = str(free_port(23000 + os.getpid() % 400))
+    first = subprocess.Popen([*AGOS, "eval", "--split", str(episodes), "--run-dir", str(run_dir), "--port", port],
+                             cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.monotonic() + 180
+    while len(_rows(db)) < 1 and time.monotonic() < deadline and first.poll() is None:
+        time.sleep(0.2)
+    first.send_signal(signal.SIGINT)
+    out, _ = first.communicate(timeout=60)
+    assert first.returncode == 0, out
+    done_first = len(_rows(db))
+    if done_first < 4:  # Ctrl-C landed before the end: the run says how to resume
+        assert f"agos eval --resume {run_dir}" in " ".join(out.split())
+    second = subprocess.run([*AGOS, "eval", "--resume", str(run_dir), "--port", port], cwd=tmp_path,
+                            capture_output=True, text=True, timeout=300)
+    assert second.returncode == 0, second.stdout + second.stderr
+    assert f"{done_first} of 4 episodes already finished" in " ".join(second.stdout.split())
+    rows = _rows(db)
+    assert sorted(eid for eid, _ in rows) == sorted(json.loads(line)["episode_id"] for line in episodes.read_text().splitlines())
+    assert all(status == "finished" for _, status in rows)
