@@ -28,7 +28,7 @@ from agos.agents.vlm import agos_prompts, baseline_prompts
 from agos.agents.vlm.client import VlmClient, VlmError, image_part
 from agos.agents.vlm.parse import Parsed, to_action
 from agos.agents.vlm.protocol import action_schema
-from agos.agents.vlm.request import Memory, Prompt
+from agos.agents.vlm.request import Memory, Prompt, uncovered
 from agos.runtime.codec import encode_png
 from agos.runtime.schemas import Action, DecisionTrace, Observation, Role
 from agos.runtime.settings import VlmOptions
@@ -204,6 +204,8 @@ class VlmAgent:
         here = (float(obs.pose.position_world_m[0]), float(obs.pose.position_world_m[1]))
         if self.role == "uav":
             memory.seen_from(here)
+            if obs.active_uav_waypoints and not uncovered(obs, memory):
+                memory.visited_xy = [here]  # everything covered once: a second sweep starts here
             node = next((w for w in obs.active_uav_waypoints
                          if math.dist(w.position_world_m[:2], here) <= UAV_AT_WAYPOINT_M), None)
             memory.at(node.waypoint_id if node else None)

@@ -200,16 +200,16 @@ COVERED_RADIUS_M = 41.0
 60 deg nadir view spans about 92 m, so the neighbouring waypoints' centres were in view."""
 
 
-def unvisited_nearest(obs: Observation, memory: Memory, n: int = 5) -> list[dict[str, Any]]:
-    """The nearest active UAV waypoints not yet covered by the camera (all of them again once
-    everything has been covered: a second sweep)."""
-    here = obs.pose.position_world_m[:2]
-    rest = [w for w in obs.active_uav_waypoints
+def uncovered(obs: Observation, memory: Memory) -> list[Waypoint]:
+    """Active UAV waypoints not yet covered by the camera (see ``COVERED_RADIUS_M``)."""
+    return [w for w in obs.active_uav_waypoints
             if not any(math.dist(w.position_world_m[:2], p) <= COVERED_RADIUS_M for p in memory.visited_xy)]
-    if not rest:
-        memory.visited_xy = [tuple(here)]
-        rest = [w for w in obs.active_uav_waypoints if math.dist(w.position_world_m[:2], here) > COVERED_RADIUS_M]
-    rest.sort(key=lambda w: (math.dist(here, w.position_world_m[:2]), w.waypoint_id))
+
+
+def unvisited_nearest(obs: Observation, memory: Memory, n: int = 5) -> list[dict[str, Any]]:
+    """The nearest active UAV waypoints not yet covered by the camera."""
+    here = obs.pose.position_world_m[:2]
+    rest = sorted(uncovered(obs, memory), key=lambda w: (math.dist(here, w.position_world_m[:2]), w.waypoint_id))
     return [{"id": w.waypoint_id, "position_m": xy(w.position_world_m),
              "distance_m": round(math.dist(here, w.position_world_m[:2]), 1)} for w in rest[:n]]
 
