@@ -44,6 +44,8 @@ class Episode(Protocol):
     candidates: Sequence[_Candidate]
     decisions_uav: int
     decisions_ugv: int
+    candidate_tools: bool
+    """The policy could annotate candidates (ACG is undefined without)."""
 
 
 # ----- episode-level metrics -------------------------------------------------------------------

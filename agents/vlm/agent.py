@@ -67,12 +67,15 @@ class VlmAgent:
         self._trace_path: Path | None = options.trace_file
 
     # ----- lifecycle --------------------------------------------------------------------------
+    def _new_client(self, **overrides: object) -> VlmClient:
+        o = self.options
+        kw: dict = {"api_key_env": o.api_key_env, "timeout_s": o.timeout_s, "max_retries": o.max_retries,
+                    "concurrency": o.concurrency, "structured": o.structured, "max_tokens": o.max_tokens, **overrides}
+        return VlmClient(str(o.base_url), str(o.model), **kw)
+
     def client(self) -> VlmClient:
         if self._client is None:
-            o = self.options
-            self._client = VlmClient(str(o.base_url), str(o.model), api_key_env=o.api_key_env, timeout_s=o.timeout_s,
-                                     max_retries=o.max_retries, concurrency=o.concurrency, structured=o.structured,
-                                     max_tokens=o.max_tokens)
+            self._client = self._new_client()
         return self._client
 
     async def aclose(self) -> None:
@@ -84,8 +87,7 @@ class VlmAgent:
         """Before serving: the endpoint is up, serves the model, and accepts this role's largest request
         (as many images as a six-view decision sends). Raises VlmError saying what to change."""
         o = self.options
-        client = VlmClient(str(o.base_url), str(o.model), api_key_env=o.api_key_env, timeout_s=o.timeout_s,
-                           max_retries=min(o.max_retries, 2), structured=o.structured, max_tokens=32)
+        client = self._new_client(max_retries=min(o.max_retries, 2), max_tokens=32)
         try:
             models = await client.preflight()
             n = MAX_IMAGES[(self.role, o.images)]

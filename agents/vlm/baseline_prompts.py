@@ -11,7 +11,6 @@ ANNOTATE_CANDIDATE or GO_TO_CANDIDATE in a Baseline run).
 from __future__ import annotations
 
 import math
-import re
 
 from agos.agents.vlm import protocol
 from agos.agents.vlm.request import (
@@ -36,7 +35,6 @@ from agos.runtime.schemas import Observation
 STALL_WAITS = 3
 """After this many WAITs in one place the UAV prompt tells it to move on."""
 INSPECTED_RADIUS_M = 15.0
-COORD = re.compile(r"\(\s*(-?\d+(?:\.\d+)?)\s*,\s*(-?\d+(?:\.\d+)?)\s*\)")
 
 UAV_SYSTEM = """You are a drone flying about 80 m above a town with a downward camera, searching for one \
 parked car (the target, see the reference pictures) together with a ground robot (UGV). You cannot mark \
@@ -99,10 +97,10 @@ def anchor_from_messages(obs: Observation, memory: Memory) -> tuple[float, float
     for m in reversed(obs.coordination.messages):
         if m.sender != "uav":
             continue
-        found = COORD.findall(m.text)
+        found = protocol.coordinates(m.text)
         if not found:
             continue
-        point = (float(found[-1][0]), float(found[-1][1]))
+        point = found[-1]
         if any(math.dist(point, done) <= INSPECTED_RADIUS_M for done in memory.inspected_anchors):
             return None
         return point

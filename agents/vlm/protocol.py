@@ -34,6 +34,15 @@ REFERENCE_PREFIX = "target_ref_"
 """``target_ref_top`` (with a metric scale in the state), ``target_ref_front`` ..."""
 
 
+COORDINATE = re.compile(r"\(\s*(-?\d+(?:\.\d+)?)\s*,\s*(-?\d+(?:\.\d+)?)\s*\)")
+"""How positions are written in messages between the roles: ``(x, y)`` in metres."""
+
+
+def coordinates(text: str) -> list[tuple[float, float]]:
+    """Every ``(x, y)`` position written in a message, in order."""
+    return [(float(x), float(y)) for x, y in COORDINATE.findall(text)]
+
+
 def image_caption(label: str, note: str = "") -> str:
     """The text part that goes right before an image."""
     return (f"{note}\n" if note else "") + f"[image: {label}]"

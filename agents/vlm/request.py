@@ -128,7 +128,6 @@ class Memory:
     """Where the role has decided from (UAV: the ground points its camera has covered)."""
     recent: deque[str] = field(default_factory=lambda: deque(maxlen=MEMORY_LINES))
     """One line per recent decision: step, action, argument."""
-    arrival_announced: set[str] = field(default_factory=set)
     inspected_anchors: list[tuple[float, float]] = field(default_factory=list)
     """Baseline UGV: message anchors it already stopped at and rejected."""
     waits_here: int = 0

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import re
 import threading
 from collections import OrderedDict
 from typing import Any
@@ -38,7 +37,6 @@ MIN_FILL = 0.35
 CONFIRM_WITHIN_M = 45.0
 EXPLORE_STOP_WITHIN_M = 25.0
 ANCHOR_STOP_WITHIN_M = 15.0
-COORD = re.compile(r"\(\s*(-?\d+(?:\.\d+)?)\s*,\s*(-?\d+(?:\.\d+)?)\s*\)")
 
 _profiles: OrderedDict[str, TargetProfile | None] = OrderedDict()
 _profiles_lock = threading.Lock()
@@ -77,7 +75,7 @@ def _agos_uav(req: SplitRequest, state: dict[str, Any], profile: TargetProfile) 
 
 def _baseline_uav(req: SplitRequest, state: dict[str, Any], profile: TargetProfile) -> dict[str, Any]:
     legal = state["legal_actions"]
-    checked = [p for m in state.get("messages", []) if m.get("from") == "ugv" for p in _coords(m.get("text", ""))]
+    checked = [p for m in state.get("messages", []) if m.get("from") == "ugv" for p in protocol.coordinates(m.get("text", ""))]
     matches = _aerial_matches(req, state, profile, checked, radius_m=ANCHOR_STOP_WITHIN_M + REJECTED_RADIUS_M)
     cam = state.get("camera") or {}
     if matches and not state.get("stall_reminder"):
@@ -233,10 +231,6 @@ def _ground_matches(rgb: np.ndarray, cam: dict[str, Any], profile: TargetProfile
 def _first_legal(state: dict[str, Any], preferred: list[str], reason: str) -> dict[str, Any]:
     legal = state["legal_actions"]
     return {"action": next((a for a in preferred if a in legal), "WAIT"), "reason": reason}
-
-
-def _coords(text: str) -> list[tuple[float, float]]:
-    return [(float(x), float(y)) for x, y in COORD.findall(text)]
 
 
 def _rgb(data: bytes) -> np.ndarray:
