@@ -23,6 +23,7 @@ STOP_WITHIN_M = 25.0
 class OracleUav:
     role = "uav"
     name = "oracle"
+    inline = True  # microseconds, no I/O: answered on the receiving thread (agents/service.py)
 
     def end_episode(self, episode_id: str) -> None:
         pass
@@ -58,6 +59,7 @@ def _cell_of(obs: Observation, xy: tuple[float, float]) -> str | None:
 class OracleUgv:
     role = "ugv"
     name = "oracle"
+    inline = True
 
     def __init__(self) -> None:
         self.nav = Navigator()

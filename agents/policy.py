@@ -14,6 +14,11 @@ from agos.runtime.settings import VlmOptions
 
 
 class Policy(Protocol):
+    """What an agent service serves. Optional extras: ``act_async`` (a coroutine the service awaits:
+    remote models), ``inline = True`` (``act`` takes microseconds and does no I/O, so the service
+    answers on the thread that received the observation instead of handing it to a worker),
+    ``preflight`` (checked before serving)."""
+
     role: Role
     name: str
 

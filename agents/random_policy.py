@@ -15,6 +15,7 @@ from agos.runtime.schemas import Action, Observation, Role
 
 class RandomPolicy:
     name = "random"
+    inline = True  # microseconds, no I/O: answered on the receiving thread (agents/service.py)
 
     def __init__(self, role: Role) -> None:
         self.role = role

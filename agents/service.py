@@ -5,7 +5,9 @@
 Every observation on ``agos/<run>/ep/*/obs/<role>`` is answered on the matching
 ``.../act/<role>`` key. Observations are handled concurrently on an asyncio loop, at most
 ``concurrency`` at a time: policies with an ``act_async`` coroutine (remote models, the
-fixed-latency stand-in) overlap their waiting; plain ``act`` policies run in worker threads.
+fixed-latency stand-in) overlap their waiting; plain ``act`` policies run in worker threads;
+``inline`` policies (microseconds, no I/O: random, oracle, standin-0ms) are answered on the
+thread that received the observation.
 A policy that raises is logged and answered with a legal WAIT, so an agent bug costs a
 decision, never the episode. A restarted service simply answers what the world re-requests.
 """
@@ -15,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import os
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -30,68 +33,105 @@ from agos.runtime.settings import AgosConfig
 log = logging.getLogger("agos.agent")
 
 
-class _LoopInbox:
-    """Hands zenoh samples (from its callback thread) to a function on the asyncio loop, doing
-    nothing else in the callback."""
+class _Dispatch:
+    """Takes each zenoh sample on the thread that received it: decodes it there (tens of
+    microseconds, bounded) and then either answers at once, for ``inline`` policies (microseconds,
+    no I/O), or hands the decoded message to the asyncio loop. Answering inline saves a thread
+    hand-over per decision (docs/ARCHITECTURE.md, "Decision round trip").
 
-    def __init__(self, loop: asyncio.AbstractEventLoop, handle: Callable[[Sample], None]) -> None:
-        self.loop, self.handle = loop, handle
+    The observation and result subscriptions may call in from different threads: one lock
+    serialises decoding and, for inline policies, every policy call."""
+
+    def __init__(self, bus: ZenohBus, policy: Policy, run_id: str, loop: asyncio.AbstractEventLoop,
+                 on_loop: Callable[[Observation | EpisodeRecord], None]) -> None:
+        self.bus, self.policy, self.run_id, self.loop, self.on_loop = bus, policy, run_id, loop, on_loop
+        self.inline = bool(getattr(policy, "inline", False))
+        self.decoder = Decoder()  # observations repeat references and searchable area: validated once
+        self.lock = threading.Lock()
 
     def put(self, sample: Sample) -> None:
-        self.loop.call_soon_threadsafe(self.handle, sample)
+        with self.lock:
+            try:
+                message = self.decoder.decode(sample.payload)
+            except DecodeError as exc:
+                log.warning("ignoring undecodable payload on %s: %s", sample.key, exc)
+                return
+            if isinstance(message, EpisodeRecord):
+                self.decoder.forget(message.episode_id)
+                if self.inline:
+                    end_episode(self.bus, self.policy, self.run_id, message.episode_id)
+                    return
+            elif not isinstance(message, Observation):
+                return
+            elif self.inline:
+                started = time.monotonic()
+                action = decide(self.policy, message)
+                publish_action(self.bus, self.run_id, action, started)
+                return
+        self.loop.call_soon_threadsafe(self.on_loop, message)
+
+
+def decide(policy: Policy, obs: Observation) -> Action:
+    """``policy.act``; a policy error is logged and answered with a legal WAIT."""
+    try:
+        return policy.act(obs)
+    except Exception:
+        log.exception("policy failed on %s #%d; answering WAIT", obs.episode_id, obs.decision_index)
+        return action_for(obs, "WAIT", rationale="policy error (see agent log)")
 
 
 async def answer(policy: Policy, obs: Observation, executor: ThreadPoolExecutor) -> Action:
-    started = time.monotonic()
+    """An action from an ``act_async`` policy, or from ``act`` in a worker thread."""
+    if not hasattr(policy, "act_async"):
+        return await asyncio.get_running_loop().run_in_executor(executor, decide, policy, obs)
     try:
-        if hasattr(policy, "act_async"):
-            action = await policy.act_async(obs)
-        else:
-            action = await asyncio.get_running_loop().run_in_executor(executor, policy.act, obs)
+        return await policy.act_async(obs)
     except Exception:
         log.exception("policy failed on %s #%d; answering WAIT", obs.episode_id, obs.decision_index)
-        action = action_for(obs, "WAIT", rationale="policy error (see agent log)")
+        return action_for(obs, "WAIT", rationale="policy error (see agent log)")
+
+
+def publish_action(bus: ZenohBus, run_id: str, action: Action, started: float) -> None:
+    """Stamp the policy's wall-clock latency (realtime mode charges it in simulated time) and send."""
     action.agent_wall_latency_s = round(time.monotonic() - started, 4)
-    return action
+    bus.publish(keys.act(run_id, action.episode_id, action.role), action)
+
+
+def end_episode(bus: ZenohBus, policy: Policy, run_id: str, episode_id: str) -> None:
+    policy.end_episode(episode_id)
+    bus.forget(keys.episode_prefix(run_id, episode_id))
 
 
 async def serve_async(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag, *, concurrency: int) -> int:
     loop = asyncio.get_running_loop()
-    # Observations repeat their reference views and searchable area every decision: validated once.
-    decoder = Decoder()
     limit = asyncio.Semaphore(concurrency)
     executor = ThreadPoolExecutor(max_workers=concurrency, thread_name_prefix="policy")
     tasks: set[asyncio.Task] = set()
 
     async def handle(obs: Observation) -> None:
         async with limit:
+            started = time.monotonic()  # the policy's latency, not the wait for a free slot
             action = await answer(policy, obs, executor)
-        bus.publish(keys.act(run_id, obs.episode_id, policy.role), action)
+        publish_action(bus, run_id, action, started)
 
-    def on_sample(sample: Sample) -> None:
-        """Runs on the loop for every sample: decode and start answering (no queue in between)."""
-        try:
-            message = decoder.decode(sample.payload)
-        except DecodeError as exc:
-            log.warning("ignoring undecodable payload on %s: %s", sample.key, exc)
-            return
+    def on_loop(message: Observation | EpisodeRecord) -> None:
+        """Start answering an observation, or forget an episode that is over."""
         if isinstance(message, EpisodeRecord):
-            policy.end_episode(message.episode_id)
-            decoder.forget(message.episode_id)
-            bus.forget(keys.episode_prefix(run_id, message.episode_id))
-        elif isinstance(message, Observation):
+            end_episode(bus, policy, run_id, message.episode_id)
+        else:
             task = loop.create_task(handle(message))
             tasks.add(task)
             task.add_done_callback(tasks.discard)
 
-    inbox = _LoopInbox(loop, on_sample)
-    bus.subscribe(keys.obs(run_id, "*", policy.role), inbox)  # type: ignore[arg-type]
-    bus.subscribe(keys.result(run_id, "*"), inbox)  # type: ignore[arg-type]
+    dispatch = _Dispatch(bus, policy, run_id, loop, on_loop)
+    bus.subscribe(keys.obs(run_id, "*", policy.role), dispatch)  # type: ignore[arg-type]
+    bus.subscribe(keys.result(run_id, "*"), dispatch)  # type: ignore[arg-type]
     bus.declare_token(keys.live(run_id, "agent", f"{policy.role}-{os.getpid()}"))
-    log.info("%s agent (%s) serving run %s, up to %d decisions at once", policy.role, policy.name, run_id, concurrency)
+    log.info("%s agent (%s) serving run %s, up to %d decisions at once%s", policy.role, policy.name, run_id,
+             concurrency, " (answered inline)" if dispatch.inline else "")
     try:
         while not stop.is_set():
-            await asyncio.sleep(0.25)  # samples arrive through on_sample; this only watches the stop flag
+            await asyncio.sleep(0.25)  # samples arrive through the dispatch; this only watches the stop flag
     finally:
         for task in tasks:
             task.cancel()

@@ -7,6 +7,7 @@ legal action: the first waypoint option if it may move, else WAIT. It never look
 from __future__ import annotations
 
 import asyncio
+import time
 
 from agos.agents.policy import action_for
 from agos.runtime.schemas import Action, Observation, Role
@@ -17,6 +18,7 @@ class FixedLatencyPolicy:
 
     def __init__(self, role: Role, latency_s: float) -> None:
         self.role, self.latency_s = role, latency_s
+        self.inline = latency_s == 0  # standin-0ms: answered on the receiving thread (agents/service.py)
 
     def _choose(self, obs: Observation) -> Action:
         move = "MOVE_TO_UAV_WAYPOINT" if obs.role == "uav" else "MOVE_TO_ROAD_WAYPOINT"
@@ -30,9 +32,8 @@ class FixedLatencyPolicy:
         return self._choose(obs)
 
     def act(self, obs: Observation) -> Action:
-        import time
-
-        time.sleep(self.latency_s)
+        if self.latency_s > 0:  # time.sleep(0) still gives up the CPU: tens of microseconds
+            time.sleep(self.latency_s)
         return self._choose(obs)
 
     def end_episode(self, episode_id: str) -> None:

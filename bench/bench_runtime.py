@@ -118,11 +118,11 @@ class World:
         self.index = 0
 
     def _next(self) -> Observation:
-        # world/episode.py builds the searchable area afresh for every observation: so do we
-        # (outside the timed part), so the encoder's cache is hit no more often than in a run.
+        # As in world/episode.py: a new Observation each decision, its searchable area a new list
+        # of the episode's same Waypoint objects (built once per episode).
         self.index += 1
-        return self.obs.model_copy(update={"decision_index": self.index, "active_uav_waypoints": [
-            w.model_copy() for w in self.obs.active_uav_waypoints]})
+        return self.obs.model_copy(update={"decision_index": self.index,
+                                           "active_uav_waypoints": list(self.obs.active_uav_waypoints)})
 
     def round_trips(self, n: int) -> list[float]:
         """Encode with the episode's encoder, publish, wait for the action, decode it."""
@@ -277,6 +277,9 @@ def toggle(observer: subprocess.Popen, world: World, state: str) -> None:
     world.ticks(0.3)  # while the (un)subscription reaches the world; not measured
 
 
+PARTS = ("roundtrip", "observer", "qos", "concurrency", "throughput")
+
+
 def agent(policy: str, concurrency: int) -> list[str]:
     return [*AGOS, "agent", "--role", "uav", "--policy", policy, "--connect", "{EP}", "--run", "bench",
             "--concurrency", str(concurrency)]
@@ -285,11 +288,36 @@ def agent(policy: str, concurrency: int) -> list[str]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--skip-throughput", action="store_true")
+    parser.add_argument("--only", choices=PARTS, action="append", help="run only these parts (repeatable)")
     parser.add_argument("--episodes", type=int, default=6, help="episodes per difficulty for the throughput run")
     args = parser.parse_args()
+    parts = set(args.only or PARTS) - ({"throughput"} if args.skip_throughput else set())
     obs = sample_observation()
     payload = encode(obs)
 
+    if "roundtrip" in parts:
+        round_trip(obs, payload)
+    if "observer" in parts:
+        observers(obs)
+    if "qos" in parts:
+        stuck_subscriber()
+    if "concurrency" in parts:
+        with Cluster(agent("standin-200ms", 32)) as cluster:
+            rate = concurrency_rate(cluster.endpoint, obs)
+        print(f"32 episodes, 200 ms agent {rate:7.1f} decisions/s vs ideal 160.0: {100 * rate / 160:.0f} % "
+              f"(goal >= 90 %: {'met' if rate >= 144 else 'NOT met'})")
+    if "throughput" in parts:
+        with tempfile.TemporaryDirectory() as tmp:
+            eps = Path(tmp) / "eps.jsonl"
+            subprocess.run([*AGOS, "episodes", "sample", "--town", "grid-s7", "--per-difficulty", str(args.episodes),
+                            "--out", str(eps)], check=True, capture_output=True)
+            r1 = throughput(1, eps, Path(tmp))
+            r2 = throughput(2, eps, Path(tmp))
+            print(f"episodes per minute      {r2:7.1f} with 2 workers vs {r1:.1f} with 1: {r2 / r1:.2f}x "
+                  f"(goal >= 1.8: {'met' if r2 / r1 >= 1.8 else 'NOT met'}; first lease to last stored episode)")
+
+
+def round_trip(obs: Observation, payload: bytes) -> None:
     with Cluster([sys.executable, "-c", ECHO, "{EP}"], agent("standin-0ms", 64)) as cluster:
         bus = ZenohBus.connect(cluster.endpoint)
         world = World(bus, obs)
@@ -299,6 +327,8 @@ def main() -> None:
         world.close()
         bus.close()
 
+
+def observers(obs: Observation) -> None:
     for kind, label in (("observer", "agos Observer, 20 ms/sample"), ("viz", "viz callback sleeping 20 ms"),
                         ("all", "agos/** callback sleeping 20 ms")):
         with Cluster(agent("standin-0ms", 64)) as cluster:
@@ -330,6 +360,8 @@ def main() -> None:
         print(f"observer: {label:32s} decision {1000 * dec_on:6.2f} ms vs {1000 * dec_off:.2f} ms without: "
               f"{decision:.2f}x; whole tick {tick:.2f}x {goal}")
 
+
+def stuck_subscriber() -> None:
     worst = {}
     for drop in (True, False):
         key = keys.viz_events("bench", "q")
@@ -337,21 +369,6 @@ def main() -> None:
             worst[drop] = worst_put(ZenohBus.connect(cluster.endpoint), key, drop=drop)
     print(f"stuck viz subscriber, {STUCK_N} puts of {STUCK_BYTES} B: longest put {1000 * worst[True]:.1f} ms with DROP "
           f"(the viz QoS) vs {1000 * worst[False]:.0f} ms with BLOCK")
-
-    with Cluster(agent("standin-200ms", 32)) as cluster:
-        rate = concurrency_rate(cluster.endpoint, obs)
-    print(f"32 episodes, 200 ms agent {rate:7.1f} decisions/s vs ideal 160.0: {100 * rate / 160:.0f} % "
-          f"(goal >= 90 %: {'met' if rate >= 144 else 'NOT met'})")
-
-    if not args.skip_throughput:
-        with tempfile.TemporaryDirectory() as tmp:
-            eps = Path(tmp) / "eps.jsonl"
-            subprocess.run([*AGOS, "episodes", "sample", "--town", "grid-s7", "--per-difficulty", str(args.episodes),
-                            "--out", str(eps)], check=True, capture_output=True)
-            r1 = throughput(1, eps, Path(tmp))
-            r2 = throughput(2, eps, Path(tmp))
-            print(f"episodes per minute      {r2:7.1f} with 2 workers vs {r1:.1f} with 1: {r2 / r1:.2f}x "
-                  f"(goal >= 1.8: {'met' if r2 / r1 >= 1.8 else 'NOT met'}; first lease to last stored episode)")
 
 
 if __name__ == "__main__":

@@ -109,12 +109,27 @@ class _ZenohQuery:
         self._query.reply(self.key, payload)
 
 
+class _MatchingFlag:
+    """Whether a publisher has matching subscribers, kept current by a matching listener."""
+
+    def __init__(self, publisher: zenoh.Publisher) -> None:
+        self._listener = publisher.declare_matching_listener(self._update)
+        self.matching = publisher.matching_status.matching  # after declaring: no change is missed
+
+    def _update(self, status: zenoh.MatchingStatus) -> None:
+        self.matching = status.matching
+
+    def close(self) -> None:
+        self._listener.undeclare()
+
+
 class ZenohBus:
     """A real zenoh session (client of a router by default)."""
 
     def __init__(self, config: zenoh.Config) -> None:
         self.session = zenoh.open(config)
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self._watched: dict[str, _MatchingFlag] = {}
         self._keep: list[Any] = []
         self._lock = threading.Lock()
 
@@ -142,8 +157,12 @@ class ZenohBus:
 
     def watched(self, key: str) -> bool:
         """Whether anyone subscribes to the visualisation key ``key`` (known a round trip after the
-        key's first use, so the first sample on a new key is not made)."""
-        return self._publisher(key, viz=True).matching_status.matching
+        key's first use, so the first sample on a new key is not made). Asked every decision, so
+        the answer is a flag a matching listener keeps current, not a query into zenoh."""
+        flag = self._watched.get(key)
+        if flag is None:
+            flag = self._watched[key] = _MatchingFlag(self._publisher(key, viz=True))
+        return flag.matching
 
     def publish_viz(self, key: str, message: Any) -> None:
         """Visualisation traffic: congestion control DROP, express, low priority, best effort.
@@ -153,6 +172,8 @@ class ZenohBus:
     def forget(self, key_prefix: str) -> None:
         """Undeclare the publishers under a prefix (an episode that is over)."""
         with self._lock:
+            for key in [k for k in self._watched if k.startswith(key_prefix)]:
+                self._watched.pop(key).close()
             for key in [k for k in self._publishers if k.startswith(key_prefix)]:
                 self._publishers.pop(key).undeclare()
 
@@ -215,6 +236,10 @@ class ZenohBus:
             with contextlib.suppress(Exception):
                 obj.undeclare()
         self._keep.clear()
+        for flag in self._watched.values():
+            with contextlib.suppress(Exception):
+                flag.close()
+        self._watched.clear()
         self._publishers.clear()
         self.session.close()
 

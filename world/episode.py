@@ -180,6 +180,9 @@ class EpisodeRunner:
         self.ground_observed = False
         self.termination: Termination | None = None
         self.active_uav = set(spec.active_uav_waypoints)
+        # The searchable area never changes within an episode: built once, so every UAV
+        # observation carries the same Waypoint objects (the wire Encoder then packs it once).
+        self.searchable_area = [self._uav_waypoint(n) for n in sorted(self.active_uav)]
         self.confirm_failure: str | None = None
         self._uav_target_px = 0
         self._ground_visible: bool | None = None
@@ -300,7 +303,7 @@ class EpisodeRunner:
                 mode="aerial", images=images, references=self.references,
                 legal_actions=self._uav_legal(options), waypoint_options=options,
                 region_world_m=self.spec.region_world_m,
-                active_uav_waypoints=[self._uav_waypoint(n) for n in sorted(self.active_uav)],
+                active_uav_waypoints=self.searchable_area,
                 coordination=self._coordination("uav"), grid_rows=sensors.GRID_ROWS, grid_cols=sensors.GRID_COLS,
                 oracle=self._oracle("uav", self._uav_target_px >= self.cfg.uav_visible_min_px))
         self.ugv.decisions += 1

@@ -1,0 +1,110 @@
+"""The agent service's dispatch (agents/service.py) over the in-memory bus: inline policies are
+answered on the publishing thread, the others on the asyncio loop; errors cost a WAIT."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+
+import pytest
+
+from agos.agents.policy import action_for, make_policy
+from agos.agents.service import serve_async
+from agos.runtime import keys
+from agos.runtime.bus import Inbox, MemoryBus
+from agos.runtime.codec import Encoder, decode, encode
+from agos.runtime.process import StopFlag
+from agos.runtime.schemas import Action, CoordinationState, EpisodeRecord, Observation, Pose, Waypoint
+
+RUN = "svc"
+
+
+def _obs(episode: str = "e1", index: int = 1) -> Observation:
+    return Observation(
+        run_id=RUN, episode_id=episode, role="uav", decision_index=index, sim_time_s=float(index),
+        pose=Pose(position_world_m=(0.0, 0.0, 80.0), yaw_rad=0.0), mode="aerial", images=[], references=[],
+        legal_actions=["MOVE_TO_UAV_WAYPOINT", "WAIT"],
+        waypoint_options=[Waypoint(waypoint_id="U1", position_world_m=(40.0, 0.0, 80.0), kind="uav_grid")],
+        region_world_m=(0.0, 0.0, 100.0, 100.0),
+        coordination=CoordinationState(run_id=RUN, episode_id=episode, sim_time_s=float(index)))
+
+
+class Serving:
+    """serve_async on its own loop thread, over a MemoryBus the test publishes into."""
+
+    def __init__(self, policy) -> None:
+        self.bus, self.stop, self.policy = MemoryBus(), StopFlag(), policy
+        self.actions = Inbox()
+        self.bus.subscribe(keys.act(RUN, "*", "uav"), self.actions)
+        self.thread = threading.Thread(target=lambda: asyncio.run(serve_async(self.bus, policy, RUN, self.stop,
+                                                                              concurrency=4)), daemon=True)
+        self.thread.start()
+        deadline = time.monotonic() + 5
+        while not self.bus.wait_for_subscriber(keys.obs(RUN, "e1", "uav"), 0) and time.monotonic() < deadline:
+            time.sleep(0.01)
+
+    def __enter__(self) -> Serving:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop.set()
+        self.thread.join(5)
+
+
+def test_inline_policy_is_answered_on_the_publishing_thread() -> None:
+    with Serving(make_policy("standin-0ms", "uav")) as svc:
+        assert svc.policy.inline
+        svc.bus.publish(keys.obs(RUN, "e1", "uav"), Encoder().encode(_obs()))
+        sample = svc.actions.get(0)  # already there when publish returns: no hand-over to the loop
+        assert sample is not None
+        action = decode(sample.payload)
+        assert (action.action, action.waypoint_id, action.decision_index) == ("MOVE_TO_UAV_WAYPOINT", "U1", 1)
+        assert action.agent_wall_latency_s is not None
+
+
+def test_other_policies_are_answered_on_the_loop() -> None:
+    with Serving(make_policy("standin-20ms", "uav")) as svc:
+        assert not getattr(svc.policy, "inline", False)
+        svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(_obs()))
+        sample = svc.actions.get(5.0)
+        assert sample is not None and decode(sample.payload).action == "MOVE_TO_UAV_WAYPOINT"
+        assert decode(sample.payload).agent_wall_latency_s >= 0.02
+
+
+class Exploding:
+    role, name = "uav", "exploding"
+
+    def __init__(self, inline: bool) -> None:
+        self.inline, self.ended = inline, []
+
+    def act(self, obs: Observation) -> Action:
+        if obs.decision_index == 1:
+            raise RuntimeError("bug in the policy")
+        return action_for(obs, "WAIT", rationale="fine")
+
+    def end_episode(self, episode_id: str) -> None:
+        self.ended.append(episode_id)
+
+
+@pytest.mark.parametrize("inline", [True, False])
+def test_policy_errors_cost_a_wait_and_episodes_end(inline: bool) -> None:
+    policy = Exploding(inline)
+    with Serving(policy) as svc:
+        svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(_obs(index=1)))
+        svc.bus.publish(keys.obs(RUN, "e1", "uav"), b"not msgpack")  # logged, ignored
+        svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(_obs(index=2)))
+        got = [decode(s.payload) for s in (svc.actions.get(5.0), svc.actions.get(5.0))]
+        assert sorted((a.decision_index, a.action, a.rationale) for a in got) == [
+            (1, "WAIT", "policy error (see agent log)"), (2, "WAIT", "fine")]
+        record = EpisodeRecord(
+            run_id=RUN, episode_id="e1", difficulty="easy", status="finished", termination="budget_exhausted",
+            success=False, ground_observed=False, n_confirm=0, ugv_path_length_m=0.0, shortest_path_length_m=None,
+            final_distance_m=50.0, uav_budget=80, uav_first_visible_step=None, candidates=[], decisions_uav=2,
+            decisions_ugv=0, sim_time_s=2.0, wall_time_s=0.1, worker_id="w", town_id="grid-s7", asset_sha256="ab" * 32,
+            seed=1, renderer="tiny")
+        svc.bus.publish(keys.result(RUN, "e1"), encode(record))
+        deadline = time.monotonic() + 5
+        while not policy.ended and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert policy.ended == ["e1"]
