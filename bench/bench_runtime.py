@@ -1,6 +1,7 @@
 """Runtime benchmarks (issue 5); every figure is a ratio against a baseline from the same run.
 
-1. Decision round trip: the world's own code (``BusDecisionSource.decide``) encodes an
+1. Decision round trip (``--only breakdown``: the same with timers inside both processes, to see
+   where the time beyond the ping-pong goes): the world's own code (``BusDecisionSource.decide``) encodes an
    observation with real encoded images, an agent service (a separate process, zero-latency
    stand-in policy) decodes it and answers, the world decodes the action — against a raw zenoh
    ping-pong of the same bytes through the same router. Goal <= 1.3x.
@@ -72,6 +73,43 @@ for line in sys.stdin:  # "on" / "off", answered with "ok" once done
         current.close() if kind == "observer" else current.undeclare()
         current = None
     print("ok", flush=True)
+"""
+TIMED_AGENT = """
+# The agent service (standin-0ms) with timers around its stages; medians written to argv[2].
+import asyncio, json, statistics, sys, time
+from agos.agents import service
+from agos.agents.policy import make_policy
+from agos.runtime.bus import ZenohBus, zenoh_config
+from agos.runtime.codec import Decoder
+from agos.runtime.process import StopFlag
+from agos.runtime.schemas import Observation
+spent = {"agent: receive to answer sent": [], "agent: decode": [], "agent: msgpack unpack": [],
+         "agent: pydantic validation": [], "agent: policy": [], "agent: encode + publish action": []}
+def timed(owner, name, label, kind=None):
+    inner = getattr(owner, name)
+    inner = inner.__func__ if kind is classmethod else inner
+    def wrapper(*args, **kw):
+        start = time.perf_counter()
+        try:
+            return inner(*args, **kw)
+        finally:
+            spent[label].append(time.perf_counter() - start)
+    setattr(owner, name, kind(wrapper) if kind else wrapper)
+policy = make_policy("standin-0ms", "uav")
+timed(service._Dispatch, "put", "agent: receive to answer sent")
+timed(Decoder, "decode", "agent: decode")
+timed(Decoder, "_unpack", "agent: msgpack unpack", staticmethod)
+timed(Observation, "model_validate", "agent: pydantic validation", classmethod)
+timed(policy, "act", "agent: policy")
+timed(ZenohBus, "publish", "agent: encode + publish action")
+async def main():
+    bus = ZenohBus(zenoh_config(connect=[sys.argv[1]]))
+    serving = asyncio.ensure_future(service.serve_async(bus, policy, "bench", StopFlag(), concurrency=64))
+    while True:
+        await asyncio.sleep(0.5)
+        with open(sys.argv[2], "w") as out:
+            json.dump({k: statistics.median(v) for k, v in spent.items() if v}, out)
+asyncio.run(main())
 """
 SLEEPER = """
 import sys, time, zenoh
@@ -277,7 +315,7 @@ def toggle(observer: subprocess.Popen, world: World, state: str) -> None:
     world.ticks(0.3)  # while the (un)subscription reaches the world; not measured
 
 
-PARTS = ("roundtrip", "observer", "qos", "concurrency", "throughput")
+PARTS = ("roundtrip", "breakdown", "observer", "qos", "concurrency", "throughput")
 
 
 def agent(policy: str, concurrency: int) -> list[str]:
@@ -297,6 +335,8 @@ def main() -> None:
 
     if "roundtrip" in parts:
         round_trip(obs, payload)
+    if "breakdown" in parts:
+        round_trip_breakdown(obs, payload)
     if "observer" in parts:
         observers(obs)
     if "qos" in parts:
@@ -326,6 +366,48 @@ def round_trip(obs: Observation, payload: bytes) -> None:
               f"{1000 * t_ping:.2f} ms: {t_rt / t_ping:.2f}x (goal <= 1.3: {'met' if t_rt / t_ping <= 1.3 else 'NOT met'})")
         world.close()
         bus.close()
+
+
+def round_trip_breakdown(obs: Observation, payload: bytes) -> None:
+    """The same round trip with timers inside both processes (they slow it a little): where the
+    time beyond the raw ping-pong goes, measured in situ, not in a micro-benchmark."""
+    import json
+
+    import agos.world.worker as worker
+    from agos.runtime.codec import Encoder
+
+    spent: dict[str, list[float]] = {"world: encode observation": [], "world: decode action": []}
+
+    def timed(function, label):
+        def wrapper(*args, **kw):
+            start = time.perf_counter()
+            try:
+                return function(*args, **kw)
+            finally:
+                spent[label].append(time.perf_counter() - start)
+        return wrapper
+
+    original_encode, original_decode = Encoder.encode, worker.decode
+    Encoder.encode = timed(original_encode, "world: encode observation")
+    worker.decode = timed(original_decode, "world: decode action")
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            report = Path(tmp) / "agent.json"
+            timed_agent = [sys.executable, "-c", TIMED_AGENT, "{EP}", str(report)]
+            with Cluster([sys.executable, "-c", ECHO, "{EP}"], timed_agent) as cluster:
+                bus = ZenohBus.connect(cluster.endpoint)
+                world = World(bus, obs)
+                t_ping, t_rt = interleaved(lambda n: ping_pongs(bus, payload, n), world.round_trips)
+                time.sleep(1.0)  # the agent writes its medians every 0.5 s
+                world.close()
+                bus.close()
+            agent_spent = json.loads(report.read_text())
+    finally:
+        Encoder.encode, worker.decode = original_encode, original_decode
+    print(f"round trip with timers {1000 * t_rt:.2f} ms vs raw ping-pong {1000 * t_ping:.2f} ms: "
+          f"{1e6 * (t_rt - t_ping):.0f} us more; medians per decision, in situ:")
+    for label, value in [*((k, statistics.median(v)) for k, v in spent.items()), *agent_spent.items()]:
+        print(f"  {label:34s} {1e6 * value:6.0f} us")
 
 
 def observers(obs: Observation) -> None:
