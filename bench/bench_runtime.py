@@ -76,32 +76,23 @@ for line in sys.stdin:  # "on" / "off", answered with "ok" once done
 """
 TIMED_AGENT = """
 # The agent service (standin-0ms) with timers around its stages; medians written to argv[2].
-import asyncio, json, statistics, sys, time
+import asyncio, json, statistics, sys
+sys.path.insert(0, sys.argv[3])
+from bench_runtime import timed
 from agos.agents import service
 from agos.agents.policy import make_policy
 from agos.runtime.bus import ZenohBus, zenoh_config
 from agos.runtime.codec import Decoder
 from agos.runtime.process import StopFlag
 from agos.runtime.schemas import Observation
-spent = {"agent: receive to answer sent": [], "agent: decode": [], "agent: msgpack unpack": [],
-         "agent: pydantic validation": [], "agent: policy": [], "agent: encode + publish action": []}
-def timed(owner, name, label, kind=None):
-    inner = getattr(owner, name)
-    inner = inner.__func__ if kind is classmethod else inner
-    def wrapper(*args, **kw):
-        start = time.perf_counter()
-        try:
-            return inner(*args, **kw)
-        finally:
-            spent[label].append(time.perf_counter() - start)
-    setattr(owner, name, kind(wrapper) if kind else wrapper)
+spent = {}
 policy = make_policy("standin-0ms", "uav")
-timed(service._Dispatch, "put", "agent: receive to answer sent")
-timed(Decoder, "decode", "agent: decode")
-timed(Decoder, "_unpack", "agent: msgpack unpack", staticmethod)
-timed(Observation, "model_validate", "agent: pydantic validation", classmethod)
-timed(policy, "act", "agent: policy")
-timed(ZenohBus, "publish", "agent: encode + publish action")
+service._Dispatch.put = timed(service._Dispatch.put, spent, "agent: receive to answer sent")
+Decoder.decode = timed(Decoder.decode, spent, "agent: decode")
+Decoder._unpack = staticmethod(timed(Decoder._unpack, spent, "agent: msgpack unpack"))
+Observation.model_validate = classmethod(timed(Observation.model_validate.__func__, spent, "agent: pydantic validation"))
+policy.act = timed(policy.act, spent, "agent: policy")
+ZenohBus.publish = timed(ZenohBus.publish, spent, "agent: encode + publish action")
 async def main():
     bus = ZenohBus(zenoh_config(connect=[sys.argv[1]]))
     serving = asyncio.ensure_future(service.serve_async(bus, policy, "bench", StopFlag(), concurrency=64))
@@ -368,6 +359,20 @@ def round_trip(obs: Observation, payload: bytes) -> None:
         bus.close()
 
 
+def timed(function, spent: dict[str, list[float]], label: str):
+    """``function`` that also appends each call's duration to ``spent[label]``."""
+    durations = spent.setdefault(label, [])
+
+    def wrapper(*args, **kw):
+        start = time.perf_counter()
+        try:
+            return function(*args, **kw)
+        finally:
+            durations.append(time.perf_counter() - start)
+
+    return wrapper
+
+
 def round_trip_breakdown(obs: Observation, payload: bytes) -> None:
     """The same round trip with timers inside both processes (they slow it a little): where the
     time beyond the raw ping-pong goes, measured in situ, not in a micro-benchmark."""
@@ -376,24 +381,14 @@ def round_trip_breakdown(obs: Observation, payload: bytes) -> None:
     import agos.world.worker as worker
     from agos.runtime.codec import Encoder
 
-    spent: dict[str, list[float]] = {"world: encode observation": [], "world: decode action": []}
-
-    def timed(function, label):
-        def wrapper(*args, **kw):
-            start = time.perf_counter()
-            try:
-                return function(*args, **kw)
-            finally:
-                spent[label].append(time.perf_counter() - start)
-        return wrapper
-
+    spent: dict[str, list[float]] = {}
     original_encode, original_decode = Encoder.encode, worker.decode
-    Encoder.encode = timed(original_encode, "world: encode observation")
-    worker.decode = timed(original_decode, "world: decode action")
+    Encoder.encode = timed(original_encode, spent, "world: encode observation")
+    worker.decode = timed(original_decode, spent, "world: decode action")
     try:
         with tempfile.TemporaryDirectory() as tmp:
             report = Path(tmp) / "agent.json"
-            timed_agent = [sys.executable, "-c", TIMED_AGENT, "{EP}", str(report)]
+            timed_agent = [sys.executable, "-c", TIMED_AGENT, "{EP}", str(report), str(Path(__file__).parent)]
             with Cluster([sys.executable, "-c", ECHO, "{EP}"], timed_agent) as cluster:
                 bus = ZenohBus.connect(cluster.endpoint)
                 world = World(bus, obs)
