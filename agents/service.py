@@ -76,8 +76,7 @@ def decide(policy: Policy, obs: Observation) -> Action:
     try:
         return policy.act(obs)
     except Exception:
-        log.exception("policy failed on %s #%d; answering WAIT", obs.episode_id, obs.decision_index)
-        return action_for(obs, "WAIT", rationale="policy error (see agent log)")
+        return _policy_failed(obs)
 
 
 async def answer(policy: Policy, obs: Observation, executor: ThreadPoolExecutor) -> Action:
@@ -87,8 +86,13 @@ async def answer(policy: Policy, obs: Observation, executor: ThreadPoolExecutor)
     try:
         return await policy.act_async(obs)
     except Exception:
-        log.exception("policy failed on %s #%d; answering WAIT", obs.episode_id, obs.decision_index)
-        return action_for(obs, "WAIT", rationale="policy error (see agent log)")
+        return _policy_failed(obs)
+
+
+def _policy_failed(obs: Observation) -> Action:
+    """Called in an ``except`` block: log the error, answer a legal WAIT."""
+    log.exception("policy failed on %s #%d; answering WAIT", obs.episode_id, obs.decision_index)
+    return action_for(obs, "WAIT", rationale="policy error (see agent log)")
 
 
 def publish_action(bus: ZenohBus, run_id: str, action: Action, started: float) -> None:

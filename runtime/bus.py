@@ -161,7 +161,11 @@ class ZenohBus:
         the answer is a flag a matching listener keeps current, not a query into zenoh."""
         flag = self._watched.get(key)
         if flag is None:
-            flag = self._watched[key] = _MatchingFlag(self._publisher(key, viz=True))
+            publisher = self._publisher(key, viz=True)
+            with self._lock:  # one listener per key, even if two threads ask at once
+                flag = self._watched.get(key)
+                if flag is None:
+                    flag = self._watched[key] = _MatchingFlag(publisher)
         return flag.matching
 
     def publish_viz(self, key: str, message: Any) -> None:

@@ -63,13 +63,41 @@ def test_inline_policy_is_answered_on_the_publishing_thread() -> None:
         assert action.agent_wall_latency_s is not None
 
 
-def test_other_policies_are_answered_on_the_loop() -> None:
+def test_async_policies_are_answered_on_the_loop() -> None:
     with Serving(make_policy("standin-20ms", "uav")) as svc:
         assert not getattr(svc.policy, "inline", False)
         svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(_obs()))
         sample = svc.actions.get(5.0)
         assert sample is not None and decode(sample.payload).action == "MOVE_TO_UAV_WAYPOINT"
-        assert decode(sample.payload).agent_wall_latency_s >= 0.02
+        assert decode(sample.payload).agent_wall_latency_s > 0
+
+
+class Gated:
+    """A plain ``act`` policy that answers only once the test opens its gate."""
+
+    role, name = "uav", "gated"
+
+    def __init__(self) -> None:
+        self.gate, self.threads = threading.Event(), []
+
+    def act(self, obs: Observation) -> Action:
+        self.threads.append(threading.get_ident())
+        assert self.gate.wait(5.0)
+        return action_for(obs, "WAIT")
+
+    def end_episode(self, episode_id: str) -> None:
+        pass
+
+
+def test_plain_policies_run_in_worker_threads() -> None:
+    policy = Gated()
+    with Serving(policy) as svc:
+        svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(_obs()))
+        assert svc.actions.get(0) is None  # publish returned while the policy still waits
+        policy.gate.set()
+        sample = svc.actions.get(5.0)
+        assert sample is not None and decode(sample.payload).action == "WAIT"
+        assert policy.threads and policy.threads[0] not in (threading.get_ident(), svc.thread.ident)
 
 
 class Exploding:

@@ -30,11 +30,8 @@ AGOS = [sys.executable, "-m", "agos.runtime.cli"]
 
 
 @pytest.fixture(scope="module")
-def episodes(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("episodes") / "eps.jsonl"
-    subprocess.run([*AGOS, "episodes", "sample", "--town", "grid-s7", "--difficulty", "mid", "-n", "4", "--seed", "2",
-                    "--out", str(path)], check=True, capture_output=True, timeout=120)
-    return path
+def episodes(sample_mid_episodes) -> Path:
+    return sample_mid_episodes(4, seed=2)
 
 
 class Cluster:

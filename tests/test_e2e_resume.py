@@ -26,10 +26,8 @@ def _rows(db: Path) -> list[tuple[str, str]]:
         return list(conn.execute("SELECT episode_id, status FROM episodes"))
 
 
-def test_interrupted_eval_resumes_and_stores_each_episode_once(tmp_path) -> None:
-    episodes = tmp_path / "eps.jsonl"
-    subprocess.run([*AGOS, "episodes", "sample", "--town", "grid-s7", "--difficulty", "mid", "-n", "4", "--seed", "5",
-                    "--out", str(episodes)], check=True, capture_output=True, timeout=120)
+def test_interrupted_eval_resumes_and_stores_each_episode_once(tmp_path, sample_mid_episodes) -> None:
+    episodes = sample_mid_episodes(4, seed=5)
     run_dir = tmp_path / "run"
     db = run_dir / "results.sqlite"
     port = str(free_port(23000 + os.getpid() % 400))

@@ -35,11 +35,8 @@ FAULTS = "429=0.15,500=0.1,timeout=0.02,fenced=0.3"
 
 
 @pytest.fixture(scope="module")
-def episode_file(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("episodes") / "eps.jsonl"
-    subprocess.run([*AGOS, "episodes", "sample", "--town", "grid-s7", "--difficulty", "mid", "-n", "1", "--seed", "3",
-                    "--out", str(path)], check=True, capture_output=True, timeout=120)
-    return path
+def episode_file(sample_mid_episodes) -> Path:
+    return sample_mid_episodes(1, seed=3)
 
 
 @pytest.fixture(scope="module")
