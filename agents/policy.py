@@ -3,6 +3,11 @@
 A policy may keep per-episode memory (keyed by ``episode_id``); the service calls
 :meth:`Policy.end_episode` when an episode's result is seen so memory does not grow.
 Policies never see ground truth: only :class:`~agos.runtime.schemas.Observation`.
+
+Over the bus, the agent service delivers an observation as its compiled mirror
+(:mod:`agos.runtime.structs`): the same fields and nested values, read the same way, but without
+the pydantic methods. In-process runs pass the model itself. Read observations; do not rely on
+``model_dump``/``model_copy`` (``structs.to_model`` gives the model when one is needed).
 """
 
 from __future__ import annotations

@@ -7,7 +7,8 @@ Every observation on ``agos/<run>/ep/*/obs/<role>`` is answered on the matching
 ``concurrency`` at a time: policies with an ``act_async`` coroutine (remote models, the
 fixed-latency stand-in) overlap their waiting; plain ``act`` policies run in worker threads;
 ``inline`` policies (microseconds, no I/O: random, oracle, standin-0ms) are answered on the
-thread that received the observation.
+thread that received the observation. Observations reach policies as compiled mirrors of the
+model (runtime/structs.py: decoding into them costs a fraction of building pydantic models).
 A policy that raises is logged and answered with a legal WAIT, so an agent bug costs a
 decision, never the episode. A restarted service simply answers what the world re-requests.
 """
@@ -29,8 +30,11 @@ from agos.runtime.codec import DecodeError, Decoder
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role
 from agos.runtime.settings import AgosConfig
+from agos.runtime.structs import mirror
 
 log = logging.getLogger("agos.agent")
+OBSERVATIONS = (Observation, mirror(Observation))
+"""What an observation arrives as: its compiled mirror (the hot path) or, rarely, the model."""
 
 
 class _Dispatch:
@@ -61,7 +65,7 @@ class _Dispatch:
                 if self.inline:
                     end_episode(self.bus, self.policy, self.run_id, message.episode_id)
                     return
-            elif not isinstance(message, Observation):
+            elif not isinstance(message, OBSERVATIONS):
                 return
             elif self.inline:
                 started = time.monotonic()

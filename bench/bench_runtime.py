@@ -84,13 +84,11 @@ from agos.agents.policy import make_policy
 from agos.runtime.bus import ZenohBus, zenoh_config
 from agos.runtime.codec import Decoder
 from agos.runtime.process import StopFlag
-from agos.runtime.schemas import Observation
 spent = {}
 policy = make_policy("standin-0ms", "uav")
 service._Dispatch.put = timed(service._Dispatch.put, spent, "agent: receive to answer sent")
 Decoder.decode = timed(Decoder.decode, spent, "agent: decode")
-Decoder._unpack = staticmethod(timed(Decoder._unpack, spent, "agent: msgpack unpack"))
-Observation.model_validate = classmethod(timed(Observation.model_validate.__func__, spent, "agent: pydantic validation"))
+Decoder._complete = timed(Decoder._complete, spent, "agent: decode, after the top-level read")
 policy.act = timed(policy.act, spent, "agent: policy")
 ZenohBus.publish = timed(ZenohBus.publish, spent, "agent: encode + publish action")
 async def main():

@@ -1,12 +1,15 @@
 """msgpack encoding of the wire messages, and image encoding helpers.
 
 ``encode`` writes a model as a plain msgpack map (bytes stay raw bytes, tuples become arrays);
-``decode`` reads any agos payload back into its model through one discriminated union.
+``decode`` reads any agos payload back into its model through one discriminated union. Both use
+msgspec, the C msgpack library; models are written through their fields, so the bytes are the
+same as msgpack-python packing ``model_dump`` (tests/test_codec.py checks it).
 
-:class:`Encoder` and :class:`Decoder` do the same for a stream of messages on the decision hot
-path: the parts of an observation that stay the same over an episode (``REPEATED``: reference
-views, the searchable area) are packed and validated once, not every decision. Their payloads are
-the same msgpack maps (field order aside), so ``decode`` reads them and they read ``encode``'s.
+:class:`Encoder` and :class:`Decoder` serve the decision hot path. The parts of an observation
+that stay the same over an episode (``REPEATED``: reference views, the searchable area) are packed
+and decoded once, not every decision, and the agent reads an observation straight into its
+compiled mirror (:mod:`agos.runtime.structs`) instead of building pydantic models. Payloads stay
+what ``encode`` writes, byte for byte.
 """
 
 from __future__ import annotations
@@ -14,34 +17,46 @@ from __future__ import annotations
 from typing import Any, get_args
 
 import cv2
-import msgpack
+import msgspec
 import numpy as np
-from pydantic import TypeAdapter, ValidationError
+from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from agos.runtime.schemas import WireMessage
+from agos.runtime.structs import mirror
 
 _ADAPTER: TypeAdapter[Any] = TypeAdapter(WireMessage)
 _MODELS = {model.model_fields["type"].default: model for model in get_args(get_args(WireMessage)[0])}
 
 REPEATED: dict[str, tuple[str, ...]] = {"observation": ("references", "active_uav_waypoints")}
 """Top-level fields, per message ``type``, that usually repeat unchanged within an episode."""
-_REPEATED_NAMES = frozenset(name for names in REPEATED.values() for name in names)
 
 
 class DecodeError(ValueError):
     """A payload that is not a valid agos message; the text names the field."""
 
 
+def _fields_of(model: Any) -> Any:
+    """msgspec's hook for what it cannot encode itself: a model is written as its fields, in
+    declaration order (a pydantic model's ``__dict__``, the same map ``model_dump`` gives)."""
+    if isinstance(model, BaseModel):
+        return model.__dict__
+    raise TypeError(f"cannot encode a {type(model).__name__} as msgpack")
+
+
+_PACK = msgspec.msgpack.Encoder(enc_hook=_fields_of)
+_UNPACK = msgspec.msgpack.Decoder()
+
+
 def encode(message: Any) -> bytes:
     """Serialize a wire model to msgpack bytes."""
-    return msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
+    return _PACK.encode(message)
 
 
 def decode(payload: bytes) -> Any:
     """Parse msgpack bytes into the wire model named by its ``type``."""
     try:
-        data = msgpack.unpackb(payload, raw=False)
-    except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as exc:
+        data = _UNPACK.decode(payload)
+    except msgspec.DecodeError as exc:
         raise DecodeError(f"payload is not msgpack: {exc}") from exc
     if not isinstance(data, dict):
         raise DecodeError("payload is not a msgpack map")
@@ -55,38 +70,25 @@ def decode(payload: bytes) -> Any:
 
 class Encoder:
     """``encode`` for one sender's stream: a ``REPEATED`` field equal to the one last sent (the
-    same objects, else ``==``) reuses its packed bytes instead of being dumped and packed again."""
+    same objects, else ``==``) is written from its packed bytes instead of being packed again.
+    The payload is byte for byte what :func:`encode` gives."""
 
     def __init__(self) -> None:
-        self._packed: dict[tuple[str, str], tuple[Any, bytes]] = {}
+        self._packed: dict[tuple[str, str], tuple[Any, msgspec.Raw]] = {}
 
     def encode(self, message: Any) -> bytes:
         fields = REPEATED.get(getattr(message, "type", ""), ())
-        if not fields:
+        if not fields or not isinstance(message, BaseModel):
             return encode(message)
-        parts = []
+        data = dict(message.__dict__)
         for name in fields:
-            value = getattr(message, name)
+            value = data[name]
             hit = self._packed.get((message.type, name))
             if hit is None or not _same(value, hit[0]):
-                dumped = message.model_dump(mode="python", include={name})[name]
                 snapshot = list(value) if isinstance(value, list) else value
-                hit = (snapshot, msgpack.packb(name) + msgpack.packb(dumped, use_bin_type=True))
-                self._packed[(message.type, name)] = hit
-            parts.append(hit[1])
-        body = msgpack.packb(message.model_dump(mode="python", exclude=set(fields)), use_bin_type=True)
-        size = _MAP_HEADER_SIZE[body[0] >> 4 if body[0] < 0x90 else body[0]]
-        count = int.from_bytes(body[1:size], "big") if size > 1 else body[0] & 0x0F
-        return b"".join([_map_header(count + len(parts)), memoryview(body)[size:], *parts])
-
-
-_MAP_HEADER_SIZE = {0x8: 1, 0xDE: 3, 0xDF: 5}
-
-
-def _map_header(count: int) -> bytes:
-    if count < 16:
-        return bytes([0x80 | count])
-    return b"\xde" + count.to_bytes(2, "big") if count < 1 << 16 else b"\xdf" + count.to_bytes(4, "big")
+                hit = self._packed[(message.type, name)] = (snapshot, msgspec.Raw(_PACK.encode(value)))
+            data[name] = hit[1]  # msgspec writes a Raw as it is
+        return _PACK.encode(data)
 
 
 def _same(value: Any, snapshot: Any) -> bool:
@@ -98,74 +100,86 @@ def _same(value: Any, snapshot: Any) -> bool:
     return value is snapshot or value == snapshot
 
 
-class Decoder:
-    """``decode`` for one receiver's stream: a ``REPEATED`` field whose bytes equal those last seen
-    for the same episode is not unpacked and validated again; its validated value is reused.
+class _Plan:
+    """How :class:`Decoder` reads one message type: the top-level map in one pass into a struct
+    whose ``REPEATED`` fields stay raw msgpack; those decoded on their own, only when they change."""
 
-    Decoded messages may therefore share those parts (the same model objects) with earlier ones:
-    treat them as read-only. Anything unusual (not a map, an error) goes through :func:`decode`,
-    so errors read the same. ``capacity`` bounds the cache (oldest episode entries dropped).
+    def __init__(self, kind: str) -> None:
+        model = _MODELS[kind]
+        self.mirror = mirror(model)
+        self.repeated = REPEATED[kind]
+        types = dict(zip(self.mirror.__struct_fields__, msgspec.structs.fields(self.mirror), strict=True))
+        top = []
+        for name, info in types.items():
+            if name in self.repeated:
+                top.append((name, msgspec.Raw, msgspec.UNSET))
+            elif info.required:
+                top.append((name, info.type))
+            else:
+                top.append((name, info.type, msgspec.field(default_factory=info.default_factory)
+                            if info.default_factory is not msgspec.NODEFAULT else info.default))
+        self.top = msgspec.msgpack.Decoder(msgspec.defstruct(f"{model.__name__}TopLevel", top, kw_only=True,
+                                                             forbid_unknown_fields=True))
+        self.parts = {name: msgspec.msgpack.Decoder(types[name].type) for name in self.repeated}
+
+
+_PLANS = {kind: _Plan(kind) for kind in REPEATED}
+
+
+class Decoder:
+    """``decode`` for one receiver's stream, on the decision hot path.
+
+    An observation is read straight into its compiled mirror (:mod:`agos.runtime.structs`: every
+    type checked while reading, in C), not into the pydantic model; policies read both alike. A
+    ``REPEATED`` field whose bytes equal those last seen for the same episode is not decoded again;
+    the earlier value is reused, so decoded messages may share those parts: treat them as read-only.
+    Anything else (other message types, anything the mirror refuses) goes through :func:`decode`:
+    the same models, and errors that read the same. ``capacity`` bounds the cache (oldest episode
+    entries dropped).
     """
 
     def __init__(self, capacity: int = 256) -> None:
         self.capacity = capacity
-        self._seen: dict[tuple[str, str, str], tuple[bytes, Any]] = {}
+        self._seen: dict[tuple[str, str, str], tuple[msgspec.Raw, Any]] = {}
 
     def decode(self, payload: bytes) -> Any:
-        try:
-            data, raws = self._unpack(payload)
-            kind = data.get("type")
-            model = _MODELS.get(kind) if isinstance(kind, str) else None
-            if model is None:
-                raise ValueError("not a known type")
-        except Exception:
-            return decode(payload)  # the canonical result or error
-        episode = str(data.get("episode_id"))
+        for kind, plan in _PLANS.items():
+            try:
+                top = plan.top.decode(payload)
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                continue
+            try:
+                return self._complete(kind, plan, top)
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                break
+        return decode(payload)  # the canonical result or error
+
+    def _complete(self, kind: str, plan: _Plan, top: Any) -> Any:
+        data = msgspec.structs.asdict(top)
         fresh = []
-        for name, raw in raws.items():
-            hit = self._seen.get((kind, episode, name)) if name in REPEATED.get(kind, ()) else None
+        for name in plan.repeated:
+            raw = data.pop(name)
+            if raw is msgspec.UNSET:
+                continue
+            hit = self._seen.get((kind, top.episode_id, name))
             if hit is not None and hit[0] == raw:
                 data[name] = hit[1]
             else:
-                data[name] = msgpack.unpackb(raw, raw=False)
+                data[name] = plan.parts[name].decode(raw)
                 fresh.append((name, raw))
-        try:
-            message = model.model_validate(data)
-        except ValidationError:
-            return decode(payload)
         for name, raw in fresh:
-            if name in REPEATED.get(kind, ()):
-                self._remember((kind, episode, name), raw, getattr(message, name))
-        return message
+            self._remember((kind, top.episode_id, name), raw.copy(), data[name])  # a copy: not a view of payload
+        return plan.mirror(**data)
 
     def forget(self, episode_id: str) -> None:
         for key in [k for k in self._seen if k[1] == episode_id]:
             del self._seen[key]
 
-    def _remember(self, key: tuple[str, str, str], raw: bytes, value: Any) -> None:
+    def _remember(self, key: tuple[str, str, str], raw: msgspec.Raw, value: Any) -> None:
         self._seen.pop(key, None)
         self._seen[key] = (raw, value)
         while len(self._seen) > self.capacity:
             del self._seen[next(iter(self._seen))]
-
-    @staticmethod
-    def _unpack(payload: bytes) -> tuple[dict[str, Any], dict[str, bytes]]:
-        """The top-level map, with the repeatable fields left as raw bytes."""
-        unpacker = msgpack.Unpacker(raw=False, max_buffer_size=max(len(payload), 1))
-        unpacker.feed(payload)
-        data: dict[str, Any] = {}
-        raws: dict[str, bytes] = {}
-        for _ in range(unpacker.read_map_header()):
-            name = unpacker.unpack()
-            if name in _REPEATED_NAMES:
-                start = unpacker.tell()
-                unpacker.skip()
-                raws[name] = payload[start:unpacker.tell()]
-            else:
-                data[name] = unpacker.unpack()
-        if unpacker.tell() != len(payload):
-            raise ValueError("extra data after the map")
-        return data, raws
 
 
 def encode_png(image: np.ndarray) -> bytes:

@@ -1,0 +1,76 @@
+"""Compiled mirrors of the wire models: msgspec structs generated from the pydantic schemas.
+
+The pydantic models in :mod:`agos.runtime.schemas` are the contract and stay the only place a
+message is defined. :func:`mirror` derives from a model a ``msgspec.Struct`` class with the same
+name, fields (in the same order), types and defaults, nested models mirrored in turn. msgspec reads
+msgpack straight into such structs and checks every type while it reads, in C: for an observation
+that is several times cheaper than unpacking into Python objects and validating them with pydantic,
+which is what the decision round trip pays on each side (docs/ARCHITECTURE.md §6).
+
+A mirror reads like its model (``obs.pose.position_world_m``, ``obs.coordination.candidates[0]``,
+tuples, lists, dicts), so a policy written against the models works on either. What a mirror does
+not have is the model's methods (``model_dump``, ``model_copy``...): use :func:`to_model` for those.
+A mirror accepts a subset of what its model accepts (no lax coercion such as ``"3"`` for an
+``int``), so anything it refuses goes back to pydantic, which accepts or names the bad field.
+"""
+
+from __future__ import annotations
+
+import types
+import typing
+from typing import Any
+
+import msgspec
+from pydantic import BaseModel
+from pydantic_core import PydanticUndefined
+
+_MIRRORS: dict[type[BaseModel], type[msgspec.Struct]] = {}
+_MODELS: dict[type[msgspec.Struct], type[BaseModel]] = {}
+
+
+def mirror(model: type[BaseModel]) -> type[msgspec.Struct]:
+    """The struct class mirroring ``model`` (made once, then cached).
+
+    Raises ``TypeError`` for a model a struct cannot mirror exactly: field constraints (``ge``,
+    patterns...), validators or serializers, whose checks msgspec would not make."""
+    found = _MIRRORS.get(model)
+    if found is not None:
+        return found
+    if model.__pydantic_decorators__.field_validators or model.__pydantic_decorators__.model_validators or \
+            model.__pydantic_decorators__.field_serializers or model.__pydantic_decorators__.model_serializers:
+        raise TypeError(f"{model.__name__} has validators or serializers; a struct cannot mirror it")
+    fields: list[tuple[Any, ...]] = []
+    for name, field in model.model_fields.items():
+        if field.metadata:
+            raise TypeError(f"{model.__name__}.{name} has constraints {field.metadata}; a struct cannot mirror it")
+        kind = _mirror_type(field.annotation)
+        if field.default_factory is not None:
+            fields.append((name, kind, msgspec.field(default_factory=field.default_factory)))
+        elif field.default is PydanticUndefined:
+            fields.append((name, kind))
+        else:
+            fields.append((name, kind, field.default))
+    found = msgspec.defstruct(model.__name__, fields, kw_only=True, forbid_unknown_fields=True, module=__name__)
+    _MIRRORS[model], _MODELS[found] = found, model
+    return found
+
+
+def to_model(value: Any) -> Any:
+    """The pydantic model of a mirror struct (validated again; other values returned as they are)."""
+    model = _MODELS.get(type(value))
+    return model.model_validate(msgspec.to_builtins(value, builtin_types=(bytes,))) if model is not None else value
+
+
+def _mirror_type(annotation: Any) -> Any:
+    """A field's type with every pydantic model in it replaced by its mirror."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return mirror(annotation)
+    origin = typing.get_origin(annotation)
+    if origin is None or origin is typing.Literal:
+        return annotation
+    args = tuple(_mirror_type(arg) for arg in typing.get_args(annotation))
+    if origin in (typing.Union, types.UnionType):
+        return typing.Union[args]  # noqa: UP007 (built from a tuple)
+    if origin is typing.Annotated:
+        raise TypeError(f"annotated type {annotation} cannot be mirrored exactly")
+    return origin[args]

@@ -1,0 +1,114 @@
+"""Compiled mirrors (agos/runtime/structs.py): the same fields as the models, and never more lenient.
+
+The differential test mutates real payloads at random and checks that the hot-path ``Decoder``
+(mirrors) and the canonical ``decode`` (pydantic) agree on every one: the same values, or the
+same error. A mirror may refuse what pydantic accepts (it then hands over to pydantic), never the
+reverse.
+"""
+
+from __future__ import annotations
+
+import random
+from typing import Any, get_args
+
+import msgpack
+import msgspec
+import pytest
+from pydantic import BaseModel
+
+from agos.runtime.codec import DecodeError, Decoder, Encoder, decode, encode
+from agos.runtime.schemas import Observation, WireMessage
+from agos.runtime.structs import mirror, to_model
+from tests.test_codec import MESSAGES, _big_observation
+
+WIRE_MODELS = list(get_args(get_args(WireMessage)[0]))
+
+
+@pytest.mark.parametrize("model", WIRE_MODELS, ids=lambda m: m.__name__)
+def test_every_wire_model_has_an_exact_mirror(model: type[BaseModel]) -> None:
+    struct = mirror(model)
+    assert struct.__name__ == model.__name__
+    assert struct.__struct_fields__ == tuple(model.model_fields)  # same names, same order
+    assert mirror(model) is struct  # made once
+
+
+@pytest.mark.parametrize("make", MESSAGES)
+def test_mirror_reads_what_the_model_wrote(make) -> None:
+    message = make()
+    struct = msgspec.msgpack.decode(encode(message), type=mirror(type(message)))
+    assert encode(struct) == encode(message)  # and writes it back byte for byte
+    assert to_model(struct) == message
+
+
+def test_mirror_reads_like_the_model() -> None:
+    obs = _big_observation()
+    struct = Decoder().decode(Encoder().encode(obs))
+    assert struct.pose.position_world_m == obs.pose.position_world_m == (10.0, 20.0, 80.0)
+    assert struct.coordination.poses["uav"].yaw_rad == 0.5
+    assert struct.coordination.candidates[0].polygon_world_m == [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0)]
+    assert struct.images[0].intrinsics.fx_px == 443.4 and isinstance(struct.images[0].data, bytes)
+    assert struct.oracle is None and struct.grid_rows == "ABCDE"  # defaults filled in as by pydantic
+
+
+def test_a_model_with_constraints_is_not_mirrored() -> None:
+    from pydantic import Field
+
+    class Bounded(BaseModel):
+        count: int = Field(ge=0)
+
+    with pytest.raises(TypeError, match="constraints"):
+        mirror(Bounded)
+
+
+WRONG_VALUES: list[Any] = ["x", "", 7, -1, 2.5, True, None, [], [1.0, 2.0], {}, {"k": 1}, b"\x00"]
+
+
+def _leaves(node: Any, path: tuple = ()) -> list[tuple]:
+    if isinstance(node, dict):
+        return [path] + [leaf for k, v in node.items() for leaf in _leaves(v, (*path, k))]
+    if isinstance(node, list):
+        return [path] + [leaf for i, v in enumerate(node) for leaf in _leaves(v, (*path, i))]
+    return [path]
+
+
+def _mutate(data: dict, rng: random.Random) -> dict:
+    path = rng.choice([p for p in _leaves(data) if p])
+    parent = data
+    for step in path[:-1]:
+        parent = parent[step]
+    last, how = path[-1], rng.random()
+    if how < 0.1 and isinstance(parent, dict):
+        del parent[last]
+    elif how < 0.2 and isinstance(parent, dict):
+        parent[f"extra_{rng.randrange(100)}"] = 1
+    else:
+        parent[last] = rng.choice(WRONG_VALUES)
+    return data
+
+
+def test_hot_path_decoder_agrees_with_pydantic_on_mutated_payloads() -> None:
+    rng = random.Random(7)
+    originals = [msgpack.unpackb(encode(_big_observation()), raw=False),
+                 msgpack.unpackb(encode(Observation.model_validate(
+                     {**_big_observation().model_dump(), "oracle": {"target_world_m": (1.0, 2.0), "target_in_view": True,
+                                                                    "confirm_would_succeed": False}})), raw=False)]
+    agreed = {"accepted": 0, "refused": 0}
+    for case in range(400):
+        data = _mutate(msgpack.unpackb(msgpack.packb(rng.choice(originals)), raw=False), rng)
+        if rng.random() < 0.3:
+            data = _mutate(data, rng)
+        payload = msgpack.packb(data, use_bin_type=True)
+        decoder = Decoder()
+        if rng.random() < 0.5:  # with the repeated parts already cached from a valid observation
+            decoder.decode(encode(_big_observation()))
+        try:
+            expected = decode(payload)
+        except DecodeError as exc:
+            with pytest.raises(DecodeError) as got:
+                decoder.decode(payload)
+            assert str(got.value) == str(exc), case
+            agreed["refused"] += 1
+        else:
+            assert to_model(decoder.decode(payload)) == expected, case
+            agreed["accepted"] += 1
+    assert agreed["accepted"] > 20 and agreed["refused"] > 200  # both branches well exercised
