@@ -56,7 +56,7 @@ def decode(payload: bytes) -> Any:
     """Parse msgpack bytes into the wire model named by its ``type``."""
     try:
         data = _UNPACK.decode(payload)
-    except msgspec.DecodeError as exc:
+    except ValueError as exc:  # msgspec.DecodeError, and UnicodeDecodeError for a bad string
         raise DecodeError(f"payload is not msgpack: {exc}") from exc
     if not isinstance(data, dict):
         raise DecodeError("payload is not a msgpack map")
@@ -112,8 +112,8 @@ class _Plan:
         top = []
         for name, info in types.items():
             if name in self.repeated:
-                top.append((name, msgspec.Raw, msgspec.UNSET))
-            elif info.required:
+                top.append((name, msgspec.Raw) if info.required else (name, msgspec.Raw, msgspec.UNSET))
+            elif info.required or name == "type":  # decode() dispatches on ``type``: it must be there
                 top.append((name, info.type))
             else:
                 top.append((name, info.type, msgspec.field(default_factory=info.default_factory)
@@ -146,11 +146,11 @@ class Decoder:
         for kind, plan in _PLANS.items():
             try:
                 top = plan.top.decode(payload)
-            except (msgspec.DecodeError, msgspec.ValidationError):
+            except ValueError:  # not this type, or not valid: decode() says which
                 continue
             try:
                 return self._complete(kind, plan, top)
-            except (msgspec.DecodeError, msgspec.ValidationError):
+            except ValueError:
                 break
         return decode(payload)  # the canonical result or error
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
-import msgpack
+import msgspec
 import zenoh
 
 from agos.runtime import keys
@@ -55,8 +55,8 @@ class Observer:
 
 def describe(key: str, payload: bytes) -> str:
     try:
-        data = msgpack.unpackb(payload, raw=False)
-    except (ValueError, msgpack.ExtraData):
+        data = msgspec.msgpack.decode(payload)
+    except ValueError:  # msgspec.DecodeError, or a string that is not UTF-8
         return f"{key}  <{len(payload)} bytes, not msgpack>"
     if not isinstance(data, dict):
         return f"{key}  <{type(data).__name__}>"

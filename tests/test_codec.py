@@ -343,6 +343,7 @@ def test_decoder_errors_read_like_decode() -> None:
     data = msgpack.unpackb(encode(_big_observation()), raw=False)
     data["active_uav_waypoints"][1]["position_world_m"] = "north"
     bad = [msgpack.packb(data), b"", b"\xc1", msgpack.packb([1]), encode(_action()) + b"\x00",
+           encode(_big_observation()).replace(b"\xa2e1", b"\xa2\xff\xfe", 1),  # a string that is not UTF-8
            msgpack.packb({"v": 1, "type": "teleport"})]
     for payload in bad:
         with pytest.raises(DecodeError) as expected:

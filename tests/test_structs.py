@@ -112,3 +112,22 @@ def test_hot_path_decoder_agrees_with_pydantic_on_mutated_payloads() -> None:
             assert to_model(decoder.decode(payload)) == expected, case
             agreed["accepted"] += 1
     assert agreed["accepted"] > 20 and agreed["refused"] > 200  # both branches well exercised
+
+
+def _agree(payload: bytes, decoder: Decoder) -> None:
+    try:
+        expected = decode(payload)
+    except DecodeError as exc:
+        with pytest.raises(DecodeError) as got:
+            decoder.decode(payload)
+        assert str(got.value) == str(exc)
+    else:
+        assert to_model(decoder.decode(payload)) == expected
+
+
+@pytest.mark.parametrize("name", list(Observation.model_fields))
+def test_hot_path_decoder_agrees_without_each_top_level_field(name: str) -> None:
+    """Fields with defaults may be left out, except ``type``: pydantic dispatches on it."""
+    data = msgpack.unpackb(encode(_big_observation()), raw=False)
+    del data[name]
+    _agree(msgpack.packb(data, use_bin_type=True), Decoder())

@@ -18,8 +18,7 @@ from __future__ import annotations
 import heapq
 from dataclasses import dataclass, field
 
-import msgpack
-
+from agos.runtime.codec import encode
 from agos.runtime.links import CommProfile, Delivery, links_for
 from agos.runtime.schemas import Candidate, LedgerEntry, LinkStats, MessageRecord, Pose, Role
 
@@ -101,7 +100,7 @@ class Channel:
         """Send the sender's knowledge (its candidates and its pose) to the teammate."""
         cands = [c.model_copy() for _, c in sorted(self.views[sender].candidates.items())]
         payload = {"candidates": cands, "pose": pose, "t": t}
-        size = len(msgpack.packb({"candidates": [c.model_dump() for c in cands], "pose": pose.model_dump(), "t": t}))
+        size = len(encode(payload))
         self._send(sender, kind, t, payload, size, geometry)
 
     def message(self, sender: Role, t: float, text: str, geometry: tuple[float, bool]) -> None:
