@@ -28,19 +28,25 @@ _ADAPTER: TypeAdapter[Any] = TypeAdapter(WireMessage)
 _MODELS = {model.model_fields["type"].default: model for model in get_args(get_args(WireMessage)[0])}
 
 REPEATED: dict[str, tuple[str, ...]] = {"observation": ("references", "active_uav_waypoints")}
-"""Top-level fields, per message ``type``, that usually repeat unchanged within an episode."""
+"""Top-level list fields, per message ``type``, that usually repeat unchanged within an episode."""
 
 
 class DecodeError(ValueError):
     """A payload that is not a valid agos message; the text names the field."""
 
 
-def _fields_of(model: Any) -> Any:
-    """msgspec's hook for what it cannot encode itself: a model is written as its fields, in
-    declaration order (a pydantic model's ``__dict__``, the same map ``model_dump`` gives)."""
-    if isinstance(model, BaseModel):
-        return model.__dict__
-    raise TypeError(f"cannot encode a {type(model).__name__} as msgpack")
+def _fields_of(value: Any) -> Any:
+    """msgspec's hook for what it cannot encode itself. A model is written as its declared fields in
+    declaration order: its ``__dict__``, the map ``model_dump`` gives, unless something was stored
+    beside the fields (``model_copy(update=...)`` with an unknown key). One difference remains: an
+    instance of a subclass in a field typed as its parent is written with all its own fields, where
+    ``model_dump`` would write the parent's; the schemas never do that. numpy scalars become numbers."""
+    if isinstance(value, BaseModel):
+        fields, data = type(value).__pydantic_fields__, value.__dict__
+        return data if len(data) == len(fields) else {name: data[name] for name in fields}
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"cannot encode a {type(value).__name__} as msgpack")
 
 
 _PACK = msgspec.msgpack.Encoder(enc_hook=_fields_of)
@@ -58,6 +64,8 @@ def decode(payload: bytes) -> Any:
         data = _UNPACK.decode(payload)
     except ValueError as exc:  # msgspec.DecodeError, and UnicodeDecodeError for a bad string
         raise DecodeError(f"payload is not msgpack: {exc}") from exc
+    except RecursionError:
+        raise DecodeError("payload is not msgpack: nested too deeply") from None
     if not isinstance(data, dict):
         raise DecodeError("payload is not a msgpack map")
     try:
@@ -146,29 +154,25 @@ class Decoder:
         for kind, plan in _PLANS.items():
             try:
                 top = plan.top.decode(payload)
-            except ValueError:  # not this type, or not valid: decode() says which
+            except (ValueError, RecursionError):  # not this type, or not valid: decode() says which
                 continue
             try:
                 return self._complete(kind, plan, top)
-            except ValueError:
+            except (ValueError, RecursionError):
                 break
         return decode(payload)  # the canonical result or error
 
     def _complete(self, kind: str, plan: _Plan, top: Any) -> Any:
         data = msgspec.structs.asdict(top)
-        fresh = []
         for name in plan.repeated:
             raw = data.pop(name)
             if raw is msgspec.UNSET:
                 continue
             hit = self._seen.get((kind, top.episode_id, name))
-            if hit is not None and hit[0] == raw:
-                data[name] = hit[1]
-            else:
-                data[name] = plan.parts[name].decode(raw)
-                fresh.append((name, raw))
-        for name, raw in fresh:
-            self._remember((kind, top.episode_id, name), raw.copy(), data[name])  # a copy: not a view of payload
+            if hit is None or hit[0] != raw:
+                hit = (raw.copy(), plan.parts[name].decode(raw))  # a copy of the bytes: not a view of payload
+                self._remember((kind, top.episode_id, name), *hit)
+            data[name] = list(hit[1])  # the items are shared, the list is the message's own
         return plan.mirror(**data)
 
     def forget(self, episode_id: str) -> None:

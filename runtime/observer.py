@@ -56,7 +56,7 @@ class Observer:
 def describe(key: str, payload: bytes) -> str:
     try:
         data = msgspec.msgpack.decode(payload)
-    except ValueError:  # msgspec.DecodeError, or a string that is not UTF-8
+    except (ValueError, RecursionError):  # msgspec.DecodeError, a string that is not UTF-8, too deep
         return f"{key}  <{len(payload)} bytes, not msgpack>"
     if not isinstance(data, dict):
         return f"{key}  <{type(data).__name__}>"

@@ -16,6 +16,7 @@ A mirror accepts a subset of what its model accepts (no lax coercion such as ``"
 
 from __future__ import annotations
 
+import sys
 import types
 import typing
 from typing import Any
@@ -26,23 +27,32 @@ from pydantic_core import PydanticUndefined
 
 _MIRRORS: dict[type[BaseModel], type[msgspec.Struct]] = {}
 _MODELS: dict[type[msgspec.Struct], type[BaseModel]] = {}
+_PLAIN_CONFIG = {"extra", "frozen", "title", "use_attribute_docstrings"}
+"""``model_config`` keys that do not change what a model accepts or the values it keeps (a
+mirror forbids unknown fields whatever ``extra`` says: it may be stricter, never more lenient)."""
 
 
 def mirror(model: type[BaseModel]) -> type[msgspec.Struct]:
     """The struct class mirroring ``model`` (made once, then cached).
 
     Raises ``TypeError`` for a model a struct cannot mirror exactly: field constraints (``ge``,
-    patterns...), validators or serializers, whose checks msgspec would not make."""
+    patterns...), aliases, validators or serializers, or config that changes what is accepted
+    (``str_strip_whitespace``, ``strict``...): checks and conversions msgspec would not make."""
     found = _MIRRORS.get(model)
     if found is not None:
         return found
-    if model.__pydantic_decorators__.field_validators or model.__pydantic_decorators__.model_validators or \
-            model.__pydantic_decorators__.field_serializers or model.__pydantic_decorators__.model_serializers:
+    decorators = model.__pydantic_decorators__
+    if decorators.field_validators or decorators.model_validators or decorators.field_serializers or \
+            decorators.model_serializers:
         raise TypeError(f"{model.__name__} has validators or serializers; a struct cannot mirror it")
+    if set(model.model_config) - _PLAIN_CONFIG:
+        raise TypeError(f"{model.__name__} sets {sorted(set(model.model_config) - _PLAIN_CONFIG)}; a struct cannot mirror it")
     fields: list[tuple[Any, ...]] = []
     for name, field in model.model_fields.items():
         if field.metadata:
             raise TypeError(f"{model.__name__}.{name} has constraints {field.metadata}; a struct cannot mirror it")
+        if field.alias or field.validation_alias or field.serialization_alias or field.exclude:
+            raise TypeError(f"{model.__name__}.{name} has an alias or is excluded; a struct cannot mirror it")
         kind = _mirror_type(field.annotation)
         if field.default_factory is not None:
             fields.append((name, kind, msgspec.field(default_factory=field.default_factory)))
@@ -52,6 +62,9 @@ def mirror(model: type[BaseModel]) -> type[msgspec.Struct]:
             fields.append((name, kind, field.default))
     found = msgspec.defstruct(model.__name__, fields, kw_only=True, forbid_unknown_fields=True, module=__name__)
     _MIRRORS[model], _MODELS[found] = found, model
+    module = sys.modules[__name__]
+    if not hasattr(module, model.__name__):  # pickle finds a class by module and name
+        setattr(module, model.__name__, found)
     return found
 
 

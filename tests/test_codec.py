@@ -94,6 +94,15 @@ def test_payload_is_the_models_dump_packed(make) -> None:
     assert encode(message) == msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
 
 
+def test_payload_holds_only_declared_fields() -> None:
+    stray = _action().model_copy(update={"note": "not a field"})  # stored beside the fields
+    assert encode(stray) == encode(_action())
+
+
+def test_numpy_scalars_are_written_as_numbers() -> None:
+    assert encode({"x": np.float32(0.5), "n": np.int64(3)}) == msgpack.packb({"x": 0.5, "n": 3})
+
+
 @pytest.mark.parametrize("make", MESSAGES)
 def test_round_trip(make) -> None:
     message = make()
@@ -344,6 +353,7 @@ def test_decoder_errors_read_like_decode() -> None:
     data["active_uav_waypoints"][1]["position_world_m"] = "north"
     bad = [msgpack.packb(data), b"", b"\xc1", msgpack.packb([1]), encode(_action()) + b"\x00",
            encode(_big_observation()).replace(b"\xa2e1", b"\xa2\xff\xfe", 1),  # a string that is not UTF-8
+           b"\x91" * 2000 + b"\x00", b"\x82\xa4type\xabobservation\xa6run_id" + b"\x91" * 2000 + b"\x00",  # too deep
            msgpack.packb({"v": 1, "type": "teleport"})]
     for payload in bad:
         with pytest.raises(DecodeError) as expected:

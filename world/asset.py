@@ -177,7 +177,7 @@ def load_town(path: Path, expected_sha256: str | None = None) -> Town:
             raise AssetError(f"{data_path}: content hash {digest[:12]} differs from manifest {str(recorded)[:12]}")
     try:
         town = town_from_document(data)
-    except (ValueError, KeyError, TypeError, IndexError, nx.NetworkXException) as exc:
+    except (ValueError, KeyError, TypeError, IndexError, RecursionError, nx.NetworkXException) as exc:
         raise AssetError(f"{data_path}: not a valid agos town asset ({type(exc).__name__}: {exc})") from None
     if expected_sha256 is not None and town.sha256 != expected_sha256:
         raise AssetMismatch(f"{data_path}: asset {town.town_id} has sha256 {town.sha256[:12]}..., "
@@ -227,7 +227,7 @@ def town_for(generator: str, seed: int, expected_sha256: str | None = None, *, t
             raise AssetMismatch(f"town {town_id}: fetched asset does not hash to {expected_sha256[:12]}")
         try:
             save_town(town_from_document(data), cached)
-        except (ValueError, KeyError, TypeError, IndexError, nx.NetworkXException) as exc:
+        except (ValueError, KeyError, TypeError, IndexError, RecursionError, nx.NetworkXException) as exc:
             raise AssetError(f"town {town_id}: fetched asset is not valid ({type(exc).__name__}: {exc})") from None
     return _load_cached(str(cached), expected_sha256)
 
