@@ -217,3 +217,22 @@ def test_an_echoed_key_is_redacted_from_errors(observations, monkeypatch) -> Non
     agent._client = VlmClient("http://stand.in/v1", "agos-standin", api_key_env="AGOS_TEST_KEY", transport=echo)
     action = asyncio.run(agent.act_async(uav))
     assert action.trace.fallback and "401" in action.trace.error and secret not in action.model_dump_json()
+
+
+def test_prompts_from_compiled_mirrors_are_the_prompts_from_models(observations) -> None:
+    """Over the bus a policy reads the observation's mirror (runtime/structs.py): every prompt of
+    both prompt families, built along a whole episode, must be the same bytes as from the model."""
+    from agos.agents.vlm import agos_prompts, baseline_prompts
+    from agos.runtime.codec import Decoder, Encoder
+
+    encoder, decoder = Encoder(), Decoder()
+    memories = {(family.__name__, role): Memory() for family in (agos_prompts, baseline_prompts) for role in ("uav", "ugv")}
+    mirrored = {(family.__name__, role): Memory() for family in (agos_prompts, baseline_prompts) for role in ("uav", "ugv")}
+    for obs in observations:
+        twin = decoder.decode(encoder.encode(obs))
+        assert type(twin) is not Observation  # the mirror, not the model
+        for family in (agos_prompts, baseline_prompts):
+            build = family.uav_prompt if obs.role == "uav" else family.ugv_prompt
+            key = (family.__name__, obs.role)
+            expected, got = build(obs, memories[key]), build(twin, mirrored[key])
+            assert got.sha256() == expected.sha256() and got.messages() == expected.messages(), (key, obs.decision_index)
