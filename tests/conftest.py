@@ -23,3 +23,29 @@ def sample_mid_episodes(tmp_path_factory) -> Callable[[int, int], Path]:
         return path
 
     return sample
+
+
+@pytest.fixture(scope="session")
+def observations() -> list:
+    """Every observation of one heuristic episode on grid-s7 (search, handoff, six views)."""
+    from agos.agents.inprocess import InProcessAgents
+    from agos.agents.policy import make_policy
+    from agos.world.asset import open_town
+    from agos.world.episode import EpisodeRunner
+    from agos.world.episodes import generate_episodes
+    from agos.world.scene import Scene
+
+    town = open_town("grid-s7")
+    scene = Scene(town.layout)
+    spec = generate_episodes(town, scene, per_difficulty=1, seed=1)[0]
+    seen: list = []
+    inner = InProcessAgents({r: make_policy("heuristic", r) for r in ("uav", "ugv")})
+
+    class Spy:
+        def decide(self, obs):
+            seen.extend(obs.values())
+            return inner.decide(obs)
+
+    EpisodeRunner(scene, town, spec, run_id="t", worker_id="w").run(Spy())
+    scene.close()
+    return seen

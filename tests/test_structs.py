@@ -149,3 +149,34 @@ def test_hot_path_decoder_agrees_without_each_top_level_field(name: str) -> None
     data = msgpack.unpackb(encode(_big_observation()), raw=False)
     del data[name]
     _agree(msgpack.packb(data, use_bin_type=True), Decoder())
+
+
+def test_prompts_from_compiled_mirrors_are_the_prompts_from_models(observations) -> None:
+    """Over the bus a policy reads the observation's mirror (runtime/structs.py): every prompt of
+    both prompt families, built along a whole episode, must be the same bytes as from the model."""
+    from agos.agents.vlm import agos_prompts, baseline_prompts
+    from agos.agents.vlm.request import Memory
+
+    encoder, decoder = Encoder(), Decoder()
+    memories = {(family.__name__, role): Memory() for family in (agos_prompts, baseline_prompts) for role in ("uav", "ugv")}
+    mirrored = {(family.__name__, role): Memory() for family in (agos_prompts, baseline_prompts) for role in ("uav", "ugv")}
+    for obs in observations:
+        twin = decoder.decode(encoder.encode(obs))
+        assert type(twin) is not Observation  # the mirror, not the model
+        for family in (agos_prompts, baseline_prompts):
+            build = family.uav_prompt if obs.role == "uav" else family.ugv_prompt
+            key = (family.__name__, obs.role)
+            expected, got = build(obs, memories[key]), build(twin, mirrored[key])
+            assert got.sha256() == expected.sha256() and got.messages() == expected.messages(), (key, obs.decision_index)
+
+
+def test_heuristic_policies_act_alike_on_mirrors_and_models(observations) -> None:
+    """The same decisions from a model and from its mirror, along a whole episode, both roles."""
+    from agos.agents.policy import make_policy
+
+    encoder, decoder = Encoder(), Decoder()
+    on_models = {r: make_policy("heuristic", r) for r in ("uav", "ugv")}
+    on_mirrors = {r: make_policy("heuristic", r) for r in ("uav", "ugv")}
+    for obs in observations:
+        twin = decoder.decode(encoder.encode(obs))
+        assert on_mirrors[obs.role].act(twin) == on_models[obs.role].act(obs), (obs.role, obs.decision_index)

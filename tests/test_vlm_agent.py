@@ -9,38 +9,14 @@ import logging
 
 import pytest
 
-from agos.agents.inprocess import InProcessAgents
 from agos.agents.policy import make_policy
 from agos.agents.vlm import protocol
 from agos.agents.vlm.agos_prompts import ugv_prompt, ugv_stage
 from agos.agents.vlm.baseline_prompts import anchor_from_messages
 from agos.agents.vlm.request import Memory
 from agos.agents.vlm.standin_server import StandinServer
-from agos.runtime.schemas import MessageRecord, Observation
+from agos.runtime.schemas import MessageRecord
 from agos.runtime.settings import VlmOptions
-from agos.world.asset import open_town
-from agos.world.episode import EpisodeRunner
-from agos.world.episodes import generate_episodes
-from agos.world.scene import Scene
-
-
-@pytest.fixture(scope="module")
-def observations() -> list[Observation]:
-    """Every observation of one heuristic episode on grid-s7 (search, handoff, six views)."""
-    town = open_town("grid-s7")
-    scene = Scene(town.layout)
-    spec = generate_episodes(town, scene, per_difficulty=1, seed=1)[0]
-    seen: list[Observation] = []
-    inner = InProcessAgents({r: make_policy("heuristic", r) for r in ("uav", "ugv")})
-
-    class Spy:
-        def decide(self, obs):
-            seen.extend(obs.values())
-            return inner.decide(obs)
-
-    EpisodeRunner(scene, town, spec, run_id="t", worker_id="w").run(Spy())
-    scene.close()
-    return seen
 
 
 def _agent(url: str, role: str = "uav", name: str = "agos-agent", **kw):
@@ -218,21 +194,3 @@ def test_an_echoed_key_is_redacted_from_errors(observations, monkeypatch) -> Non
     action = asyncio.run(agent.act_async(uav))
     assert action.trace.fallback and "401" in action.trace.error and secret not in action.model_dump_json()
 
-
-def test_prompts_from_compiled_mirrors_are_the_prompts_from_models(observations) -> None:
-    """Over the bus a policy reads the observation's mirror (runtime/structs.py): every prompt of
-    both prompt families, built along a whole episode, must be the same bytes as from the model."""
-    from agos.agents.vlm import agos_prompts, baseline_prompts
-    from agos.runtime.codec import Decoder, Encoder
-
-    encoder, decoder = Encoder(), Decoder()
-    memories = {(family.__name__, role): Memory() for family in (agos_prompts, baseline_prompts) for role in ("uav", "ugv")}
-    mirrored = {(family.__name__, role): Memory() for family in (agos_prompts, baseline_prompts) for role in ("uav", "ugv")}
-    for obs in observations:
-        twin = decoder.decode(encoder.encode(obs))
-        assert type(twin) is not Observation  # the mirror, not the model
-        for family in (agos_prompts, baseline_prompts):
-            build = family.uav_prompt if obs.role == "uav" else family.ugv_prompt
-            key = (family.__name__, obs.role)
-            expected, got = build(obs, memories[key]), build(twin, mirrored[key])
-            assert got.sha256() == expected.sha256() and got.messages() == expected.messages(), (key, obs.decision_index)
