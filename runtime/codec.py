@@ -22,7 +22,7 @@ import numpy as np
 from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from agos.runtime.schemas import WireMessage
-from agos.runtime.structs import mirror
+from agos.runtime.structs import mirror, mirror_fields
 
 _ADAPTER: TypeAdapter[Any] = TypeAdapter(WireMessage)
 _MODELS = {model.model_fields["type"].default: model for model in get_args(get_args(WireMessage)[0])}
@@ -116,19 +116,17 @@ class _Plan:
         model = _MODELS[kind]
         self.mirror = mirror(model)
         self.repeated = REPEATED[kind]
-        types = dict(zip(self.mirror.__struct_fields__, msgspec.structs.fields(self.mirror), strict=True))
-        top = []
-        for name, info in types.items():
+        specs, top = mirror_fields(model), []
+        for spec in specs:
+            name = spec[0]
             if name in self.repeated:
-                top.append((name, msgspec.Raw) if info.required else (name, msgspec.Raw, msgspec.UNSET))
-            elif info.required or name == "type":  # decode() dispatches on ``type``: it must be there
-                top.append((name, info.type))
-            else:
-                top.append((name, info.type, msgspec.field(default_factory=info.default_factory)
-                            if info.default_factory is not msgspec.NODEFAULT else info.default))
+                spec = (name, msgspec.Raw, *((msgspec.UNSET,) if len(spec) == 3 else ()))  # absent: the mirror's default
+            elif name == "type":
+                spec = spec[:2]  # decode() dispatches on ``type``: it must be there
+            top.append(spec)
         self.top = msgspec.msgpack.Decoder(msgspec.defstruct(f"{model.__name__}TopLevel", top, kw_only=True,
                                                              forbid_unknown_fields=True))
-        self.parts = {name: msgspec.msgpack.Decoder(types[name].type) for name in self.repeated}
+        self.parts = {spec[0]: msgspec.msgpack.Decoder(spec[1]) for spec in specs if spec[0] in self.repeated}
 
 
 _PLANS = {kind: _Plan(kind) for kind in REPEATED}

@@ -33,14 +33,26 @@ mirror forbids unknown fields whatever ``extra`` says: it may be stricter, never
 
 
 def mirror(model: type[BaseModel]) -> type[msgspec.Struct]:
-    """The struct class mirroring ``model`` (made once, then cached).
+    """The struct class mirroring ``model`` (made once, then cached); see :func:`mirror_fields`."""
+    found = _MIRRORS.get(model)
+    if found is not None:
+        return found
+    found = msgspec.defstruct(model.__name__, mirror_fields(model), kw_only=True, forbid_unknown_fields=True,
+                              module=__name__)
+    _MIRRORS[model], _MODELS[found] = found, model
+    module = sys.modules[__name__]
+    if not hasattr(module, model.__name__):  # pickle finds a class by module and name
+        setattr(module, model.__name__, found)
+    return found
+
+
+def mirror_fields(model: type[BaseModel]) -> list[tuple[Any, ...]]:
+    """``model``'s fields as ``msgspec.defstruct`` takes them: ``(name, type)`` when required, else
+    ``(name, type, default)``; nested models replaced by their mirrors.
 
     Raises ``TypeError`` for a model a struct cannot mirror exactly: field constraints (``ge``,
     patterns...), aliases, validators or serializers, or config that changes what is accepted
     (``str_strip_whitespace``, ``strict``...): checks and conversions msgspec would not make."""
-    found = _MIRRORS.get(model)
-    if found is not None:
-        return found
     decorators = model.__pydantic_decorators__
     if decorators.field_validators or decorators.model_validators or decorators.field_serializers or \
             decorators.model_serializers:
@@ -60,12 +72,7 @@ def mirror(model: type[BaseModel]) -> type[msgspec.Struct]:
             fields.append((name, kind))
         else:
             fields.append((name, kind, field.default))
-    found = msgspec.defstruct(model.__name__, fields, kw_only=True, forbid_unknown_fields=True, module=__name__)
-    _MIRRORS[model], _MODELS[found] = found, model
-    module = sys.modules[__name__]
-    if not hasattr(module, model.__name__):  # pickle finds a class by module and name
-        setattr(module, model.__name__, found)
-    return found
+    return fields
 
 
 def to_model(value: Any) -> Any:

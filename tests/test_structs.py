@@ -104,6 +104,19 @@ def _mutate(data: dict, rng: random.Random) -> dict:
     return data
 
 
+def _agree(payload: bytes, decoder: Decoder, label: object = "") -> str:
+    """Both decoders give the same model, or the same error; which of the two it was."""
+    try:
+        expected = decode(payload)
+    except DecodeError as exc:
+        with pytest.raises(DecodeError) as got:
+            decoder.decode(payload)
+        assert str(got.value) == str(exc), label
+        return "refused"
+    assert to_model(decoder.decode(payload)) == expected, label
+    return "accepted"
+
+
 def test_hot_path_decoder_agrees_with_pydantic_on_mutated_payloads() -> None:
     rng = random.Random(7)
     originals = [msgpack.unpackb(encode(_big_observation()), raw=False),
@@ -119,28 +132,8 @@ def test_hot_path_decoder_agrees_with_pydantic_on_mutated_payloads() -> None:
         decoder = Decoder()
         if rng.random() < 0.5:  # with the repeated parts already cached from a valid observation
             decoder.decode(encode(_big_observation()))
-        try:
-            expected = decode(payload)
-        except DecodeError as exc:
-            with pytest.raises(DecodeError) as got:
-                decoder.decode(payload)
-            assert str(got.value) == str(exc), case
-            agreed["refused"] += 1
-        else:
-            assert to_model(decoder.decode(payload)) == expected, case
-            agreed["accepted"] += 1
+        agreed[_agree(payload, decoder, case)] += 1
     assert agreed["accepted"] > 20 and agreed["refused"] > 200  # both branches well exercised
-
-
-def _agree(payload: bytes, decoder: Decoder) -> None:
-    try:
-        expected = decode(payload)
-    except DecodeError as exc:
-        with pytest.raises(DecodeError) as got:
-            decoder.decode(payload)
-        assert str(got.value) == str(exc)
-    else:
-        assert to_model(decoder.decode(payload)) == expected
 
 
 @pytest.mark.parametrize("name", list(Observation.model_fields))
@@ -158,8 +151,8 @@ def test_prompts_from_compiled_mirrors_are_the_prompts_from_models(observations)
     from agos.agents.vlm.request import Memory
 
     encoder, decoder = Encoder(), Decoder()
-    memories = {(family.__name__, role): Memory() for family in (agos_prompts, baseline_prompts) for role in ("uav", "ugv")}
-    mirrored = {(family.__name__, role): Memory() for family in (agos_prompts, baseline_prompts) for role in ("uav", "ugv")}
+    keys = [(family.__name__, role) for family in (agos_prompts, baseline_prompts) for role in ("uav", "ugv")]
+    memories, mirrored = {key: Memory() for key in keys}, {key: Memory() for key in keys}
     for obs in observations:
         twin = decoder.decode(encoder.encode(obs))
         assert type(twin) is not Observation  # the mirror, not the model
