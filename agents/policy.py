@@ -8,14 +8,21 @@ Over the bus, the agent service delivers an observation as its compiled mirror
 (:mod:`agos.runtime.structs`): the same fields and nested values, read the same way, but without
 the pydantic methods. In-process runs pass the model itself. Read observations; do not rely on
 ``model_dump``/``model_copy`` (``structs.to_model`` gives the model when one is needed).
+:func:`action_for` answers in the same kind (a mirror action for a mirror observation), so a
+decision over the bus touches no pydantic code; a policy may also return an :class:`Action` model.
 """
 
 from __future__ import annotations
 
 from typing import Protocol
 
+import msgspec
+
 from agos.runtime.schemas import Action, Observation, Role
 from agos.runtime.settings import VlmOptions
+from agos.runtime.structs import mirror
+
+_MIRROR_ACTION = mirror(Action)
 
 
 class Policy(Protocol):
@@ -104,6 +111,10 @@ def make_policy(name: str, role: Role, *, vlm: VlmOptions | None = None) -> Poli
 
 
 def action_for(obs: Observation, name: str, **fields: object) -> Action:
-    """An action answering ``obs`` (run, episode, role and decision index filled in)."""
-    return Action(run_id=obs.run_id, episode_id=obs.episode_id, role=obs.role,
-                  decision_index=obs.decision_index, action=name, **fields)
+    """An action answering ``obs`` (run, episode, role and decision index filled in), in the
+    observation's kind: the model for a model; for a mirror (over the bus), the mirror of
+    :class:`Action`, which is built without checks: the agent service checks its types before
+    sending it (``codec.checked``) and answers WAIT for one that fails, as for a policy error."""
+    kind = _MIRROR_ACTION if isinstance(obs, msgspec.Struct) else Action
+    return kind(run_id=obs.run_id, episode_id=obs.episode_id, role=obs.role,
+                decision_index=obs.decision_index, action=name, **fields)

@@ -26,7 +26,7 @@ from concurrent.futures import ThreadPoolExecutor
 from agos.agents.policy import Policy, action_for, make_policy
 from agos.runtime import keys
 from agos.runtime.bus import Sample, ZenohBus, zenoh_config
-from agos.runtime.codec import DecodeError, Decoder
+from agos.runtime.codec import DecodeError, Decoder, checked
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role
 from agos.runtime.settings import AgosConfig
@@ -76,9 +76,10 @@ class _Dispatch:
 
 
 def decide(policy: Policy, obs: Observation) -> Action:
-    """``policy.act``; a policy error is logged and answered with a legal WAIT."""
+    """``policy.act``, its answer checked (``codec.checked``: a mirror action is built without
+    checks); a policy error or a badly typed answer is logged and answered with a legal WAIT."""
     try:
-        return policy.act(obs)
+        return checked(policy.act(obs))
     except Exception:
         return _policy_failed(obs)
 
@@ -88,7 +89,7 @@ async def answer(policy: Policy, obs: Observation, executor: ThreadPoolExecutor)
     if not hasattr(policy, "act_async"):
         return await asyncio.get_running_loop().run_in_executor(executor, decide, policy, obs)
     try:
-        return await policy.act_async(obs)
+        return checked(await policy.act_async(obs))
     except Exception:
         return _policy_failed(obs)
 

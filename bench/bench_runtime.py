@@ -198,8 +198,9 @@ def ping_pongs(bus: ZenohBus, payload: bytes, n: int) -> list[float]:
     return times
 
 
-def interleaved(a, b, rounds: int = 10, n: int = 20) -> tuple[float, float]:
-    """Medians of two measurements taken in alternating batches (drift hits both alike)."""
+def interleaved(a, b, rounds: int = 40, n: int = 20) -> tuple[float, float]:
+    """Medians of two measurements taken in alternating batches (drift hits both alike); 800 of
+    each, over a few seconds, so that one noisy second on a shared machine does not decide."""
     ta, tb = [], []
     for _ in range(rounds):
         ta += a(n)
@@ -376,13 +377,12 @@ def round_trip_breakdown(obs: Observation, payload: bytes) -> None:
     time beyond the raw ping-pong goes, measured in situ, not in a micro-benchmark."""
     import json
 
-    import agos.world.worker as worker
-    from agos.runtime.codec import Encoder
+    from agos.runtime.codec import Decoder, Encoder
 
     spent: dict[str, list[float]] = {}
-    original_encode, original_decode = Encoder.encode, worker.decode
-    Encoder.encode = timed(original_encode, spent, "world: encode observation")
-    worker.decode = timed(original_decode, spent, "world: decode action")
+    original_encode, original_decode = Encoder.encode_reused, Decoder.decode
+    Encoder.encode_reused = timed(original_encode, spent, "world: encode observation")
+    Decoder.decode = timed(original_decode, spent, "world: decode action")
     try:
         with tempfile.TemporaryDirectory() as tmp:
             report = Path(tmp) / "agent.json"
@@ -396,7 +396,7 @@ def round_trip_breakdown(obs: Observation, payload: bytes) -> None:
                 bus.close()
             agent_spent = json.loads(report.read_text())
     finally:
-        Encoder.encode, worker.decode = original_encode, original_decode
+        Encoder.encode_reused, Decoder.decode = original_encode, original_decode
     print(f"round trip with timers {1000 * t_rt:.2f} ms vs raw ping-pong {1000 * t_ping:.2f} ms: "
           f"{1e6 * (t_rt - t_ping):.0f} us more; medians per decision, in situ:")
     for label, value in [*((k, statistics.median(v)) for k, v in spent.items()), *agent_spent.items()]:

@@ -138,6 +138,9 @@ class ZenohBus:
         return cls(zenoh_config(connect=[endpoint], connect_timeout_s=connect_timeout_s))
 
     def _publisher(self, key: str, *, viz: bool = False) -> zenoh.Publisher:
+        pub = self._publishers.get(key)  # the common case, without the lock
+        if pub is not None:
+            return pub
         with self._lock:
             pub = self._publishers.get(key)
             if pub is None:
@@ -153,7 +156,7 @@ class ZenohBus:
 
     def publish(self, key: str, message: Any) -> None:
         """Control traffic: reliable, congestion control BLOCK (never lost, may wait)."""
-        self._publisher(key).put(message if isinstance(message, bytes) else encode(message))
+        self._publisher(key).put(message if isinstance(message, (bytes, bytearray)) else encode(message))
 
     def watched(self, key: str) -> bool:
         """Whether anyone subscribes to the visualisation key ``key`` (known a round trip after the
@@ -171,7 +174,7 @@ class ZenohBus:
     def publish_viz(self, key: str, message: Any) -> None:
         """Visualisation traffic: congestion control DROP, express, low priority, best effort.
         Never waits for a slow observer; a sample nobody can take is dropped."""
-        self._publisher(key, viz=True).put(message if isinstance(message, bytes) else encode(message))
+        self._publisher(key, viz=True).put(message if isinstance(message, (bytes, bytearray)) else encode(message))
 
     def forget(self, key_prefix: str) -> None:
         """Undeclare the publishers under a prefix (an episode that is over)."""
@@ -209,7 +212,7 @@ class ZenohBus:
         return inbox
 
     def request(self, key: str, message: Any, timeout_s: float) -> list[bytes]:
-        payload = message if isinstance(message, bytes) else encode(message)
+        payload = message if isinstance(message, (bytes, bytearray)) else encode(message)
         replies = self.session.get(key, payload=payload, timeout=timeout_s)
         return [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
 
@@ -256,7 +259,7 @@ class MemoryBus:
         self._subs: list[tuple[str, Inbox]] = []
 
     def publish(self, key: str, message: Any) -> None:
-        payload = message if isinstance(message, bytes) else encode(message)
+        payload = message if isinstance(message, (bytes, bytearray)) else encode(message)
         self.published.append((key, message))
         for expr, inbox in self._subs:
             if _matches(expr, key):

@@ -76,6 +76,23 @@ def decode(payload: bytes) -> Any:
         raise DecodeError(f"field {where}: {first['msg']} (type={data.get('type')!r})") from exc
 
 
+def checked(message: Any) -> Any:
+    """``message`` as a receiver reads it. A pydantic model is returned as it is (pydantic checked
+    it when it was built); anything else, such as a mirror struct (built without checks), is
+    encoded and read back, so a wrong value raises :class:`DecodeError` naming the field."""
+    if isinstance(message, BaseModel):
+        return message
+    payload = encode(message)
+    plan = _PLANS.get(getattr(message, "type", None))
+    if plan is not None and not plan.repeated:
+        try:
+            plan.top.decode(payload)  # the whole message read with its types: it passes as it is
+            return message
+        except (ValueError, RecursionError):
+            pass
+    return Decoder().decode(payload)  # the receiver's reading: the model (lax input) or the error
+
+
 class Encoder:
     """``encode`` for one sender's stream: a ``REPEATED`` field equal to the one last sent (the
     same objects, else ``==``) is written from its packed bytes instead of being packed again.
@@ -83,11 +100,24 @@ class Encoder:
 
     def __init__(self) -> None:
         self._packed: dict[tuple[str, str], tuple[Any, msgspec.Raw]] = {}
+        self._buffer = bytearray()
 
     def encode(self, message: Any) -> bytes:
+        return _PACK.encode(self._prepared(message))
+
+    def encode_reused(self, message: Any) -> bytearray:
+        """The payload written into this encoder's own buffer, valid until its next call: for a
+        sender that puts it at once (zenoh copies it), sparing an allocation that grows with the
+        payload (a 244 KB observation: about a quarter less time)."""
+        _PACK.encode_into(self._prepared(message), self._buffer)
+        return self._buffer
+
+    def _prepared(self, message: Any) -> Any:
+        """``message``, or for one with ``REPEATED`` fields its top-level map with those fields as
+        packed bytes (``msgspec.Raw``)."""
         fields = REPEATED.get(getattr(message, "type", ""), ())
         if not fields or not isinstance(message, BaseModel):
-            return encode(message)
+            return message
         data = dict(message.__dict__)
         for name in fields:
             value = data[name]
@@ -96,7 +126,7 @@ class Encoder:
                 snapshot = list(value) if isinstance(value, list) else value
                 hit = self._packed[(message.type, name)] = (snapshot, msgspec.Raw(_PACK.encode(value)))
             data[name] = hit[1]  # msgspec writes a Raw as it is
-        return _PACK.encode(data)
+        return data
 
 
 def _same(value: Any, snapshot: Any) -> bool:
@@ -115,7 +145,7 @@ class _Plan:
     def __init__(self, kind: str) -> None:
         model = _MODELS[kind]
         self.mirror = mirror(model)
-        self.repeated = REPEATED[kind]
+        self.repeated = REPEATED.get(kind, ())
         specs, top = mirror_fields(model), []
         for spec in specs:
             name = spec[0]
@@ -129,14 +159,18 @@ class _Plan:
         self.parts = {spec[0]: msgspec.msgpack.Decoder(spec[1]) for spec in specs if spec[0] in self.repeated}
 
 
-_PLANS = {kind: _Plan(kind) for kind in REPEATED}
+MIRRORED = ("observation", "action")
+"""The message types :class:`Decoder` reads into mirrors: the two legs of a decision."""
+_PLANS = {kind: _Plan(kind) for kind in MIRRORED}
+_ORDERS = {first: sorted(_PLANS.items(), key=lambda item: item[0] != first) for first in _PLANS}
 
 
 class Decoder:
     """``decode`` for one receiver's stream, on the decision hot path.
 
-    An observation is read straight into its compiled mirror (:mod:`agos.runtime.structs`: every
-    type checked while reading, in C), not into the pydantic model; policies read both alike. A
+    An observation or an action (``MIRRORED``) is read straight into its compiled mirror
+    (:mod:`agos.runtime.structs`: every type checked while reading, in C), not into the pydantic
+    model; both read alike, and ``structs.to_model`` gives the model where one is needed. A
     ``REPEATED`` field whose bytes equal those last seen for the same episode is not decoded again;
     the earlier value is reused, so decoded messages may share those parts: treat them as read-only.
     Anything else (other message types, anything the mirror refuses) goes through :func:`decode`:
@@ -144,12 +178,13 @@ class Decoder:
     entries dropped).
     """
 
-    def __init__(self, capacity: int = 256) -> None:
+    def __init__(self, capacity: int = 256, *, first: str = "observation") -> None:
         self.capacity = capacity
         self._seen: dict[tuple[str, str, str], tuple[msgspec.Raw, Any]] = {}
+        self._plans = _ORDERS.get(first, _ORDERS["observation"])  # the type the stream mostly carries, first
 
     def decode(self, payload: bytes) -> Any:
-        for kind, plan in _PLANS.items():
+        for kind, plan in self._plans:
             try:
                 top = plan.top.decode(payload)
             except (ValueError, RecursionError):  # not this type, or not valid: decode() says which

@@ -27,6 +27,7 @@ subscribe there, so a slow one loses frames instead of slowing the world.
 
 from __future__ import annotations
 
+import functools
 import re
 from typing import Literal
 
@@ -48,10 +49,12 @@ def check_chunk(value: str, *, what: str) -> str:
     return value
 
 
+@functools.lru_cache(maxsize=4096)  # asked for on every decision; a bad id raises (not cached)
 def _run(run: str) -> str:
     return f"{ROOT}/{run if run == '*' else check_chunk(run, what='run id')}"
 
 
+@functools.lru_cache(maxsize=4096)
 def _ep(run: str, episode: str) -> str:
     ep = episode if episode == "*" else check_chunk(episode, what="episode id")
     return f"{_run(run)}/ep/{ep}"

@@ -16,8 +16,8 @@ import msgspec
 import pytest
 from pydantic import BaseModel
 
-from agos.runtime.codec import DecodeError, Decoder, Encoder, decode, encode
-from agos.runtime.schemas import Observation, WireMessage
+from agos.runtime.codec import DecodeError, Decoder, Encoder, checked, decode, encode
+from agos.runtime.schemas import Action, Observation, WireMessage
 from agos.runtime.structs import mirror, to_model
 from tests.test_codec import MESSAGES, _big_observation
 
@@ -164,7 +164,9 @@ def test_prompts_from_compiled_mirrors_are_the_prompts_from_models(observations)
 
 
 def test_heuristic_policies_act_alike_on_mirrors_and_models(observations) -> None:
-    """The same decisions from a model and from its mirror, along a whole episode, both roles."""
+    """The same decisions from a model and from its mirror, along a whole episode, both roles; a
+    mirror observation is answered with a mirror action (action_for answers in kind) that passes
+    the service's check and reads back as the model's action."""
     from agos.agents.policy import make_policy
 
     encoder, decoder = Encoder(), Decoder()
@@ -172,4 +174,7 @@ def test_heuristic_policies_act_alike_on_mirrors_and_models(observations) -> Non
     on_mirrors = {r: make_policy("heuristic", r) for r in ("uav", "ugv")}
     for obs in observations:
         twin = decoder.decode(encoder.encode(obs))
-        assert on_mirrors[obs.role].act(twin) == on_models[obs.role].act(obs), (obs.role, obs.decision_index)
+        expected, got = on_models[obs.role].act(obs), on_mirrors[obs.role].act(twin)
+        assert type(expected) is Action and type(got) is mirror(Action)
+        assert encode(checked(got)) == encode(expected), (obs.role, obs.decision_index)
+        assert to_model(got) == expected

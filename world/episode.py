@@ -50,6 +50,7 @@ from agos.runtime.schemas import (
     Termination,
     Waypoint,
 )
+from agos.runtime.structs import to_model
 from agos.runtime.traces import trace_stats
 from agos.world import sensors
 from agos.world.asset import Town
@@ -104,7 +105,8 @@ class DecisionSource(Protocol):
     """Where actions come from: agents over zenoh, or policies called in-process in tests."""
 
     def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
-        """Return one action per observed role; ``None`` when none arrived in time."""
+        """Return one action per observed role (the model or its compiled mirror,
+        :mod:`agos.runtime.structs`); ``None`` when none arrived in time."""
         ...
 
 
@@ -373,6 +375,7 @@ class EpisodeRunner:
 
     # ----- actions --------------------------------------------------------------------------
     def _apply(self, role: Role, obs: Observation, action: Action | None) -> None:
+        action = to_model(action)  # a mirror from the bus becomes the model the step records keep
         self.decisions_used += 1
         if self.cfg.timing_mode == "realtime" and action is not None and action.agent_wall_latency_s:
             # A slow decision takes effect late; the teammate's schedule is unaffected.

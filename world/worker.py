@@ -18,7 +18,7 @@ import traceback
 
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, ZenohBus, zenoh_config
-from agos.runtime.codec import DecodeError, Encoder, decode, encode
+from agos.runtime.codec import DecodeError, Decoder, Encoder, decode, encode
 from agos.runtime.links import CommProfile
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.records import failure_record
@@ -37,12 +37,14 @@ from agos.runtime.schemas import (
     StepEvent,
 )
 from agos.runtime.settings import AgosConfig
+from agos.runtime.structs import mirror
 from agos.runtime.viz import FrameStream
 from agos.world.asset import AssetError, AssetMismatch, Town, town_for
 from agos.world.episode import EpisodeRunner
 from agos.world.scene import Scene
 
 log = logging.getLogger("agos.world")
+ACTIONS = (Action, mirror(Action))
 ACK_WAIT_S = 3.0
 SUBMIT_ATTEMPTS = 20
 RESEND_S = 5.0
@@ -94,7 +96,8 @@ class BusDecisionSource:
         self.frames = frames  # thumbnails for observers (runtime/viz.py)
         self.inbox = Inbox()
         self._handle = bus.subscribe(keys.act(run_id, episode_id, "*"), self.inbox)
-        self.encoder = Encoder()  # packs the episode's reference views and searchable area once
+        self.encoders = {role: Encoder() for role in keys.ROLES}  # each packs its role's repeated parts once
+        self.decoder = Decoder(first="action")  # actions arrive as compiled mirrors (the runner makes models of them)
 
     def close(self) -> None:
         self.bus.unsubscribe(self._handle)
@@ -112,11 +115,13 @@ class BusDecisionSource:
             raise MissingAgent(missing, self.run_id, self.agent_wait_s)
 
     def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
+        """Actions as their compiled mirrors (type-checked while read; ``EpisodeRunner`` makes
+        models of them when it applies them), ``None`` for a role that did not answer in time."""
         payloads = {}
         self._check_agents(observations)
         for role, obs in observations.items():
             key = keys.obs(self.run_id, self.episode_id, role)
-            payloads[role] = self.encoder.encode(obs)
+            payloads[role] = self.encoders[role].encode_reused(obs)  # untouched until this role's next decision
             self.bus.publish(key, payloads[role])
             if self.frames is not None:
                 self.frames.offer(keys.viz_frame(self.run_id, self.episode_id, role), obs)
@@ -136,11 +141,11 @@ class BusDecisionSource:
                     break
                 continue
             try:
-                action = decode(sample.payload)
+                action = self.decoder.decode(sample.payload)
             except DecodeError as exc:
                 log.warning("%s: undecodable action on %s: %s", self.episode_id, sample.key, exc)
                 continue
-            if isinstance(action, Action) and pending.get(action.role) == action.decision_index:
+            if isinstance(action, ACTIONS) and pending.get(action.role) == action.decision_index:
                 actions[action.role] = action
                 del pending[action.role]
         for role in pending:

@@ -15,6 +15,7 @@ the world offers (the prompt follows from the legal actions and the options' hin
 from __future__ import annotations
 
 import asyncio
+import copy
 import json
 import logging
 import math
@@ -131,14 +132,14 @@ class VlmAgent:
         answers = self._answers.setdefault(obs.episode_id, {})
         pending = answers.get(obs.decision_index)
         if pending is not None and pending.done():
-            return pending.result().model_copy(deep=True)
+            return copy.deepcopy(pending.result())
         if pending is None or pending.get_loop() is not asyncio.get_running_loop():
             pending = asyncio.ensure_future(self._decide_safely(obs))
             for old in [k for k in answers if k < obs.decision_index]:
                 del answers[old]  # only the latest decision of an episode can be asked again
             answers[obs.decision_index] = pending
         action = await asyncio.shield(pending)
-        return action.model_copy(deep=True)
+        return copy.deepcopy(action)
 
     async def _decide_safely(self, obs: Observation) -> Action:
         try:
