@@ -14,6 +14,7 @@ what ``encode`` writes, byte for byte.
 
 from __future__ import annotations
 
+import operator
 from typing import Any, get_args
 
 import cv2
@@ -41,8 +42,9 @@ def _fields_of(value: Any) -> Any:
     beside the fields (``model_copy(update=...)`` with an unknown key). One difference remains: an
     instance of a subclass in a field typed as its parent is written with all its own fields, where
     ``model_dump`` would write the parent's; the schemas never do that. numpy scalars become numbers."""
-    if isinstance(value, BaseModel):
-        fields, data = type(value).__pydantic_fields__, value.__dict__
+    fields = getattr(type(value), "__pydantic_fields__", None)  # a model (quicker than isinstance on its metaclass)
+    if fields is not None:
+        data = value.__dict__
         return data if len(data) == len(fields) else {name: data[name] for name in fields}
     if isinstance(value, np.generic):
         return value.item()
@@ -132,9 +134,9 @@ class Encoder:
 def _same(value: Any, snapshot: Any) -> bool:
     """``value == snapshot``, quicker for lists of models (the fields of a model are its ``__dict__``)."""
     if isinstance(value, list):
-        return len(value) == len(snapshot) and all(
+        return len(value) == len(snapshot) and (all(map(operator.is_, value, snapshot)) or all(
             a is b or (type(a) is type(b) and getattr(a, "__dict__", a) == getattr(b, "__dict__", b))
-            for a, b in zip(value, snapshot, strict=True))
+            for a, b in zip(value, snapshot, strict=True)))  # the same objects (usual), checked in C first
     return value is snapshot or value == snapshot
 
 
