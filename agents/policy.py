@@ -114,7 +114,7 @@ def action_for(obs: Observation, name: str, **fields: object) -> Action:
     """An action answering ``obs`` (run, episode, role and decision index filled in), in the
     observation's kind: the model for a model; for a mirror (over the bus), the mirror of
     :class:`Action`, which is built without checks: the agent service checks its types before
-    sending it (``codec.checked``) and answers WAIT for one that fails, as for a policy error."""
+    sending it (``codec.encode_checked``) and answers WAIT for one that fails, as for a policy error."""
     kind = _MIRROR_ACTION if isinstance(obs, msgspec.Struct) else Action
     return kind(run_id=obs.run_id, episode_id=obs.episode_id, role=obs.role,
                 decision_index=obs.decision_index, action=name, **fields)

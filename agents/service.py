@@ -26,7 +26,7 @@ from concurrent.futures import ThreadPoolExecutor
 from agos.agents.policy import Policy, action_for, make_policy
 from agos.runtime import keys
 from agos.runtime.bus import Sample, ZenohBus, zenoh_config
-from agos.runtime.codec import DecodeError, Decoder, checked
+from agos.runtime.codec import DecodeError, Decoder, encode_checked
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role
 from agos.runtime.settings import AgosConfig
@@ -69,17 +69,15 @@ class _Dispatch:
                 return
             elif self.inline:
                 started = time.monotonic()
-                action = decide(self.policy, message)
-                publish_action(self.bus, self.run_id, action, started)
+                publish_action(self.bus, self.run_id, message, decide(self.policy, message), started)
                 return
         self.loop.call_soon_threadsafe(self.on_loop, message)
 
 
 def decide(policy: Policy, obs: Observation) -> Action:
-    """``policy.act``, its answer checked (``codec.checked``: a mirror action is built without
-    checks); a policy error or a badly typed answer is logged and answered with a legal WAIT."""
+    """``policy.act``; a policy error is logged and answered with a legal WAIT."""
     try:
-        return checked(policy.act(obs))
+        return policy.act(obs)
     except Exception:
         return _policy_failed(obs)
 
@@ -89,7 +87,7 @@ async def answer(policy: Policy, obs: Observation, executor: ThreadPoolExecutor)
     if not hasattr(policy, "act_async"):
         return await asyncio.get_running_loop().run_in_executor(executor, decide, policy, obs)
     try:
-        return checked(await policy.act_async(obs))
+        return await policy.act_async(obs)
     except Exception:
         return _policy_failed(obs)
 
@@ -100,10 +98,18 @@ def _policy_failed(obs: Observation) -> Action:
     return action_for(obs, "WAIT", rationale="policy error (see agent log)")
 
 
-def publish_action(bus: ZenohBus, run_id: str, action: Action, started: float) -> None:
-    """Stamp the policy's wall-clock latency (realtime mode charges it in simulated time) and send."""
-    action.agent_wall_latency_s = round(time.monotonic() - started, 4)
-    bus.publish(keys.act(run_id, action.episode_id, action.role), action)
+def publish_action(bus: ZenohBus, run_id: str, obs: Observation, action: Action, started: float) -> None:
+    """Stamp the policy's wall-clock latency (realtime mode charges it in simulated time), check the
+    answer as the world will read it (a mirror action from ``action_for`` is built without checks)
+    and send it; one the world would refuse is logged and replaced by a legal WAIT."""
+    try:
+        action.agent_wall_latency_s = round(time.monotonic() - started, 4)
+        payload = encode_checked(action)
+    except Exception:
+        action = _policy_failed(obs)
+        action.agent_wall_latency_s = round(time.monotonic() - started, 4)
+        payload = encode_checked(action)
+    bus.publish(keys.act(run_id, action.episode_id, action.role), payload)
 
 
 def end_episode(bus: ZenohBus, policy: Policy, run_id: str, episode_id: str) -> None:
@@ -121,7 +127,7 @@ async def serve_async(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag
         async with limit:
             started = time.monotonic()  # the policy's latency, not the wait for a free slot
             action = await answer(policy, obs, executor)
-        publish_action(bus, run_id, action, started)
+        publish_action(bus, run_id, obs, action, started)
 
     def on_loop(message: Observation | EpisodeRecord) -> None:
         """Start answering an observation, or forget an episode that is over."""

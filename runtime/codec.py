@@ -78,21 +78,24 @@ def decode(payload: bytes) -> Any:
         raise DecodeError(f"field {where}: {first['msg']} (type={data.get('type')!r})") from exc
 
 
-def checked(message: Any) -> Any:
-    """``message`` as a receiver reads it. A pydantic model is returned as it is (pydantic checked
-    it when it was built); anything else, such as a mirror struct (built without checks), is
-    encoded and read back, so a wrong value raises :class:`DecodeError` naming the field."""
-    if isinstance(message, BaseModel):
-        return message
+def encode_checked(message: Any) -> bytes:
+    """:func:`encode`, for a message built without checks (a mirror struct) also read back the way
+    a receiver reads it (its mirror in C, else pydantic): raises :class:`DecodeError` naming the
+    field when a receiver would refuse it. A pydantic model was checked when it was built."""
     payload = encode(message)
-    plan = _PLANS.get(getattr(message, "type", None))
-    if plan is not None and not plan.repeated:
-        try:
-            plan.top.decode(payload)  # the whole message read with its types: it passes as it is
-            return message
-        except (ValueError, RecursionError):
-            pass
-    return Decoder().decode(payload)  # the receiver's reading: the model (lax input) or the error
+    if getattr(type(message), "__pydantic_fields__", None) is None:
+        plan = _PLANS.get(getattr(message, "type", None))
+        if plan is None or plan.repeated or not _reads(plan, payload):
+            decode(payload)  # raises DecodeError when pydantic refuses it as well
+    return payload
+
+
+def _reads(plan: _Plan, payload: bytes) -> bool:
+    try:
+        plan.top.decode(payload)
+        return True
+    except (ValueError, RecursionError):
+        return False
 
 
 class Encoder:

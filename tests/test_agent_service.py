@@ -136,3 +136,27 @@ def test_policy_errors_cost_a_wait_and_episodes_end(inline: bool) -> None:
         while not policy.ended and time.monotonic() < deadline:
             time.sleep(0.01)
         assert policy.ended == ["e1"]
+
+
+class Mistyped:
+    """Answers through ``action_for`` (a mirror action for a mirror observation, built without
+    checks) with values the world would refuse."""
+
+    role, name, inline = "uav", "mistyped", True
+
+    def act(self, obs) -> Action:
+        if obs.decision_index == 1:
+            return action_for(obs, "FLY")  # not an action name
+        return action_for(obs, "MOVE_TO_UAV_WAYPOINT", waypoint_id=7)  # not a string
+
+    def end_episode(self, episode_id: str) -> None:
+        pass
+
+
+def test_mistyped_mirror_answers_cost_a_wait() -> None:
+    with Serving(Mistyped()) as svc:
+        for index in (1, 2):
+            svc.bus.publish(keys.obs(RUN, "e1", "uav"), Encoder().encode(_obs(index=index)))
+        got = [decode(svc.actions.get(5.0).payload) for _ in range(2)]
+        assert [(a.decision_index, a.action, a.rationale) for a in got] == [
+            (1, "WAIT", "policy error (see agent log)"), (2, "WAIT", "policy error (see agent log)")]

@@ -16,7 +16,7 @@ import msgspec
 import pytest
 from pydantic import BaseModel
 
-from agos.runtime.codec import DecodeError, Decoder, Encoder, checked, decode, encode
+from agos.runtime.codec import DecodeError, Decoder, Encoder, decode, encode, encode_checked
 from agos.runtime.schemas import Action, Observation, WireMessage
 from agos.runtime.structs import mirror, to_model
 from tests.test_codec import MESSAGES, _big_observation
@@ -176,5 +176,5 @@ def test_heuristic_policies_act_alike_on_mirrors_and_models(observations) -> Non
         twin = decoder.decode(encoder.encode(obs))
         expected, got = on_models[obs.role].act(obs), on_mirrors[obs.role].act(twin)
         assert type(expected) is Action and type(got) is mirror(Action)
-        assert encode(checked(got)) == encode(expected), (obs.role, obs.decision_index)
+        assert encode_checked(got) == encode(expected), (obs.role, obs.decision_index)
         assert to_model(got) == expected
