@@ -60,16 +60,17 @@ class _Dispatch:
             except DecodeError as exc:
                 log.warning("ignoring undecodable payload on %s: %s", sample.key, exc)
                 return
-            if isinstance(message, EpisodeRecord):
+            if type(message) in OBSERVATIONS:  # decoded messages are of these exact types
+                if self.inline:
+                    started = time.monotonic()
+                    publish_action(self.bus, self.run_id, message, decide(self.policy, message), started)
+                    return
+            elif type(message) is EpisodeRecord:
                 self.decoder.forget(message.episode_id)
                 if self.inline:
                     end_episode(self.bus, self.policy, self.run_id, message.episode_id)
                     return
-            elif not isinstance(message, OBSERVATIONS):
-                return
-            elif self.inline:
-                started = time.monotonic()
-                publish_action(self.bus, self.run_id, message, decide(self.policy, message), started)
+            else:
                 return
         self.loop.call_soon_threadsafe(self.on_loop, message)
 

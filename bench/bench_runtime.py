@@ -90,7 +90,8 @@ service._Dispatch.put = timed(service._Dispatch.put, spent, "agent: receive to a
 Decoder.decode = timed(Decoder.decode, spent, "agent: decode")
 Decoder._complete = timed(Decoder._complete, spent, "agent: decode, after the top-level read")
 policy.act = timed(policy.act, spent, "agent: policy")
-ZenohBus.publish = timed(ZenohBus.publish, spent, "agent: encode + publish action")
+service.encode_checked = timed(service.encode_checked, spent, "agent: encode and check action")
+ZenohBus.publish = timed(ZenohBus.publish, spent, "agent: publish action")
 async def main():
     bus = ZenohBus(zenoh_config(connect=[sys.argv[1]]))
     serving = asyncio.ensure_future(service.serve_async(bus, policy, "bench", StopFlag(), concurrency=64))
