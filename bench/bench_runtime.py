@@ -41,6 +41,7 @@ from agos.runtime.codec import decode, encode
 from agos.runtime.launcher import free_port, wait_listening
 from agos.runtime.process import StopFlag
 from agos.runtime.schemas import Observation, StepEvent
+from agos.runtime.structs import to_model
 from agos.runtime.viz import FrameStream
 from agos.world.worker import BusDecisionSource, BusSink
 
@@ -175,7 +176,7 @@ class World:
             decisions += time.perf_counter() - t0
             self.sink.step(StepEvent(run_id="bench", episode_id=obs.episode_id, role="uav",
                                      decision_index=obs.decision_index, episode_step=obs.decision_index,
-                                     sim_time_s=obs.sim_time_s, requested=action, applied="WAIT", pose_after=obs.pose))
+                                     sim_time_s=obs.sim_time_s, requested=to_model(action), applied="WAIT", pose_after=obs.pose))
             self.sink.coordination(obs.coordination, {"uav": obs.coordination, "ugv": obs.coordination})
             count += 1
         return (time.perf_counter() - start) / count, decisions / count
