@@ -103,13 +103,16 @@ def publish_action(bus: ZenohBus, run_id: str, obs: Observation, action: Action,
     """Stamp the policy's wall-clock latency (realtime mode charges it in simulated time), check the
     answer as the world will read it (a mirror action from ``action_for`` is built without checks)
     and send it; one the world would refuse is logged and replaced by a legal WAIT."""
+
+    def stamped(answer: Action) -> bytes:
+        answer.agent_wall_latency_s = round(time.monotonic() - started, 4)
+        return encode_checked(answer)
+
     try:
-        action.agent_wall_latency_s = round(time.monotonic() - started, 4)
-        payload = encode_checked(action)
+        payload = stamped(action)
     except Exception:
         action = _policy_failed(obs)
-        action.agent_wall_latency_s = round(time.monotonic() - started, 4)
-        payload = encode_checked(action)
+        payload = stamped(action)
     bus.publish(keys.act(run_id, action.episode_id, action.role), payload)
 
 

@@ -200,20 +200,12 @@ def ping_pongs(bus: ZenohBus, payload: bytes, n: int) -> list[float]:
     return times
 
 
-def interleaved(a, b, rounds: int = 40, n: int = 20) -> tuple[float, float]:
-    """Medians of two measurements taken in alternating batches (drift hits both alike); 800 of
-    each, over a few seconds, so that one noisy second on a shared machine does not decide."""
-    ta, tb = [], []
-    for _ in range(rounds):
-        ta += a(n)
-        tb += b(n)
-    return statistics.median(ta), statistics.median(tb)
-
-
 def paired_ratios(a, b, rounds: int = 40, n: int = 20) -> tuple[float, float, list[float]]:
-    """Like :func:`interleaved`, plus the ratio b/a of each round's medians (a round is 2 x ``n``
-    calls, tens of milliseconds): a slow spell of the machine moves a round's pair together, so
-    the ratios' median and quartiles say more than the ratio of the overall medians."""
+    """Medians of two measurements taken in alternating batches (drift hits both alike; 800 of each,
+    over a few seconds, so that one noisy second on a shared machine does not decide), and the
+    ratio b/a of each round's medians (a round is 2 x ``n`` calls, tens of milliseconds): a slow
+    spell of the machine moves a round's pair together, so the ratios' median and quartiles say
+    more than the ratio of the overall medians."""
     ta, tb, ratios = [], [], []
     for _ in range(rounds):
         ra, rb = a(n), b(n)
@@ -407,7 +399,7 @@ def round_trip_breakdown(obs: Observation, payload: bytes) -> None:
             with Cluster([sys.executable, "-c", ECHO, "{EP}"], timed_agent) as cluster:
                 bus = ZenohBus.connect(cluster.endpoint)
                 world = World(bus, obs)
-                t_ping, t_rt = interleaved(lambda n: ping_pongs(bus, payload, n), world.round_trips)
+                t_ping, t_rt, _ = paired_ratios(lambda n: ping_pongs(bus, payload, n), world.round_trips)
                 time.sleep(1.0)  # the agent writes its medians every 0.5 s
                 world.close()
                 bus.close()

@@ -20,7 +20,7 @@ from typing import Any, get_args
 import cv2
 import msgspec
 import numpy as np
-from pydantic import BaseModel, TypeAdapter, ValidationError
+from pydantic import TypeAdapter, ValidationError
 
 from agos.runtime.schemas import WireMessage
 from agos.runtime.structs import mirror, mirror_fields
@@ -127,7 +127,7 @@ class Encoder:
         """``message``, or for one with ``REPEATED`` fields its top-level map with those fields as
         packed bytes (``msgspec.Raw``)."""
         fields = REPEATED.get(getattr(message, "type", ""), ())
-        if not fields or not isinstance(message, BaseModel):
+        if not fields or _model_fields(message) is None:
             return message
         data = dict(message.__dict__)
         for name in fields:
@@ -186,13 +186,13 @@ class Decoder:
     the earlier value is reused, so decoded messages may share those parts: treat them as read-only.
     Anything else (other message types, anything the mirror refuses) goes through :func:`decode`:
     the same models, and errors that read the same. ``capacity`` bounds the cache (oldest episode
-    entries dropped).
+    entries dropped); ``first`` (one of ``MIRRORED``) is the type tried first.
     """
 
     def __init__(self, capacity: int = 256, *, first: str = "observation") -> None:
         self.capacity = capacity
         self._seen: dict[tuple[str, str, str], tuple[msgspec.Raw, Any]] = {}
-        self._plans = _ORDERS.get(first, _ORDERS["observation"])  # the type the stream mostly carries, first
+        self._plans = _ORDERS[first]  # the type the stream mostly carries, first
 
     def decode(self, payload: bytes) -> Any:
         for kind, plan in self._plans:
