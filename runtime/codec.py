@@ -214,7 +214,8 @@ class Decoder:
                 continue
             hit = self._seen.get((kind, top.episode_id, name))
             if hit is None or hit[0] != raw:
-                hit = (raw.copy(), plan.parts[name].decode(raw))  # a copy of the bytes: not a view of payload
+                copied = raw.copy()  # kept, and read from: views in the value point into it, not into payload
+                hit = (copied, plan.parts[name].decode(copied))
                 self._remember((kind, top.episode_id, name), *hit)
             data[name] = list(hit[1])  # the items are shared, the list is the message's own
         return plan.mirror(**data)

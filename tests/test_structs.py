@@ -46,8 +46,21 @@ def test_mirror_reads_like_the_model() -> None:
     assert struct.pose.position_world_m == obs.pose.position_world_m == (10.0, 20.0, 80.0)
     assert struct.coordination.poses["uav"].yaw_rad == 0.5
     assert struct.coordination.candidates[0].polygon_world_m == [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0)]
-    assert struct.images[0].intrinsics.fx_px == 443.4 and isinstance(struct.images[0].data, bytes)
+    assert struct.images[0].intrinsics.fx_px == 443.4
     assert struct.oracle is None and struct.grid_rows == "ABCDE"  # defaults filled in as by pydantic
+
+
+def test_mirror_image_bytes_are_views_of_the_payload() -> None:
+    """Decoding copies no image bytes: they are read-only views into the payload (or, for the
+    cached repeated parts, into the decoder's own copy of their bytes), equal to the model's."""
+    obs = _big_observation()
+    payload = Encoder().encode(obs)
+    struct = Decoder().decode(payload)
+    image = struct.images[0].data
+    assert isinstance(image, memoryview) and image.readonly and image.obj is payload
+    assert image == obs.images[0].data and bytes(image) == obs.images[0].data
+    assert all(ref.data.obj is not payload for ref in struct.references)  # the cache outlives the payload
+    assert to_model(struct) == obs and isinstance(to_model(struct).images[0].data, bytes)
 
 
 def test_a_model_with_constraints_aliases_or_lax_config_is_not_mirrored() -> None:
@@ -69,11 +82,13 @@ def test_a_model_with_constraints_aliases_or_lax_config_is_not_mirrored() -> Non
 
 
 def test_decoded_observations_pickle_and_own_their_lists() -> None:
+    import copy
     import pickle
 
     decoder, payload = Decoder(), Encoder().encode(_big_observation())
     first = decoder.decode(payload)
     assert to_model(pickle.loads(pickle.dumps(first))) == _big_observation()
+    assert to_model(copy.deepcopy(first)) == _big_observation()
     first.active_uav_waypoints.pop()  # a policy's own business: the next decision still gets all 16
     assert len(decoder.decode(payload).active_uav_waypoints) == len(_big_observation().active_uav_waypoints) == 16
 

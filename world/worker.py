@@ -95,12 +95,15 @@ class BusDecisionSource:
         self.timeout_s, self.stop, self.agent_wait_s = timeout_s, stop, agent_wait_s
         self.frames = frames  # thumbnails for observers (runtime/viz.py)
         self.inbox = Inbox()
-        self._handle = bus.subscribe(keys.act(run_id, episode_id, "*"), self.inbox)
+        # One exact subscription per role, not ``act/*``: zenoh delivers to an exact key expression
+        # more cheaply, 6-15 us per decision in situ (docs/ARCHITECTURE.md §6, "Decision round trip").
+        self._handles = [bus.subscribe(keys.act(run_id, episode_id, role), self.inbox) for role in keys.ROLES]
         self.encoders = {role: Encoder() for role in keys.ROLES}  # each packs its role's repeated parts once
         self.decoder = Decoder(first="action")  # actions arrive as compiled mirrors (the runner makes models of them)
 
     def close(self) -> None:
-        self.bus.unsubscribe(self._handle)
+        for handle in self._handles:
+            self.bus.unsubscribe(handle)
 
     def _check_agents(self, observations: dict[Role, Observation]) -> None:
         """At an episode's first decisions: wait up to ``agent_wait_s`` for an agent service of each
