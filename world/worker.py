@@ -99,6 +99,8 @@ class BusDecisionSource:
         # more cheaply, 6-15 us per decision in situ (docs/ARCHITECTURE.md §6, "Decision round trip").
         self._handles = [bus.subscribe(keys.act(run_id, episode_id, role), self.inbox) for role in keys.ROLES]
         self.encoders = {role: Encoder() for role in keys.ROLES}  # each packs its role's repeated parts once
+        self.obs_keys = {role: keys.obs(run_id, episode_id, role) for role in keys.ROLES}
+        self.viz_keys = {role: keys.viz_frame(run_id, episode_id, role) for role in keys.ROLES}
         self.decoder = Decoder(first="action")  # actions arrive as compiled mirrors (the runner makes models of them)
 
     def close(self) -> None:
@@ -113,7 +115,7 @@ class BusDecisionSource:
             return
         deadline = time.monotonic() + self.agent_wait_s
         missing = [role for role in first if not self.bus.wait_for_subscriber(
-            keys.obs(self.run_id, self.episode_id, role), max(0.0, deadline - time.monotonic()))]
+            self.obs_keys[role], max(0.0, deadline - time.monotonic()))]
         if missing:
             raise MissingAgent(missing, self.run_id, self.agent_wait_s)
 
@@ -123,11 +125,10 @@ class BusDecisionSource:
         payloads = {}
         self._check_agents(observations)
         for role, obs in observations.items():
-            key = keys.obs(self.run_id, self.episode_id, role)
             payloads[role] = self.encoders[role].encode_reused(obs)  # untouched until this role's next decision
-            self.bus.publish(key, payloads[role])
+            self.bus.publish(self.obs_keys[role], payloads[role])
             if self.frames is not None:
-                self.frames.offer(keys.viz_frame(self.run_id, self.episode_id, role), obs)
+                self.frames.offer(self.viz_keys[role], obs)
         pending = {role: obs.decision_index for role, obs in observations.items()}
         actions: dict[Role, Action | None] = dict.fromkeys(observations)
         deadline = time.monotonic() + self.timeout_s
@@ -137,7 +138,7 @@ class BusDecisionSource:
             if time.monotonic() >= resend_at and pending:
                 for role in pending:
                     log.info("%s: re-requesting %s decision %d", self.episode_id, role, pending[role])
-                    self.bus.publish(keys.obs(self.run_id, self.episode_id, role), payloads[role])
+                    self.bus.publish(self.obs_keys[role], payloads[role])
                 resend_at = time.monotonic() + RESEND_S
             if sample is None:
                 if time.monotonic() >= deadline:
