@@ -194,7 +194,6 @@ class PingPong:
         self.bus, self.payload, self.inbox = bus, payload, Inbox()
         self.handle = bus.subscribe("bench/pong", self.inbox)
         bus.wait_for_subscriber("bench/ping", 10.0)
-        self.round_trips(20)  # the first samples on a new route are slower, for the world as well
 
     def round_trips(self, n: int) -> list[float]:
         times = []
@@ -215,12 +214,13 @@ def paired_ratios(a, b, rounds: int = 40, n: int = 20) -> tuple[float, float, li
     ratio b/a of each round's medians (a round is 2 x ``n`` calls, tens of milliseconds): a slow
     spell of the machine moves a round's pair together, so the ratios' median and quartiles say
     more than the ratio of the overall medians. Every other round runs ``b`` first, so neither side
-    always pays for following the other (caches, zenoh's own work left from the batch before)."""
+    always pays for following the other (caches, zenoh's own work left from the batch before).
+    One unmeasured batch of each first: the first samples on a new route are slower."""
+    a(n), b(n)
     ta, tb, ratios = [], [], []
     for i in range(rounds):
         if i % 2:
-            rb = b(n)
-            ra = a(n)
+            rb, ra = b(n), a(n)
         else:
             ra, rb = a(n), b(n)
         ta += ra
@@ -372,7 +372,6 @@ def round_trip(obs: Observation, payload: bytes) -> None:
     with Cluster([sys.executable, "-c", ECHO, "{EP}"], agent("standin-0ms", 64)) as cluster:
         bus = ZenohBus.connect(cluster.endpoint)
         world, ping = World(bus, obs), PingPong(bus, payload)
-        world.round_trips(20)  # as the ping-pong: the first decisions on new routes are slower
         t_ping, t_rt, ratios = paired_ratios(ping.round_trips, world.round_trips)
         ratio, (q1, _, q3) = statistics.median(ratios), statistics.quantiles(ratios, n=4)
         print(f"decision round trip      {1000 * t_rt:7.2f} ms vs raw zenoh ping-pong of the same {len(payload) / 1024:.0f} KB "
@@ -415,7 +414,6 @@ def round_trip_breakdown(obs: Observation, payload: bytes) -> None:
             with Cluster([sys.executable, "-c", ECHO, "{EP}"], timed_agent) as cluster:
                 bus = ZenohBus.connect(cluster.endpoint)
                 world, ping = World(bus, obs), PingPong(bus, payload)
-                world.round_trips(20)
                 t_ping, t_rt, _ = paired_ratios(ping.round_trips, world.round_trips)
                 time.sleep(1.0)  # the agent writes its medians every 0.5 s
                 ping.close()

@@ -53,8 +53,11 @@ def mirror(model: type[BaseModel]) -> type[msgspec.Struct]:
 
 def _reduce(struct: msgspec.Struct) -> tuple[Any, ...]:
     """Pickling (and ``copy.deepcopy``) of a mirror: its memoryviews as the bytes they show."""
-    values = {name: getattr(struct, name) for name in struct.__struct_fields__}
-    return _rebuild, (type(struct), {name: bytes(v) if isinstance(v, memoryview) else v for name, v in values.items()})
+    values = {}
+    for name in struct.__struct_fields__:
+        value = getattr(struct, name)
+        values[name] = bytes(value) if isinstance(value, memoryview) else value
+    return _rebuild, (type(struct), values)
 
 
 def _rebuild(kind: type[msgspec.Struct], values: dict[str, Any]) -> msgspec.Struct:
