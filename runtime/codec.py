@@ -23,7 +23,7 @@ import numpy as np
 from pydantic import TypeAdapter, ValidationError
 
 from agos.runtime.schemas import WireMessage
-from agos.runtime.structs import mirror, mirror_fields
+from agos.runtime.structs import mirror, mirror_fields, tagged
 
 _ADAPTER: TypeAdapter[Any] = TypeAdapter(WireMessage)
 _MODELS = {model.model_fields["type"].default: model for model in get_args(get_args(WireMessage)[0])}
@@ -42,7 +42,7 @@ def _fields_of(value: Any) -> Any:
     beside the fields (``model_copy(update=...)`` with an unknown key). One difference remains: an
     instance of a subclass in a field typed as its parent is written with all its own fields, where
     ``model_dump`` would write the parent's; the schemas never do that. numpy scalars become numbers."""
-    fields = _model_fields(value)
+    fields = getattr(type(value), "__pydantic_fields__", None)  # _model_fields, inlined: called per nested model
     if fields is not None:
         data = value.__dict__
         return data if len(data) == len(fields) else {name: data[name] for name in fields}
@@ -151,12 +151,16 @@ def _same(value: Any, snapshot: Any) -> bool:
 
 class _Plan:
     """How :class:`Decoder` reads one message type: the top-level map in one pass into a struct
-    whose ``REPEATED`` fields stay raw msgpack; those decoded on their own, only when they change."""
+    whose ``REPEATED`` fields stay raw msgpack; those decoded on their own, only when they change.
+    A type without repeated fields is read straight into its mirror (:func:`structs.tagged`)."""
 
     def __init__(self, kind: str) -> None:
         model = _MODELS[kind]
         self.mirror = mirror(model)
         self.repeated = REPEATED.get(kind, ())
+        if not self.repeated:
+            self.top = msgspec.msgpack.Decoder(tagged(model))
+            return
         specs, top = mirror_fields(model), []
         for spec in specs:
             name = spec[0]
@@ -200,6 +204,8 @@ class Decoder:
                 top = plan.top.decode(payload)
             except (ValueError, RecursionError):  # not this type, or not valid: decode() says which
                 continue
+            if not plan.repeated:
+                return top  # already the message's mirror
             try:
                 return self._complete(kind, plan, top)
             except (ValueError, RecursionError):

@@ -31,6 +31,7 @@ from pydantic import BaseModel
 from pydantic_core import PydanticUndefined
 
 _MIRRORS: dict[type[BaseModel], type[msgspec.Struct]] = {}
+_TAGGED: dict[type[BaseModel], type[msgspec.Struct]] = {}
 _MODELS: dict[type[msgspec.Struct], type[BaseModel]] = {}
 _PLAIN_CONFIG = {"extra", "frozen", "title", "use_attribute_docstrings"}
 """``model_config`` keys that do not change what a model accepts or the values it keeps (a
@@ -51,13 +52,28 @@ def mirror(model: type[BaseModel]) -> type[msgspec.Struct]:
     return found
 
 
+def tagged(model: type[BaseModel]) -> type[msgspec.Struct]:
+    """``mirror(model)`` with its ``type`` field required: what a receiver reads a whole message
+    into. A wire message's ``type`` is how :func:`agos.runtime.codec.decode` tells messages apart
+    (pydantic's union requires it), whereas the model, and so its mirror, defaults it. A subclass of
+    the mirror (``isinstance`` holds; same fields, order and bytes); pickled as the mirror."""
+    found = _TAGGED.get(model)
+    if found is None:
+        base = mirror(model)
+        kind = model.model_fields["type"].annotation
+        found = msgspec.defstruct(model.__name__, [("type", kind)], bases=(base,), kw_only=True,
+                                  forbid_unknown_fields=True, module=__name__)
+        _TAGGED[model], _MODELS[found] = found, model
+    return found
+
+
 def _reduce(struct: msgspec.Struct) -> tuple[Any, ...]:
     """Pickling (and ``copy.deepcopy``) of a mirror: its memoryviews as the bytes they show."""
     values = {}
     for name in struct.__struct_fields__:
         value = getattr(struct, name)
         values[name] = bytes(value) if isinstance(value, memoryview) else value
-    return _rebuild, (type(struct), values)
+    return _rebuild, (_MIRRORS[_MODELS[type(struct)]], values)
 
 
 def _rebuild(kind: type[msgspec.Struct], values: dict[str, Any]) -> msgspec.Struct:

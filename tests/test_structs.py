@@ -159,6 +159,46 @@ def test_hot_path_decoder_agrees_without_each_top_level_field(name: str) -> None
     _agree(msgpack.packb(data, use_bin_type=True), Decoder())
 
 
+def _action_with_trace() -> Action:
+    return Action.model_validate({**_action().model_dump(), "trace": {
+        "policy": "agos-agent", "model": "m", "stage": "uav", "image_bytes": {"nadir": 10}, "raw_reply": "{}",
+        "parsed_action": "WAIT", "fallback": False, "prompt_sha256": "ab" * 32}})
+
+
+def _action() -> Action:
+    return Action(run_id="r", episode_id="e", role="ugv", decision_index=4, action="MOVE_TO_ROAD_WAYPOINT",
+                  waypoint_id="R12", rationale="closer to C001", agent_wall_latency_s=0.01)
+
+
+@pytest.mark.parametrize("name", list(Action.model_fields))
+def test_action_decoder_agrees_without_each_field(name: str) -> None:
+    """Actions are read straight into their mirror, whose ``type`` is required there (structs.tagged)."""
+    data = msgpack.unpackb(encode(_action_with_trace()), raw=False)
+    del data[name]
+    assert _agree(msgpack.packb(data, use_bin_type=True), Decoder(first="action")) == (
+        "refused" if name in ("type", "run_id", "episode_id", "role", "decision_index", "action") else "accepted")
+
+
+def test_action_decoder_agrees_with_pydantic_on_mutated_payloads() -> None:
+    rng, agreed = random.Random(11), {"accepted": 0, "refused": 0}
+    original = msgpack.unpackb(encode(_action_with_trace()), raw=False)
+    for case in range(300):
+        data = _mutate(msgpack.unpackb(msgpack.packb(original), raw=False), rng)
+        agreed[_agree(msgpack.packb(data, use_bin_type=True), Decoder(first="action"), case)] += 1
+    assert agreed["accepted"] > 20 and agreed["refused"] > 100
+
+
+def test_decoded_actions_are_mirrors_that_pickle_and_convert() -> None:
+    import copy
+    import pickle
+
+    got = Decoder(first="action").decode(encode(_action()))
+    assert isinstance(got, mirror(Action)) and encode(got) == encode(_action())
+    assert to_model(got) == _action()
+    for twin in (pickle.loads(pickle.dumps(got)), copy.deepcopy(got)):
+        assert type(twin) is mirror(Action) and twin == mirror(Action)(**msgspec.structs.asdict(got))
+
+
 def test_prompts_from_compiled_mirrors_are_the_prompts_from_models(observations) -> None:
     """Over the bus a policy reads the observation's mirror (runtime/structs.py): every prompt of
     both prompt families, built along a whole episode, must be the same bytes as from the model."""
