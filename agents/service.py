@@ -33,8 +33,9 @@ from agos.runtime.settings import AgosConfig
 from agos.runtime.structs import mirror
 
 log = logging.getLogger("agos.agent")
-OBSERVATIONS = (Observation, mirror(Observation))
-"""What an observation arrives as: its compiled mirror (the hot path) or, rarely, the model."""
+OBSERVATIONS = (mirror(Observation), Observation)
+"""What an observation arrives as: its compiled mirror (the hot path; read into a subclass, see
+``structs.tagged``) or, rarely, the model."""
 
 
 class _Dispatch:
@@ -60,7 +61,7 @@ class _Dispatch:
             except DecodeError as exc:
                 log.warning("ignoring undecodable payload on %s: %s", sample.key, exc)
                 return
-            if type(message) in OBSERVATIONS:  # decoded messages are of these exact types
+            if isinstance(message, OBSERVATIONS):
                 if self.inline:
                     started = time.monotonic()
                     publish_action(self.bus, self.run_id, message, decide(self.policy, message), started)

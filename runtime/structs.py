@@ -31,7 +31,7 @@ from pydantic import BaseModel
 from pydantic_core import PydanticUndefined
 
 _MIRRORS: dict[type[BaseModel], type[msgspec.Struct]] = {}
-_TAGGED: dict[type[BaseModel], type[msgspec.Struct]] = {}
+_TAGGED: dict[tuple[type[BaseModel], tuple[str, ...]], type[msgspec.Struct]] = {}
 _MODELS: dict[type[msgspec.Struct], type[BaseModel]] = {}
 _PLAIN_CONFIG = {"extra", "frozen", "title", "use_attribute_docstrings"}
 """``model_config`` keys that do not change what a model accepts or the values it keeps (a
@@ -52,18 +52,23 @@ def mirror(model: type[BaseModel]) -> type[msgspec.Struct]:
     return found
 
 
-def tagged(model: type[BaseModel]) -> type[msgspec.Struct]:
-    """``mirror(model)`` with its ``type`` field required: what a receiver reads a whole message
-    into. A wire message's ``type`` is how :func:`agos.runtime.codec.decode` tells messages apart
-    (pydantic's union requires it), whereas the model, and so its mirror, defaults it. A subclass of
-    the mirror (``isinstance`` holds; same fields, order and bytes); pickled as the mirror."""
-    found = _TAGGED.get(model)
+def tagged(model: type[BaseModel], raw: tuple[str, ...] = ()) -> type[msgspec.Struct]:
+    """What a receiver reads a whole message into: ``mirror(model)`` with its ``type`` field required
+    (a wire message's ``type`` is how :func:`agos.runtime.codec.decode` tells messages apart, and
+    pydantic's union requires it, whereas the model defaults it) and the fields named in ``raw``
+    read as ``msgspec.Raw`` (their msgpack left as it is, ``UNSET`` when absent), for the reader to
+    replace in place with their values. A subclass of the mirror: ``isinstance`` holds, the same
+    fields in the same order write the same bytes; pickled and deep-copied as the mirror itself."""
+    found = _TAGGED.get((model, raw))
     if found is None:
         base = mirror(model)
-        kind = model.model_fields["type"].annotation
-        found = msgspec.defstruct(model.__name__, [("type", kind)], bases=(base,), kw_only=True,
-                                  forbid_unknown_fields=True, module=__name__)
-        _TAGGED[model], _MODELS[found] = found, model
+        fields: list[tuple[Any, ...]] = [("type", model.model_fields["type"].annotation)]
+        for name in raw:
+            required = model.model_fields[name].is_required()
+            fields.append((name, msgspec.Raw) if required else (name, msgspec.Raw, msgspec.UNSET))
+        found = msgspec.defstruct(model.__name__, fields, bases=(base,), kw_only=True, forbid_unknown_fields=True,
+                                  module=__name__)
+        _TAGGED[(model, raw)], _MODELS[found] = found, model
     return found
 
 

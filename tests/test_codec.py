@@ -95,7 +95,8 @@ def test_payload_is_the_models_dump_packed(make) -> None:
 
 
 def test_payload_holds_only_declared_fields() -> None:
-    stray = _action().model_copy(update={"note": "not a field"})  # stored beside the fields
+    stray = _action()
+    stray.__dict__["note"] = "not a field"  # stored beside the fields (model_copy refuses to)
     assert encode(stray) == encode(_action())
 
 
@@ -323,6 +324,24 @@ def test_encoder_notices_a_changed_repeated_field() -> None:
     assert len(decode(encoder.encode(obs)).references) == 4
 
 
+def test_encoder_falls_back_for_what_vars_cannot_write() -> None:
+    """The encoder writes models with ``vars`` (C) and starts over with the full hook for anything
+    else, such as a numpy scalar assigned after validation: the same bytes as ``encode`` either way."""
+    obs = _big_observation()
+    obs.pose.yaw_rad = np.float64(0.25)
+    obs.coordination.decisions_used = np.int64(3)
+    encoder = Encoder()
+    assert encoder.encode(obs) == bytes(encoder.encode_reused(obs)) == encode(obs)
+    assert decode(encode(obs)).coordination.decisions_used == 3
+
+
+def test_model_copy_refuses_an_unknown_field() -> None:
+    """pydantic would keep it beside the fields, unchecked, and it would go out on the wire."""
+    with pytest.raises(ValueError, match="Observation has no field bogus"):
+        _observation().model_copy(update={"decision_index": 2, "bogus": 1})
+    assert _observation().model_copy(update={"decision_index": 2}).decision_index == 2
+
+
 def test_encoder_passes_other_messages_through() -> None:
     assert Encoder().encode(_action()) == encode(_action())
 
@@ -331,7 +350,7 @@ def test_decoder_matches_decode_and_reuses_repeated_parts() -> None:
     decoder = Decoder()
     first = decoder.decode(encode(_big_observation(1)))
     second = decoder.decode(Encoder().encode(_big_observation(2)))
-    assert type(first) is mirror(Observation)  # read straight into the compiled mirror
+    assert isinstance(first, mirror(Observation))  # read straight into the compiled mirror
     assert to_model(first) == _big_observation(1) and to_model(second) == _big_observation(2)
     assert second.references[0] is first.references[0]  # validated once
     assert second.active_uav_waypoints[5] is first.active_uav_waypoints[5]

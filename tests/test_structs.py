@@ -87,6 +87,7 @@ def test_decoded_observations_pickle_and_own_their_lists() -> None:
 
     decoder, payload = Decoder(), Encoder().encode(_big_observation())
     first = decoder.decode(payload)
+    assert isinstance(first, mirror(Observation)) and type(pickle.loads(pickle.dumps(first))) is mirror(Observation)
     assert to_model(pickle.loads(pickle.dumps(first))) == _big_observation()
     assert to_model(copy.deepcopy(first)) == _big_observation()
     first.active_uav_waypoints.pop()  # a policy's own business: the next decision still gets all 16
