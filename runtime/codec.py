@@ -43,7 +43,7 @@ def _fields_of(value: Any) -> Any:
     key; :class:`Encoder` assumes nothing was). One difference remains: an
     instance of a subclass in a field typed as its parent is written with all its own fields, where
     ``model_dump`` would write the parent's; the schemas never do that. numpy scalars become numbers."""
-    fields = getattr(type(value), "__pydantic_fields__", None)  # _model_fields, inlined: called per nested model
+    fields = _model_fields(value)
     if fields is not None:
         data = value.__dict__
         return data if len(data) == len(fields) else {name: data[name] for name in fields}
@@ -120,11 +120,7 @@ class Encoder:
         self._buffer = bytearray()
 
     def encode(self, message: Any) -> bytes:
-        prepared = self._prepared(message)
-        try:
-            return _PACK_DICTS.encode(prepared)
-        except TypeError:
-            return _PACK.encode(prepared)
+        return bytes(self.encode_reused(message))
 
     def encode_reused(self, message: Any) -> bytearray:
         """The payload written into this encoder's own buffer, valid until its next call: for a
@@ -174,7 +170,7 @@ class _Plan:
         self.top = msgspec.msgpack.Decoder(tagged(model, self.repeated))
         specs = {spec[0]: spec[1] for spec in mirror_fields(model)}
         self.parts = {name: msgspec.msgpack.Decoder(specs[name]) for name in self.repeated}
-        self.defaults = {name: model.model_fields[name] for name in self.repeated}
+        self.fields = {name: model.model_fields[name] for name in self.repeated}  # their defaults
 
 
 MIRRORED = ("observation", "action")
@@ -220,7 +216,7 @@ class Decoder:
         for name in plan.repeated:
             raw = getattr(message, name)
             if raw is msgspec.UNSET:  # absent: the model's default, as pydantic gives it
-                setattr(message, name, plan.defaults[name].get_default(call_default_factory=True))
+                setattr(message, name, plan.fields[name].get_default(call_default_factory=True))
                 continue
             hit = self._seen.get((kind, message.episode_id, name))
             if hit is None or hit[0] != raw:
