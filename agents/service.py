@@ -104,17 +104,18 @@ def publish_action(bus: ZenohBus, run_id: str, obs: Observation, action: Action,
     """Stamp the policy's wall-clock latency (realtime mode charges it in simulated time), check the
     answer as the world will read it (a mirror action from ``action_for`` is built without checks)
     and send it; one the world would refuse is logged and replaced by a legal WAIT."""
-
-    def stamped(answer: Action) -> bytes:
-        answer.agent_wall_latency_s = round(time.monotonic() - started, 4)
-        return encode_checked(answer)
-
     try:
-        payload = stamped(action)
+        payload = _stamped(action, started)
     except Exception:
         action = _policy_failed(obs)
-        payload = stamped(action)
+        payload = _stamped(action, started)
     bus.publish(keys.act(run_id, action.episode_id, action.role), payload)
+
+
+def _stamped(action: Action, started: float) -> bytes:
+    """``action`` with its latency since ``started``, encoded and checked (``codec.encode_checked``)."""
+    action.agent_wall_latency_s = round(time.monotonic() - started, 4)
+    return encode_checked(action)
 
 
 def end_episode(bus: ZenohBus, policy: Policy, run_id: str, episode_id: str) -> None:

@@ -23,7 +23,7 @@ import numpy as np
 from pydantic import TypeAdapter, ValidationError
 
 from agos.runtime.schemas import WireMessage
-from agos.runtime.structs import mirror_fields, tagged
+from agos.runtime.structs import mirror, tagged
 
 _ADAPTER: TypeAdapter[Any] = TypeAdapter(WireMessage)
 _MODELS = {model.model_fields["type"].default: model for model in get_args(get_args(WireMessage)[0])}
@@ -168,8 +168,8 @@ class _Plan:
         model = _MODELS[kind]
         self.repeated = REPEATED.get(kind, ())
         self.top = msgspec.msgpack.Decoder(tagged(model, self.repeated))
-        specs = {spec[0]: spec[1] for spec in mirror_fields(model)}
-        self.parts = {name: msgspec.msgpack.Decoder(specs[name]) for name in self.repeated}
+        types = {field.name: field.type for field in msgspec.structs.fields(mirror(model))}
+        self.parts = {name: msgspec.msgpack.Decoder(types[name]) for name in self.repeated}
         self.fields = {name: model.model_fields[name] for name in self.repeated}  # their defaults
 
 
