@@ -2,8 +2,9 @@
 
     agos agent --role uav --policy heuristic --connect tcp/HOST:PORT --run RUN [--concurrency 32]
 
-Every observation on ``agos/<run>/ep/*/obs/<role>`` is answered on the matching
-``.../act/<role>`` key. Observations are handled concurrently on an asyncio loop, at most
+Every observation on ``agos/<run>/ep/<ep>/obs/<role>`` is answered on the matching
+``.../act/<role>`` key, for each episode a world announces with its liveliness token
+(``agos/<run>/ep/<ep>/live/<worker>``). Observations are handled concurrently on an asyncio loop, at most
 ``concurrency`` at a time: policies with an ``act_async`` coroutine (remote models, the
 fixed-latency stand-in) overlap their waiting; plain ``act`` policies run in worker threads;
 ``inline`` policies (microseconds, no I/O: random, oracle, standin-0ms) are answered on the
@@ -76,6 +77,38 @@ class _Dispatch:
         self.loop.call_soon_threadsafe(self.on_loop, message)
 
 
+class _EpisodeSubscriptions:
+    """Subscribes the dispatch to each running episode's observation key exactly, while a world
+    holds that episode's liveliness token (``keys.episode_live``; tokens alive when the service
+    starts count, so a restarted service picks up the episodes in flight). zenoh delivers to an
+    exact key expression faster than to ``ep/*/obs/<role>``: 10-20 us per decision in situ
+    (docs/ARCHITECTURE.md §6, "Decision round trip"). Token changes arrive on zenoh's threads; the
+    (un)subscribing is done on the asyncio loop, outside zenoh's callbacks."""
+
+    def __init__(self, bus: ZenohBus, run_id: str, role: Role, dispatch: _Dispatch,
+                 loop: asyncio.AbstractEventLoop) -> None:
+        self.bus, self.run_id, self.role, self.dispatch, self.loop = bus, run_id, role, dispatch, loop
+        self.holders: dict[str, set[str]] = {}  # episode -> the workers whose token for it is alive
+        self.handles: dict[str, object] = {}
+
+    def put(self, sample: Sample) -> None:
+        self.loop.call_soon_threadsafe(self.update, sample.key, sample.payload == b"+")
+
+    def update(self, key: str, alive: bool) -> None:
+        episode, worker = keys.episode_of(key), key.rsplit("/", 1)[-1]
+        holders = self.holders.setdefault(episode, set())
+        if alive:
+            holders.add(worker)
+        else:
+            holders.discard(worker)
+        if holders and episode not in self.handles:
+            self.handles[episode] = self.bus.subscribe(keys.obs(self.run_id, episode, self.role), self.dispatch)  # type: ignore[arg-type]
+        elif not holders:
+            del self.holders[episode]
+            if episode in self.handles:
+                self.bus.unsubscribe(self.handles.pop(episode))
+
+
 def decide(policy: Policy, obs: Observation) -> Action:
     """``policy.act``; a policy error is logged and answered with a legal WAIT."""
     try:
@@ -145,7 +178,8 @@ async def serve_async(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag
             task.add_done_callback(tasks.discard)
 
     dispatch = _Dispatch(bus, policy, run_id, loop, on_loop)
-    bus.subscribe(keys.obs(run_id, "*", policy.role), dispatch)  # type: ignore[arg-type]
+    bus.watch_liveliness(keys.episode_live(run_id, "*", "*"),
+                         _EpisodeSubscriptions(bus, run_id, policy.role, dispatch, loop))  # type: ignore[arg-type]
     bus.subscribe(keys.result(run_id, "*"), dispatch)  # type: ignore[arg-type]
     bus.declare_token(keys.live(run_id, "agent", f"{policy.role}-{os.getpid()}"))
     log.info("%s agent (%s) serving run %s, up to %d decisions at once%s", policy.role, policy.name, run_id,

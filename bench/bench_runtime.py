@@ -142,7 +142,8 @@ class World:
     def __init__(self, bus: ZenohBus, obs: Observation, episode: str = "e0") -> None:
         self.obs = obs.model_copy(update={"episode_id": episode})
         self.frames = FrameStream(bus)
-        self.source = BusDecisionSource(bus, "bench", episode, timeout_s=5.0, stop=StopFlag(), frames=self.frames)
+        self.source = BusDecisionSource(bus, "bench", episode, worker_id="bench", timeout_s=5.0, stop=StopFlag(),
+                                        frames=self.frames)
         self.sink = BusSink(bus, "bench", episode)
         self.index = 0
 

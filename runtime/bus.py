@@ -74,11 +74,14 @@ class Bus(Protocol):
     def publish(self, key: str, message: Any) -> None: ...
     def publish_viz(self, key: str, message: Any) -> None: ...
     def watched(self, key: str) -> bool: ...
-    def subscribe(self, key_expr: str, inbox: Inbox) -> None: ...
+    def subscribe(self, key_expr: str, inbox: Inbox) -> Any: ...
+    def unsubscribe(self, handle: Any) -> None: ...
     def serve(self, key_expr: str) -> Inbox: ...
     def request(self, key: str, message: Any, timeout_s: float) -> list[bytes]: ...
     def wait_for_subscriber(self, key: str, timeout_s: float) -> bool: ...
-    def declare_token(self, key: str) -> None: ...
+    def declare_token(self, key: str) -> Any: ...
+    def undeclare_token(self, handle: Any) -> None: ...
+    def watch_liveliness(self, key_expr: str, inbox: Inbox) -> None: ...
     def close(self) -> None: ...
 
 
@@ -226,8 +229,15 @@ class ZenohBus:
             time.sleep(0.01)
         return True
 
-    def declare_token(self, key: str) -> None:
-        self._keep.append(self.session.liveliness().declare_token(key))
+    def declare_token(self, key: str) -> Any:
+        """A liveliness token on ``key`` until :meth:`undeclare_token` or the session ends (which
+        zenoh notices, also when the process dies); returns its handle."""
+        token = self.session.liveliness().declare_token(key)
+        self._keep.append(token)
+        return token
+
+    def undeclare_token(self, handle: Any) -> None:
+        self.unsubscribe(handle)
 
     def watch_liveliness(self, key_expr: str, inbox: Inbox) -> None:
         """Queue ``Sample(key, b"+")`` when a token appears (also those alive now) and
@@ -257,6 +267,8 @@ class MemoryBus:
     def __init__(self) -> None:
         self.published: list[tuple[str, Any]] = []
         self._subs: list[tuple[str, Inbox]] = []
+        self._tokens: list[list[str]] = []  # handles: one-item lists, so equal keys stay distinct
+        self._watchers: list[tuple[str, Inbox]] = []
 
     def publish(self, key: str, message: Any) -> None:
         payload = message if isinstance(message, (bytes, bytearray)) else encode(message)
@@ -274,17 +286,43 @@ class MemoryBus:
     def forget(self, key_prefix: str) -> None:
         pass
 
-    def subscribe(self, key_expr: str, inbox: Inbox) -> None:
-        self._subs.append((key_expr, inbox))
+    def subscribe(self, key_expr: str, inbox: Inbox) -> Any:
+        handle = (key_expr, inbox)
+        self._subs.append(handle)
+        return handle
+
+    def unsubscribe(self, handle: Any) -> None:
+        if handle in self._subs:
+            self._subs.remove(handle)
 
     def wait_for_subscriber(self, key: str, timeout_s: float) -> bool:
         return any(_matches(expr, key) for expr, _ in self._subs)
 
-    def declare_token(self, key: str) -> None:
-        pass
+    def declare_token(self, key: str) -> Any:
+        handle = [key]
+        self._tokens.append(handle)
+        self._tell(key, b"+")
+        return handle
+
+    def undeclare_token(self, handle: Any) -> None:
+        if any(token is handle for token in self._tokens):
+            self._tokens = [token for token in self._tokens if token is not handle]
+            self._tell(handle[0], b"-")
+
+    def watch_liveliness(self, key_expr: str, inbox: Inbox) -> None:
+        self._watchers.append((key_expr, inbox))
+        for (key,) in self._tokens:  # history: the tokens alive now
+            if _matches(key_expr, key):
+                inbox.put(Sample(key, b"+"))
+
+    def _tell(self, key: str, change: bytes) -> None:
+        for expr, inbox in self._watchers:
+            if _matches(expr, key):
+                inbox.put(Sample(key, change))
 
     def close(self) -> None:
         self._subs.clear()
+        self._watchers.clear()
 
 
 def _matches(expr: str, key: str) -> bool:

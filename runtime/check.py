@@ -22,6 +22,7 @@ so no evaluator stores it. The exit status is 0 when every check passed.
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
 from dataclasses import dataclass, field
@@ -122,8 +123,8 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "he
         spec = spec.model_copy(update={"episode_id": f"check-{spec.episode_id}", "decision_budget": budget})
         console.print(f"checking the agents of run {run_id!r} on {cfg.zenoh.connect}: episode {spec.episode_id}, "
                       f"{budget} decisions")
-        source = BusDecisionSource(bus, run_id, spec.episode_id, timeout_s=cfg.run.decision_timeout_s, stop=stop,
-                                   agent_wait_s=cfg.run.agent_wait_s)
+        source = BusDecisionSource(bus, run_id, spec.episode_id, worker_id=f"check-{os.getpid()}",
+                                   timeout_s=cfg.run.decision_timeout_s, stop=stop, agent_wait_s=cfg.run.agent_wait_s)
         sink = StepChecks(BusSink(bus, run_id, spec.episode_id), v)
         try:
             tools = tools_for({"uav": policy, "ugv": policy})

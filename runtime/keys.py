@@ -15,6 +15,7 @@ Layout::
     agos/<run>/ep/<ep>/events                step records
     agos/<run>/ep/<ep>/result                the episode record
     agos/<run>/ep/<ep>/ack                   evaluator -> world: the record is stored
+    agos/<run>/ep/<ep>/live/<worker>         liveliness: the episode runs on <worker> (agents subscribe to it)
     agos/<run>/live/<kind>/<id>              liveliness tokens
     agos/<run>/viz/<ep>/events               visualisation (lossy): episode start, step records
     agos/<run>/viz/<ep>/coord                visualisation (lossy): coordination truth
@@ -103,6 +104,12 @@ def result(run: str, episode: str) -> str:
 
 def result_ack(run: str, episode: str) -> str:
     return f"{_ep(run, episode)}/ack"
+
+
+def episode_live(run: str, episode: str, worker: str) -> str:
+    """The liveliness token a world declares while it runs ``episode``: agent services subscribe to
+    that episode's observation key exactly while one exists (agents/service.py)."""
+    return f"{_ep(run, episode)}/live/{worker if worker == '*' else check_chunk(worker, what='worker id')}"
 
 
 def live(run: str, kind: LiveKind, ident: str) -> str:

@@ -30,6 +30,15 @@ def _obs(episode: str = "e1", index: int = 1) -> Observation:
         coordination=CoordinationState(run_id=RUN, episode_id=episode, sim_time_s=float(index)))
 
 
+def wait_until(condition, timeout_s: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
 class Serving:
     """serve_async on its own loop thread, over a MemoryBus the test publishes into."""
 
@@ -40,9 +49,8 @@ class Serving:
         self.thread = threading.Thread(target=lambda: asyncio.run(serve_async(self.bus, policy, RUN, self.stop,
                                                                               concurrency=4)), daemon=True)
         self.thread.start()
-        deadline = time.monotonic() + 5
-        while not self.bus.wait_for_subscriber(keys.obs(RUN, "e1", "uav"), 0) and time.monotonic() < deadline:
-            time.sleep(0.01)
+        self.token = self.bus.declare_token(keys.episode_live(RUN, "e1", "w1"))  # as a world running e1
+        assert wait_until(lambda: self.bus.wait_for_subscriber(keys.obs(RUN, "e1", "uav"), 0))
 
     def __enter__(self) -> Serving:
         return self
@@ -160,3 +168,37 @@ def test_mistyped_mirror_answers_cost_a_wait() -> None:
         got = [decode(svc.actions.get(5.0).payload) for _ in range(2)]
         assert [(a.decision_index, a.action, a.rationale) for a in got] == [
             (1, "WAIT", "policy error (see agent log)"), (2, "WAIT", "policy error (see agent log)")]
+
+
+def test_observations_are_subscribed_exactly_while_a_world_holds_the_episode() -> None:
+    with Serving(make_policy("standin-0ms", "uav")) as svc:
+        exact = keys.obs(RUN, "e1", "uav")
+        assert [expr for expr, _ in svc.bus._subs if "/obs/" in expr] == [exact]  # no ep/*/obs wildcard
+        assert not svc.bus.wait_for_subscriber(keys.obs(RUN, "e2", "uav"), 0)  # nobody runs e2
+        second = svc.bus.declare_token(keys.episode_live(RUN, "e1", "w2"))  # e1 re-leased to w2 meanwhile
+        svc.bus.undeclare_token(svc.token)
+        time.sleep(0.1)  # the loop has handled both changes
+        assert svc.bus.wait_for_subscriber(exact, 0)  # w2 still runs it
+        svc.bus.publish(exact, Encoder().encode(_obs()))
+        assert svc.actions.get(0) is not None
+        svc.bus.undeclare_token(second)
+        assert wait_until(lambda: not svc.bus.wait_for_subscriber(exact, 0))
+        svc.bus.publish(exact, Encoder().encode(_obs(index=2)))
+        assert svc.actions.get(0.1) is None
+
+
+def test_a_service_started_after_the_world_serves_the_episodes_in_flight() -> None:
+    bus, stop = MemoryBus(), StopFlag()
+    bus.declare_token(keys.episode_live(RUN, "e7", "w1"))  # the world was there first
+    actions = Inbox()
+    bus.subscribe(keys.act(RUN, "e7", "uav"), actions)
+    thread = threading.Thread(target=lambda: asyncio.run(serve_async(bus, make_policy("standin-0ms", "uav"), RUN, stop,
+                                                                     concurrency=1)), daemon=True)
+    thread.start()
+    try:
+        assert wait_until(lambda: bus.wait_for_subscriber(keys.obs(RUN, "e7", "uav"), 0))
+        bus.publish(keys.obs(RUN, "e7", "uav"), encode(_obs("e7")))
+        assert actions.get(1.0) is not None
+    finally:
+        stop.set()
+        thread.join(5)

@@ -1,7 +1,7 @@
 """The in-memory bus fake matches zenoh key expressions like the real one."""
 
 from agos.runtime import keys
-from agos.runtime.bus import Inbox, MemoryBus, _matches
+from agos.runtime.bus import Inbox, MemoryBus, Sample, _matches
 from agos.runtime.codec import decode
 from agos.runtime.schemas import ResultAck
 
@@ -37,3 +37,17 @@ def test_memory_bus_visualisation_stream() -> None:
     bus.publish_viz(key, ResultAck(run_id="r", episode_id="e", newly_stored=False))
     sample = inbox.get(0.1)
     assert sample is not None and sample.key == "agos/r/viz/e/events"
+
+
+def test_memory_bus_liveliness_tokens() -> None:
+    bus = MemoryBus()
+    first = bus.declare_token(keys.episode_live("r", "e1", "w1"))
+    inbox = Inbox()
+    bus.watch_liveliness(keys.episode_live("r", "*", "*"), inbox)
+    assert inbox.drain() == [Sample("agos/r/ep/e1/live/w1", b"+")]  # history: alive before watching
+    second = bus.declare_token(keys.episode_live("r", "e1", "w1"))  # the same key twice: two tokens
+    bus.declare_token(keys.live("r", "world", "w1"))  # not watched
+    bus.undeclare_token(first)
+    bus.undeclare_token(first)  # twice: once told
+    bus.undeclare_token(second)
+    assert [s.payload for s in inbox.drain()] == [b"+", b"-", b"-"]

@@ -89,11 +89,15 @@ class MissingAgent(RuntimeError):
 class BusDecisionSource:
     """Asks the agent services for decisions over zenoh (lockstep: the sim clock waits)."""
 
-    def __init__(self, bus: ZenohBus, run_id: str, episode_id: str, *, timeout_s: float, stop: StopFlag,
-                 agent_wait_s: float = 30.0, frames: FrameStream | None = None) -> None:
+    def __init__(self, bus: ZenohBus, run_id: str, episode_id: str, *, worker_id: str, timeout_s: float,
+                 stop: StopFlag, agent_wait_s: float = 30.0, frames: FrameStream | None = None) -> None:
         self.bus, self.run_id, self.episode_id = bus, run_id, episode_id
         self.timeout_s, self.stop, self.agent_wait_s = timeout_s, stop, agent_wait_s
         self.frames = frames  # thumbnails for observers (runtime/viz.py)
+        # While this token lives, agent services subscribe to this episode's observation keys
+        # exactly, not through ``ep/*/obs/<role>``: 10-20 us less per decision in situ
+        # (docs/ARCHITECTURE.md §6, "Decision round trip"). The first decision waits for them.
+        self._token = bus.declare_token(keys.episode_live(run_id, episode_id, worker_id))
         self.inbox = Inbox()
         # One exact subscription per role, not ``act/*``: zenoh delivers to an exact key expression
         # more cheaply, 6-15 us per decision in situ (docs/ARCHITECTURE.md §6, "Decision round trip").
@@ -104,6 +108,7 @@ class BusDecisionSource:
         self.decoder = Decoder(first="action")  # actions arrive as compiled mirrors (the runner makes models of them)
 
     def close(self) -> None:
+        self.bus.undeclare_token(self._token)
         for handle in self._handles:
             self.bus.unsubscribe(handle)
 
@@ -224,7 +229,7 @@ class WorldWorker:
                 worker_id=self.worker_id, town_id=town.town_id, asset_sha256=town.sha256))
             self.bus.publish(keys.events(self.run_id, spec.episode_id), started_msg)
             self.bus.publish_viz(keys.viz_events(self.run_id, spec.episode_id), started_msg)
-            source = BusDecisionSource(self.bus, self.run_id, spec.episode_id,
+            source = BusDecisionSource(self.bus, self.run_id, spec.episode_id, worker_id=self.worker_id,
                                        timeout_s=self.cfg.run.decision_timeout_s, stop=self.stop,
                                        agent_wait_s=self.cfg.run.agent_wait_s, frames=self.frames)
             runner = EpisodeRunner(scene, town, spec, run_id=self.run_id, worker_id=self.worker_id,

@@ -1,0 +1,1 @@
+"""Link-model profiles (TOML), shipped as package data: ``--comm NAME``."""

@@ -1,0 +1,1 @@
+"""Embedded run configurations and episode lists, shipped as package data."""
