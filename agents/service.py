@@ -17,6 +17,7 @@ decision, never the episode. A restarted service simply answers what the world r
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import os
 import threading
@@ -40,7 +41,7 @@ OBSERVATIONS = (mirror(Observation), Observation)
 
 
 class _Dispatch:
-    """Takes each zenoh sample on the thread that received it: decodes it there (tens of
+    """Takes each payload on the zenoh thread that received it: decodes it there (tens of
     microseconds, bounded) and then either answers at once, for ``inline`` policies (microseconds,
     no I/O), or hands the decoded message to the asyncio loop. Answering inline saves a thread
     hand-over per decision (docs/ARCHITECTURE.md, "Decision round trip").
@@ -56,11 +57,16 @@ class _Dispatch:
         self.lock = threading.Lock()
 
     def put(self, sample: Sample) -> None:
+        """An ``Inbox`` for the result subscription."""
+        self.take(sample.payload, sample.key)
+
+    def take(self, payload: bytes, key: str) -> None:
+        """One received payload (``key`` names it in the log if it cannot be read)."""
         with self.lock:
             try:
-                message = self.decoder.decode(sample.payload)
+                message = self.decoder.decode(payload)
             except DecodeError as exc:
-                log.warning("ignoring undecodable payload on %s: %s", sample.key, exc)
+                log.warning("ignoring undecodable payload on %s: %s", key, exc)
                 return
             if isinstance(message, OBSERVATIONS):
                 if self.inline:
@@ -102,7 +108,8 @@ class _EpisodeSubscriptions:
         else:
             holders.discard(worker)
         if holders and episode not in self.handles:
-            self.handles[episode] = self.bus.subscribe(keys.obs(self.run_id, episode, self.role), self.dispatch)  # type: ignore[arg-type]
+            key = keys.obs(self.run_id, episode, self.role)
+            self.handles[episode] = self.bus.subscribe_payloads(key, functools.partial(self.dispatch.take, key=key))
         elif not holders:
             del self.holders[episode]
             if episode in self.handles:
@@ -137,18 +144,15 @@ def publish_action(bus: ZenohBus, run_id: str, obs: Observation, action: Action,
     """Stamp the policy's wall-clock latency (realtime mode charges it in simulated time), check the
     answer as the world will read it (a mirror action from ``action_for`` is built without checks)
     and send it; one the world would refuse is logged and replaced by a legal WAIT."""
+    latency = round(time.monotonic() - started, 4)
     try:
-        payload = _stamped(action, started)
+        action.agent_wall_latency_s = latency
+        payload = encode_checked(action)
     except Exception:
         action = _policy_failed(obs)
-        payload = _stamped(action, started)
+        action.agent_wall_latency_s = latency
+        payload = encode_checked(action)
     bus.publish(keys.act(run_id, action.episode_id, action.role), payload)
-
-
-def _stamped(action: Action, started: float) -> bytes:
-    """``action`` with its latency since ``started``, encoded and checked (``codec.encode_checked``)."""
-    action.agent_wall_latency_s = round(time.monotonic() - started, 4)
-    return encode_checked(action)
 
 
 def end_episode(bus: ZenohBus, policy: Policy, run_id: str, episode_id: str) -> None:

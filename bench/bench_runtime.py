@@ -87,7 +87,7 @@ from agos.runtime.codec import Decoder
 from agos.runtime.process import StopFlag
 spent = {}
 policy = make_policy("standin-0ms", "uav")
-service._Dispatch.put = timed(service._Dispatch.put, spent, "agent: receive to answer sent")
+service._Dispatch.take = timed(service._Dispatch.take, spent, "agent: receive to answer sent")
 Decoder.decode = timed(Decoder.decode, spent, "agent: decode")
 Decoder._complete = timed(Decoder._complete, spent, "agent: decode, after the top-level read")
 policy.act = timed(policy.act, spent, "agent: policy")

@@ -23,6 +23,7 @@ import queue
 import re
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -75,6 +76,7 @@ class Bus(Protocol):
     def publish_viz(self, key: str, message: Any) -> None: ...
     def watched(self, key: str) -> bool: ...
     def subscribe(self, key_expr: str, inbox: Inbox) -> Any: ...
+    def subscribe_payloads(self, key_expr: str, callback: Callable[[bytes], None]) -> Any: ...
     def unsubscribe(self, handle: Any) -> None: ...
     def serve(self, key_expr: str) -> Inbox: ...
     def request(self, key: str, message: Any, timeout_s: float) -> list[bytes]: ...
@@ -198,6 +200,18 @@ class ZenohBus:
         self._keep.append(sub)
         return sub
 
+    def subscribe_payloads(self, key_expr: str, callback: Callable[[bytes], None]) -> Any:
+        """Call ``callback(payload)`` on zenoh's thread for every sample under ``key_expr``: for a
+        receiver that needs neither the key nor a queue (the agent service's hot path, where each
+        layer costs microseconds in situ). Returns a handle for :meth:`unsubscribe`."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            callback(sample.payload.to_bytes())
+
+        sub = self.session.declare_subscriber(key_expr, on_sample)
+        self._keep.append(sub)
+        return sub
+
     def unsubscribe(self, handle: Any) -> None:
         if handle in self._keep:
             self._keep.remove(handle)
@@ -291,6 +305,9 @@ class MemoryBus:
         self._subs.append(handle)
         return handle
 
+    def subscribe_payloads(self, key_expr: str, callback: Callable[[bytes], None]) -> Any:
+        return self.subscribe(key_expr, _Calling(callback))  # type: ignore[arg-type]
+
     def unsubscribe(self, handle: Any) -> None:
         if handle in self._subs:
             self._subs.remove(handle)
@@ -323,6 +340,16 @@ class MemoryBus:
     def close(self) -> None:
         self._subs.clear()
         self._watchers.clear()
+
+
+class _Calling:
+    """An inbox that hands each payload to a callback (``MemoryBus.subscribe_payloads``)."""
+
+    def __init__(self, callback: Callable[[bytes], None]) -> None:
+        self.callback = callback
+
+    def put(self, sample: Sample) -> None:
+        self.callback(sample.payload)
 
 
 def _matches(expr: str, key: str) -> bool:
