@@ -264,7 +264,8 @@ def concurrency_rate(endpoint: str, obs: Observation, episodes: int = 32, second
         inbox = Inbox()
         bus.subscribe(keys.act("bench", f"c{k}", "uav"), inbox)
         key = keys.obs("bench", f"c{k}", "uav")
-        bus.wait_for_subscriber(key, 10.0)
+        bus.declare_token(keys.episode_live("bench", f"c{k}", "bench"))  # as a world running episode c<k>
+        assert bus.wait_for_subscriber(key, 10.0), f"no agent subscribed to {key}"
         index = 0
         while time.monotonic() < stop:
             index += 1

@@ -1,0 +1,25 @@
+"""The runtime benchmark still runs end to end (its goals are checked by reading its output, not
+here: wall-clock figures do not belong in tests). Catches a bench that no longer fits the runtime,
+e.g. an agent protocol change that leaves a hand-made world unanswered."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.e2e
+BENCH = Path(__file__).resolve().parents[1] / "bench" / "bench_runtime.py"
+
+
+def test_round_trip_and_concurrency_parts_run() -> None:
+    out = subprocess.run([sys.executable, str(BENCH), "--only", "roundtrip", "--only", "concurrency"],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    ratio = re.search(r"decision round trip .*: ([0-9.]+)x \(median", out.stdout)
+    rate = re.search(r"32 episodes, 200 ms agent\s+([0-9.]+) decisions/s", out.stdout)
+    assert ratio and float(ratio.group(1)) > 0, out.stdout
+    assert rate and float(rate.group(1)) > 0, out.stdout  # every episode was answered at all
