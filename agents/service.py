@@ -17,6 +17,7 @@ decision, never the episode. A restarted service simply answers what the world r
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import logging
 import os
@@ -98,7 +99,8 @@ class _EpisodeSubscriptions:
         self.handles: dict[str, object] = {}
 
     def put(self, sample: Sample) -> None:
-        self.loop.call_soon_threadsafe(self.update, sample.key, sample.payload == b"+")
+        with contextlib.suppress(RuntimeError):  # the loop is closed: the service is stopping
+            self.loop.call_soon_threadsafe(self.update, sample.key, sample.payload == b"+")
 
     def update(self, key: str, alive: bool) -> None:
         episode, worker = keys.episode_of(key), key.rsplit("/", 1)[-1]
