@@ -110,8 +110,8 @@ class _EpisodeSubscriptions:
         else:
             holders.discard(worker)
         if holders and episode not in self.handles:
-            key = keys.obs(self.run_id, episode, self.role)
-            self.handles[episode] = self.bus.subscribe_payloads(key, functools.partial(self.dispatch.take, key=key))
+            obs_key = keys.obs(self.run_id, episode, self.role)
+            self.handles[episode] = self.bus.subscribe_payloads(obs_key, functools.partial(self.dispatch.take, key=obs_key))
         elif not holders:
             del self.holders[episode]
             if episode in self.handles:
