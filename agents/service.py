@@ -25,10 +25,11 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 from agos.agents.policy import Policy, action_for, make_policy
 from agos.runtime import keys
-from agos.runtime.bus import Sample, ZenohBus, zenoh_config
+from agos.runtime.bus import Bus, Sample, ZenohBus, zenoh_config
 from agos.runtime.codec import DecodeError, Decoder, encode_checked
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role
@@ -81,22 +82,25 @@ class _Dispatch:
                     return
             else:
                 return
-        self.loop.call_soon_threadsafe(self.on_loop, message)
+        with contextlib.suppress(RuntimeError):  # the loop is closed: the service is stopping
+            self.loop.call_soon_threadsafe(self.on_loop, message)
 
 
 class _EpisodeSubscriptions:
     """Subscribes the dispatch to each running episode's observation key exactly, while a world
     holds that episode's liveliness token (``keys.episode_live``; tokens alive when the service
-    starts count, so a restarted service picks up the episodes in flight). zenoh delivers to an
-    exact key expression faster than to ``ep/*/obs/<role>``: 10-20 us per decision in situ
-    (docs/ARCHITECTURE.md §6, "Decision round trip"). Token changes arrive on zenoh's threads; the
-    (un)subscribing is done on the asyncio loop, outside zenoh's callbacks."""
+    starts count, so a restarted service picks up the episodes in flight), and then says so with
+    its own token (``keys.episode_ready``), which the world waits for before the first observation.
+    zenoh delivers to an exact key expression faster than to ``ep/*/obs/<role>``: 10-20 us per
+    decision in situ (docs/ARCHITECTURE.md §6, "Decision round trip"). Token changes arrive on
+    zenoh's threads; the (un)subscribing is done on the asyncio loop, outside zenoh's callbacks."""
 
-    def __init__(self, bus: ZenohBus, run_id: str, role: Role, dispatch: _Dispatch,
+    def __init__(self, bus: Bus, run_id: str, role: Role, agent_id: str, dispatch: _Dispatch,
                  loop: asyncio.AbstractEventLoop) -> None:
-        self.bus, self.run_id, self.role, self.dispatch, self.loop = bus, run_id, role, dispatch, loop
+        self.bus, self.run_id, self.role, self.agent_id = bus, run_id, role, agent_id
+        self.dispatch, self.loop = dispatch, loop
         self.holders: dict[str, set[str]] = {}  # episode -> the workers whose token for it is alive
-        self.handles: dict[str, object] = {}
+        self.handles: dict[str, tuple[Any, Any]] = {}  # episode -> (subscription, ready token)
 
     def put(self, sample: Sample) -> None:
         with contextlib.suppress(RuntimeError):  # the loop is closed: the service is stopping
@@ -111,11 +115,27 @@ class _EpisodeSubscriptions:
             holders.discard(worker)
         if holders and episode not in self.handles:
             obs_key = keys.obs(self.run_id, episode, self.role)
-            self.handles[episode] = self.bus.subscribe_payloads(obs_key, functools.partial(self.dispatch.take, key=obs_key))
+            try:
+                subscription = self.bus.subscribe_payloads(obs_key, functools.partial(self.dispatch.take, key=obs_key))
+                ready = self.bus.declare_token(keys.episode_ready(self.run_id, episode, self.role, self.agent_id))
+            except Exception:  # e.g. the session is closing; the next token change tries again
+                log.exception("could not subscribe to %s", obs_key)
+                holders.discard(worker)
+                return
+            self.handles[episode] = (subscription, ready)
         elif not holders:
             del self.holders[episode]
-            if episode in self.handles:
-                self.bus.unsubscribe(self.handles.pop(episode))
+            self._drop(episode)
+
+    def _drop(self, episode: str) -> None:
+        if episode in self.handles:
+            subscription, ready = self.handles.pop(episode)
+            self.bus.undeclare_token(ready)
+            self.bus.unsubscribe(subscription)
+
+    def close(self) -> None:
+        for episode in list(self.handles):
+            self._drop(episode)
 
 
 def decide(policy: Policy, obs: Observation) -> Action:
@@ -183,17 +203,19 @@ async def serve_async(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag
             tasks.add(task)
             task.add_done_callback(tasks.discard)
 
+    agent_id = f"{policy.role}-{os.getpid()}"
     dispatch = _Dispatch(bus, policy, run_id, loop, on_loop)
-    bus.watch_liveliness(keys.episode_live(run_id, "*", "*"),
-                         _EpisodeSubscriptions(bus, run_id, policy.role, dispatch, loop))  # type: ignore[arg-type]
+    episodes = _EpisodeSubscriptions(bus, run_id, policy.role, agent_id, dispatch, loop)
+    bus.watch_liveliness(keys.episode_live(run_id, "*", "*"), episodes)  # type: ignore[arg-type]
     bus.subscribe(keys.result(run_id, "*"), dispatch)  # type: ignore[arg-type]
-    bus.declare_token(keys.live(run_id, "agent", f"{policy.role}-{os.getpid()}"))
+    bus.declare_token(keys.live(run_id, "agent", agent_id))
     log.info("%s agent (%s) serving run %s, up to %d decisions at once%s", policy.role, policy.name, run_id,
              concurrency, " (answered inline)" if dispatch.inline else "")
     try:
         while not stop.is_set():
             await asyncio.sleep(0.25)  # samples arrive through the dispatch; this only watches the stop flag
     finally:
+        episodes.close()
         for task in tasks:
             task.cancel()
         executor.shutdown(wait=False, cancel_futures=True)

@@ -284,6 +284,9 @@ def concurrency_rate(endpoint: str, obs: Observation, episodes: int = 32, second
         t.join()
     elapsed = time.monotonic() - start
     bus.close()
+    unanswered = [f"c{k}" for k, count in enumerate(counts) if count == 0]
+    if unanswered:  # an assert in a loop thread would only be printed
+        raise RuntimeError(f"episodes never answered: {', '.join(unanswered)}")
     return sum(counts) / elapsed
 
 

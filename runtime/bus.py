@@ -83,7 +83,7 @@ class Bus(Protocol):
     def wait_for_subscriber(self, key: str, timeout_s: float) -> bool: ...
     def declare_token(self, key: str) -> Any: ...
     def undeclare_token(self, handle: Any) -> None: ...
-    def watch_liveliness(self, key_expr: str, inbox: Inbox) -> None: ...
+    def watch_liveliness(self, key_expr: str, inbox: Inbox) -> Any: ...
     def close(self) -> None: ...
 
 
@@ -253,14 +253,16 @@ class ZenohBus:
     def undeclare_token(self, handle: Any) -> None:
         self.unsubscribe(handle)
 
-    def watch_liveliness(self, key_expr: str, inbox: Inbox) -> None:
+    def watch_liveliness(self, key_expr: str, inbox: Inbox) -> Any:
         """Queue ``Sample(key, b"+")`` when a token appears (also those alive now) and
         ``Sample(key, b"-")`` when it vanishes (process gone, or its session lost)."""
 
         def on_sample(sample: zenoh.Sample) -> None:
             inbox.put(Sample(str(sample.key_expr), b"+" if sample.kind == zenoh.SampleKind.PUT else b"-"))
 
-        self._keep.append(self.session.liveliness().declare_subscriber(key_expr, on_sample, history=True))
+        sub = self.session.liveliness().declare_subscriber(key_expr, on_sample, history=True)
+        self._keep.append(sub)
+        return sub
 
     def close(self) -> None:
         for obj in self._keep:
@@ -287,7 +289,7 @@ class MemoryBus:
     def publish(self, key: str, message: Any) -> None:
         payload = message if isinstance(message, (bytes, bytearray)) else encode(message)
         self.published.append((key, message))
-        for expr, inbox in self._subs:
+        for expr, inbox in list(self._subs):  # a copy: another thread may (un)subscribe meanwhile
             if _matches(expr, key):
                 inbox.put(Sample(key, payload))
 
@@ -295,7 +297,7 @@ class MemoryBus:
         self.publish(key, message)
 
     def watched(self, key: str) -> bool:
-        return any(_matches(expr, key) for expr, _ in self._subs)
+        return any(_matches(expr, key) for expr, _ in list(self._subs))
 
     def forget(self, key_prefix: str) -> None:
         pass
@@ -309,37 +311,48 @@ class MemoryBus:
         return self.subscribe(key_expr, _Calling(callback))  # type: ignore[arg-type]
 
     def unsubscribe(self, handle: Any) -> None:
-        if handle in self._subs:
-            self._subs.remove(handle)
+        for handles in (self._subs, self._watchers):
+            if handle in handles:
+                handles.remove(handle)
 
     def wait_for_subscriber(self, key: str, timeout_s: float) -> bool:
-        return any(_matches(expr, key) for expr, _ in self._subs)
+        return any(_matches(expr, key) for expr, _ in list(self._subs))
 
     def declare_token(self, key: str) -> Any:
+        """As zenoh: watchers hear of a key when its first token appears and when its last goes."""
         handle = [key]
+        first = not self._alive(key)
         self._tokens.append(handle)
-        self._tell(key, b"+")
+        if first:
+            self._tell(key, b"+")
         return handle
 
     def undeclare_token(self, handle: Any) -> None:
         if any(token is handle for token in self._tokens):
             self._tokens = [token for token in self._tokens if token is not handle]
-            self._tell(handle[0], b"-")
+            if not self._alive(handle[0]):
+                self._tell(handle[0], b"-")
 
-    def watch_liveliness(self, key_expr: str, inbox: Inbox) -> None:
-        self._watchers.append((key_expr, inbox))
-        for (key,) in self._tokens:  # history: the tokens alive now
+    def _alive(self, key: str) -> bool:
+        return any(token[0] == key for token in self._tokens)
+
+    def watch_liveliness(self, key_expr: str, inbox: Inbox) -> Any:
+        handle = (key_expr, inbox)
+        self._watchers.append(handle)
+        for key in dict.fromkeys(token[0] for token in self._tokens):  # history: the keys alive now, once each
             if _matches(key_expr, key):
                 inbox.put(Sample(key, b"+"))
+        return handle
 
     def _tell(self, key: str, change: bytes) -> None:
-        for expr, inbox in self._watchers:
+        for expr, inbox in list(self._watchers):
             if _matches(expr, key):
                 inbox.put(Sample(key, change))
 
     def close(self) -> None:
         self._subs.clear()
         self._watchers.clear()
+        self._tokens.clear()
 
 
 class _Calling:

@@ -16,6 +16,7 @@ Layout::
     agos/<run>/ep/<ep>/result                the episode record
     agos/<run>/ep/<ep>/ack                   evaluator -> world: the record is stored
     agos/<run>/ep/<ep>/live/<worker>         liveliness: the episode runs on <worker> (agents subscribe to it)
+    agos/<run>/ep/<ep>/ready/<role>/<agent>  liveliness: <agent> has subscribed to the episode's obs/<role>
     agos/<run>/live/<kind>/<id>              liveliness tokens
     agos/<run>/viz/<ep>/events               visualisation (lossy): episode start, step records
     agos/<run>/viz/<ep>/coord                visualisation (lossy): coordination truth
@@ -110,6 +111,13 @@ def episode_live(run: str, episode: str, worker: str) -> str:
     """The liveliness token a world declares while it runs ``episode``: agent services subscribe to
     that episode's observation key exactly while one exists (agents/service.py)."""
     return f"{_ep(run, episode)}/live/{worker if worker == '*' else check_chunk(worker, what='worker id')}"
+
+
+def episode_ready(run: str, episode: str, role: str, agent: str) -> str:
+    """The liveliness token an agent service declares once it has subscribed to ``episode``'s
+    observations for ``role``: what the world waits for before the first one (any subscriber, an
+    observer of ``agos/**`` for one, would not do)."""
+    return f"{_ep(run, episode)}/ready/{role}/{agent if agent == '*' else check_chunk(agent, what='agent id')}"
 
 
 def live(run: str, kind: LiveKind, ident: str) -> str:

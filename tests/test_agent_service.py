@@ -4,6 +4,7 @@ answered on the publishing thread, the others on the asyncio loop; errors cost a
 from __future__ import annotations
 
 import asyncio
+import os
 import threading
 import time
 
@@ -174,15 +175,20 @@ def test_observations_are_subscribed_exactly_while_a_world_holds_the_episode() -
     with Serving(make_policy("standin-0ms", "uav")) as svc:
         exact = keys.obs(RUN, "e1", "uav")
         assert [expr for expr, _ in svc.bus._subs if "/obs/" in expr] == [exact]  # no ep/*/obs wildcard
+        ready = Inbox()
+        svc.bus.watch_liveliness(keys.episode_ready(RUN, "*", "*", "*"), ready)
+        assert [(s.key, s.payload) for s in ready.drain()] == [(keys.episode_ready(RUN, "e1", "uav", f"uav-{os.getpid()}"), b"+")]
         assert not svc.bus.wait_for_subscriber(keys.obs(RUN, "e2", "uav"), 0)  # nobody runs e2
         second = svc.bus.declare_token(keys.episode_live(RUN, "e1", "w2"))  # e1 re-leased to w2 meanwhile
         svc.bus.undeclare_token(svc.token)
-        time.sleep(0.1)  # the loop has handled both changes
-        assert svc.bus.wait_for_subscriber(exact, 0)  # w2 still runs it
+        svc.bus.declare_token(keys.episode_live(RUN, "e9", "w1"))  # handled after the two changes above
+        assert wait_until(lambda: svc.bus.wait_for_subscriber(keys.obs(RUN, "e9", "uav"), 0))
+        assert svc.bus.wait_for_subscriber(exact, 0)  # w2 still runs e1
         svc.bus.publish(exact, Encoder().encode(_obs()))
         assert svc.actions.get(0) is not None
         svc.bus.undeclare_token(second)
         assert wait_until(lambda: not svc.bus.wait_for_subscriber(exact, 0))
+        assert [(s.key.split("/")[3], s.payload) for s in ready.drain()] == [("e9", b"+"), ("e1", b"-")]
         svc.bus.publish(exact, Encoder().encode(_obs(index=2)))
         assert svc.actions.get(0.1) is None
 

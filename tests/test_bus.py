@@ -45,9 +45,12 @@ def test_memory_bus_liveliness_tokens() -> None:
     inbox = Inbox()
     bus.watch_liveliness(keys.episode_live("r", "*", "*"), inbox)
     assert inbox.drain() == [Sample("agos/r/ep/e1/live/w1", b"+")]  # history: alive before watching
-    second = bus.declare_token(keys.episode_live("r", "e1", "w1"))  # the same key twice: two tokens
+    # As zenoh 1.10 through a router: a second token on a key already alive is not announced, and
+    # the key is reported gone when its last token goes.
+    second = bus.declare_token(keys.episode_live("r", "e1", "w1"))
     bus.declare_token(keys.live("r", "world", "w1"))  # not watched
     bus.undeclare_token(first)
-    bus.undeclare_token(first)  # twice: once told
+    bus.undeclare_token(first)  # twice: nothing more
+    assert inbox.drain() == []
     bus.undeclare_token(second)
-    assert [s.payload for s in inbox.drain()] == [b"+", b"-", b"-"]
+    assert inbox.drain() == [Sample("agos/r/ep/e1/live/w1", b"-")]

@@ -94,10 +94,6 @@ class BusDecisionSource:
         self.bus, self.run_id, self.episode_id = bus, run_id, episode_id
         self.timeout_s, self.stop, self.agent_wait_s = timeout_s, stop, agent_wait_s
         self.frames = frames  # thumbnails for observers (runtime/viz.py)
-        # While this token lives, agent services subscribe to this episode's observation keys
-        # exactly, not through ``ep/*/obs/<role>``: 10-20 us less per decision in situ
-        # (docs/ARCHITECTURE.md §6, "Decision round trip"). The first decision waits for them.
-        self._token = bus.declare_token(keys.episode_live(run_id, episode_id, worker_id))
         self.inbox = Inbox()
         # One exact subscription per role, not ``act/*``: zenoh delivers to an exact key expression
         # more cheaply, 6-15 us per decision in situ (docs/ARCHITECTURE.md §6, "Decision round trip").
@@ -106,6 +102,14 @@ class BusDecisionSource:
         self.obs_keys = {role: keys.obs(run_id, episode_id, role) for role in keys.ROLES}
         self.viz_keys = {role: keys.viz_frame(run_id, episode_id, role) for role in keys.ROLES}
         self.decoder = Decoder(first="action")  # actions arrive as compiled mirrors (the runner makes models of them)
+        self._ready: dict[str, set[str]] = {role: set() for role in keys.ROLES}  # role -> agents subscribed
+        self._ready_changes = Inbox()
+        self._handles.append(bus.watch_liveliness(keys.episode_ready(run_id, episode_id, "*", "*"), self._ready_changes))
+        # While this token lives, agent services subscribe to this episode's observation keys
+        # exactly, not through ``ep/*/obs/<role>``: 10-20 us less per decision in situ
+        # (docs/ARCHITECTURE.md §6, "Decision round trip"); each says so with its ``ready`` token,
+        # which the first decision waits for. Declared last: nothing to withdraw if a step above raised.
+        self._token = bus.declare_token(keys.episode_live(run_id, episode_id, worker_id))
 
     def close(self) -> None:
         self.bus.undeclare_token(self._token)
@@ -113,16 +117,25 @@ class BusDecisionSource:
             self.bus.unsubscribe(handle)
 
     def _check_agents(self, observations: dict[Role, Observation]) -> None:
-        """At an episode's first decisions: wait up to ``agent_wait_s`` for an agent service of each
-        role; raise :class:`MissingAgent` naming the roles nobody serves."""
+        """At an episode's first decisions: wait up to ``agent_wait_s`` until an agent service of each
+        role has subscribed to this episode (its ``ready`` token); raise :class:`MissingAgent` naming
+        the roles nobody serves."""
         first = [role for role, obs in observations.items() if obs.decision_index == 1]
-        if not first:
-            return
         deadline = time.monotonic() + self.agent_wait_s
-        missing = [role for role in first if not self.bus.wait_for_subscriber(
-            self.obs_keys[role], max(0.0, deadline - time.monotonic()))]
-        if missing:
-            raise MissingAgent(missing, self.run_id, self.agent_wait_s)
+        changes = []
+        while first:
+            for sample in changes + self._ready_changes.drain():
+                role, agent = sample.key.rsplit("/", 2)[-2:]
+                if role in self._ready:
+                    (self._ready[role].add if sample.payload == b"+" else self._ready[role].discard)(agent)
+            missing = [role for role in first if not self._ready[role]]
+            if not missing:
+                return
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise MissingAgent(missing, self.run_id, self.agent_wait_s)
+            change = self._ready_changes.get(timeout_s=min(remaining, 0.5))
+            changes = [change] if change is not None else []
 
     def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
         """Actions as their compiled mirrors (type-checked while read; ``EpisodeRunner`` makes
