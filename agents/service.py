@@ -168,13 +168,17 @@ def publish_action(bus: ZenohBus, run_id: str, obs: Observation, action: Action,
     and send it; one the world would refuse is logged and replaced by a legal WAIT."""
     latency = round(time.monotonic() - started, 4)
     try:
-        action.agent_wall_latency_s = latency
-        payload = encode_checked(action)
+        payload = _stamped(action, latency)
     except Exception:
         action = _policy_failed(obs)
-        action.agent_wall_latency_s = latency
-        payload = encode_checked(action)
+        payload = _stamped(action, latency)
     bus.publish(keys.act(run_id, action.episode_id, action.role), payload)
+
+
+def _stamped(action: Action, latency_s: float) -> bytes:
+    """``action`` with its latency, encoded and checked (``codec.encode_checked``)."""
+    action.agent_wall_latency_s = latency_s
+    return encode_checked(action)
 
 
 def end_episode(bus: ZenohBus, policy: Policy, run_id: str, episode_id: str) -> None:

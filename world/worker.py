@@ -17,7 +17,7 @@ import time
 import traceback
 
 from agos.runtime import keys
-from agos.runtime.bus import Inbox, ZenohBus, zenoh_config
+from agos.runtime.bus import Inbox, Sample, ZenohBus, zenoh_config
 from agos.runtime.codec import DecodeError, Decoder, Encoder, decode, encode
 from agos.runtime.links import CommProfile
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
@@ -121,21 +121,24 @@ class BusDecisionSource:
         role has subscribed to this episode (its ``ready`` token); raise :class:`MissingAgent` naming
         the roles nobody serves."""
         first = [role for role, obs in observations.items() if obs.decision_index == 1]
+        if not first:  # every later decision: nothing to wait for
+            return
         deadline = time.monotonic() + self.agent_wait_s
-        changes = []
-        while first:
-            for sample in changes + self._ready_changes.drain():
-                role, agent = sample.key.rsplit("/", 2)[-2:]
-                if role in self._ready:
-                    (self._ready[role].add if sample.payload == b"+" else self._ready[role].discard)(agent)
-            missing = [role for role in first if not self._ready[role]]
-            if not missing:
-                return
+        for change in self._ready_changes.drain():
+            self._note_ready(change)
+        while missing := [role for role in first if not self._ready[role]]:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise MissingAgent(missing, self.run_id, self.agent_wait_s)
             change = self._ready_changes.get(timeout_s=min(remaining, 0.5))
-            changes = [change] if change is not None else []
+            if change is not None:
+                self._note_ready(change)
+
+    def _note_ready(self, change: Sample) -> None:
+        """One change of an ``episode_ready`` token: ``.../ready/<role>/<agent>``, ``+`` or ``-``."""
+        role, agent = change.key.rsplit("/", 2)[-2:]
+        if role in self._ready:
+            (self._ready[role].add if change.payload == b"+" else self._ready[role].discard)(agent)
 
     def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
         """Actions as their compiled mirrors (type-checked while read; ``EpisodeRunner`` makes
