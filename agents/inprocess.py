@@ -3,7 +3,7 @@ debugging (the benchmark itself runs agents as separate processes over zenoh).""
 
 from __future__ import annotations
 
-from agos.agents.policy import Policy
+from agos.agents.contract import Policy
 from agos.runtime.schemas import Action, Observation, Role
 
 

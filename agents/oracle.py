@@ -12,10 +12,10 @@ import math
 
 import numpy as np
 
+from agos.agents.contract import action_for
 from agos.agents.navigation import Navigator
-from agos.agents.policy import action_for
+from agos.runtime.camera import cell_of_pixel, ground_to_pixel
 from agos.runtime.schemas import Action, Observation
-from agos.world.camera import cell_of_pixel, ground_to_pixel
 
 STOP_WITHIN_M = 25.0
 

@@ -9,7 +9,7 @@ import zlib
 
 import numpy as np
 
-from agos.agents.policy import action_for
+from agos.agents.contract import action_for
 from agos.runtime.schemas import Action, Observation, Role
 
 

@@ -27,7 +27,8 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-from agos.agents.policy import Policy, action_for, make_policy
+from agos.agents.contract import Policy, action_for
+from agos.agents.registry import make_policy
 from agos.runtime import keys
 from agos.runtime.bus import Bus, Sample, ZenohBus, zenoh_config
 from agos.runtime.codec import DecodeError, Decoder, encode_checked

@@ -9,7 +9,7 @@ from __future__ import annotations
 import asyncio
 import time
 
-from agos.agents.policy import action_for
+from agos.agents.contract import action_for
 from agos.runtime.schemas import Action, Observation, Role
 
 

@@ -35,17 +35,17 @@ import threading
 import time
 from pathlib import Path
 
+from agos.deploy.launcher import free_port, wait_listening
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, ZenohBus
 from agos.runtime.codec import decode, encode
-from agos.runtime.launcher import free_port, wait_listening
 from agos.runtime.process import StopFlag
 from agos.runtime.schemas import Observation, StepEvent
 from agos.runtime.structs import to_model
 from agos.runtime.viz import FrameStream
-from agos.world.worker import BusDecisionSource, BusSink
+from agos.world.sim.worker import BusDecisionSource, BusSink
 
-AGOS = [sys.executable, "-m", "agos.runtime.cli"]
+AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 ECHO = """
 import sys, time, zenoh
 from agos.runtime.bus import zenoh_config
@@ -81,7 +81,7 @@ import asyncio, json, statistics, sys
 sys.path.insert(0, sys.argv[3])
 from bench_runtime import timed
 from agos.agents import service
-from agos.agents.policy import make_policy
+from agos.agents.registry import make_policy
 from agos.runtime.bus import ZenohBus, zenoh_config
 from agos.runtime.codec import Decoder
 from agos.runtime.process import StopFlag
@@ -115,10 +115,10 @@ while True:
 def sample_observation() -> Observation:
     """A real UAV observation (rendered, encoded) from the grid town."""
     from agos.agents.inprocess import InProcessAgents
-    from agos.world.asset import open_town
-    from agos.world.episode import EpisodeRunner
-    from agos.world.episodes import sample_episode
-    from agos.world.scene import Scene
+    from agos.world.episodes.sampling import sample_episode
+    from agos.world.sim.engine import EpisodeRunner
+    from agos.world.sim.scene import Scene
+    from agos.world.towns.asset import open_town
 
     town = open_town("grid-s7")
     scene = Scene(town.layout)
@@ -137,7 +137,7 @@ def sample_observation() -> Observation:
 
 
 class World:
-    """One episode's decisions made by the world worker's own code (world/worker.py)."""
+    """One episode's decisions made by the world worker's own code (world/sim/worker.py)."""
 
     def __init__(self, bus: ZenohBus, obs: Observation, episode: str = "e0") -> None:
         self.obs = obs.model_copy(update={"episode_id": episode})
@@ -148,7 +148,7 @@ class World:
         self.index = 0
 
     def _next(self) -> Observation:
-        # As in world/episode.py: a new Observation each decision, its searchable area a new list
+        # As in world/sim/engine.py: a new Observation each decision, its searchable area a new list
         # of the episode's same Waypoint objects (built once per episode).
         self.index += 1
         return self.obs.model_copy(update={"decision_index": self.index,

@@ -23,9 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from agos.world import sensors
-from agos.world.asset import open_town
-from agos.world.scene import Scene, pb
+from agos.world.sim import sensors
+from agos.world.sim.scene import Scene, pb
+from agos.world.towns.asset import open_town
 
 
 def bare_render(scene: Scene, eye, forward, up, fov: float, px: int) -> None:
@@ -51,7 +51,7 @@ def paired_medians(baseline, candidate, repeats: int) -> tuple[float, float]:
 
 def observation_costs(repeats: int) -> None:
     from agos.runtime.codec import encode_png
-    from agos.world.topdown import RegionMap
+    from agos.world.towns.topdown import RegionMap
 
     town = open_town("grid-s7")
     scene = Scene(town.layout)
@@ -88,8 +88,8 @@ def observation_costs(repeats: int) -> None:
 
 
 def import_cost(path: Path) -> None:
-    from agos.world.asset import freeze
-    from agos.world.imported import imported_layout
+    from agos.world.towns.asset import freeze
+    from agos.world.towns.imported import imported_layout
 
     start = time.perf_counter()
     ET.parse(path)
@@ -104,11 +104,11 @@ def import_cost(path: Path) -> None:
 
 PROBE = """
 import json, resource, sys
-import agos.world.scene
+import agos.world.sim.scene
 if sys.argv[1] != "-":
-    from agos.world.asset import freeze
-    from agos.world.imported import imported_layout
-    from agos.world.scene import Scene
+    from agos.world.towns.asset import freeze
+    from agos.world.towns.imported import imported_layout
+    from agos.world.sim.scene import Scene
     town = freeze(imported_layout(__import__("pathlib").Path(sys.argv[1])))
     scene = Scene(town.layout)
 print(json.dumps(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))

@@ -14,11 +14,11 @@ import cv2
 import numpy as np
 
 from agos.runtime.codec import decode_image
-from agos.world import sensors
-from agos.world.asset import Town, freeze, open_town
-from agos.world.episodes import sample_episode
-from agos.world.scene import Scene
-from agos.world.topdown import debug_map, region_map
+from agos.world.episodes.sampling import sample_episode
+from agos.world.sim import sensors
+from agos.world.sim.scene import Scene
+from agos.world.towns.asset import Town, freeze, open_town
+from agos.world.towns.topdown import debug_map, region_map
 
 OUT = Path("docs/images")
 
@@ -83,7 +83,7 @@ def main() -> None:
     args = parser.parse_args()
     figures(open_town("parks-s23"), "procedural")
     if args.carla.exists():
-        from agos.world.imported import imported_layout
+        from agos.world.towns.imported import imported_layout
 
         with tempfile.TemporaryDirectory():
             figures(freeze(imported_layout(args.carla)), "carla")

@@ -71,11 +71,11 @@ class WorldSettings(_Section):
     require_line_of_sight: bool = True
 
     def episode_settings(self) -> Any:
-        """The world's :class:`~agos.world.episode.EpisodeSettings` (imported here: PyBullet is
+        """The world's :class:`~agos.world.sim.engine.EpisodeSettings` (imported here: PyBullet is
         loaded only by processes that simulate)."""
-        from agos.world.confirm import ConfirmSettings
-        from agos.world.episode import EpisodeSettings
-        from agos.world.sensors import CameraSettings
+        from agos.world.sim.confirm import ConfirmSettings
+        from agos.world.sim.engine import EpisodeSettings
+        from agos.world.sim.sensors import CameraSettings
 
         return EpisodeSettings(
             uav_speed_mps=self.uav_speed_mps, ugv_speed_mps=self.ugv_speed_mps, wait_max_s=self.wait_max_s,

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-AGOS = [sys.executable, "-m", "agos.runtime.cli"]
+AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 
 
 @pytest.fixture(scope="session")
@@ -29,11 +29,11 @@ def sample_mid_episodes(tmp_path_factory) -> Callable[[int, int], Path]:
 def observations() -> list:
     """Every observation of one heuristic episode on grid-s7 (search, handoff, six views)."""
     from agos.agents.inprocess import InProcessAgents
-    from agos.agents.policy import make_policy
-    from agos.world.asset import open_town
-    from agos.world.episode import EpisodeRunner
-    from agos.world.episodes import generate_episodes
-    from agos.world.scene import Scene
+    from agos.agents.registry import make_policy
+    from agos.world.episodes.sampling import generate_episodes
+    from agos.world.sim.engine import EpisodeRunner
+    from agos.world.sim.scene import Scene
+    from agos.world.towns.asset import open_town
 
     town = open_town("grid-s7")
     scene = Scene(town.layout)

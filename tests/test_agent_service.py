@@ -10,7 +10,8 @@ import time
 
 import pytest
 
-from agos.agents.policy import action_for, make_policy
+from agos.agents.contract import action_for
+from agos.agents.registry import make_policy
 from agos.agents.service import serve_async
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, MemoryBus

@@ -1,4 +1,4 @@
-"""The in-episode channel of agos.world.comms: role views, sync/beacon/message delivery, ledger, stats.
+"""The in-episode channel of agos.world.sim.comms: role views, sync/beacon/message delivery, ledger, stats.
 
 Unit tests use hand-made candidates and poses; the last test runs a whole lossy episode in-process.
 """
@@ -12,7 +12,7 @@ import pytest
 
 from agos.runtime.links import IDEAL, Blackout, CommProfile, Delivery, LatencySpec, LossSpec, RangeSpec, load_profile
 from agos.runtime.schemas import Candidate, MessageRecord, Pose
-from agos.world.comms import MESSAGE_OVERHEAD_BYTES, STATUS_RANK, Arrival, Channel, RoleView
+from agos.world.sim.comms import MESSAGE_OVERHEAD_BYTES, STATUS_RANK, Arrival, Channel, RoleView
 
 NEAR = (10.0, True)  # (distance_m, line_of_sight) of the two roles
 
@@ -383,11 +383,11 @@ def test_geometry_reaches_the_link():
 @pytest.fixture(scope="module")
 def lossy_records():
     from agos.agents.inprocess import InProcessAgents
-    from agos.agents.policy import make_policy
-    from agos.world.asset import open_town
-    from agos.world.episode import EpisodeRunner, EpisodeSettings
-    from agos.world.episodes import sample_episode
-    from agos.world.scene import Scene
+    from agos.agents.registry import make_policy
+    from agos.world.episodes.sampling import sample_episode
+    from agos.world.sim.engine import EpisodeRunner, EpisodeSettings
+    from agos.world.sim.scene import Scene
+    from agos.world.towns.asset import open_town
 
     town = open_town("grid-s7")
     scene = Scene(town.layout)

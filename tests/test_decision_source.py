@@ -1,4 +1,4 @@
-"""The world's decision source (world/worker.py) announces its episode to agent services and waits,
+"""The world's decision source (world/sim/worker.py) announces its episode to agent services and waits,
 before the first observation, until each due role's service has subscribed (its ``ready`` token):
 over the in-memory bus, which reports tokens as zenoh does."""
 
@@ -9,7 +9,7 @@ import pytest
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, MemoryBus, Sample
 from agos.runtime.process import StopFlag
-from agos.world.worker import BusDecisionSource, MissingAgent
+from agos.world.sim.worker import BusDecisionSource, MissingAgent
 
 
 class _Due:

@@ -18,11 +18,11 @@ import msgpack
 import pytest
 import zenoh
 
+from agos.deploy.launcher import free_port
 from agos.runtime.bus import zenoh_config
-from agos.runtime.launcher import free_port
 
 pytestmark = pytest.mark.e2e
-AGOS = [sys.executable, "-m", "agos.runtime.cli"]
+AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 
 
 def _start_demo(tmp_path: Path, port: int, *extra: str) -> subprocess.Popen:

@@ -21,12 +21,12 @@ import msgpack
 import pytest
 import zenoh
 
+from agos.deploy.launcher import free_port, wait_listening
 from agos.runtime import keys
 from agos.runtime.bus import zenoh_config
-from agos.runtime.launcher import free_port, wait_listening
 
 pytestmark = pytest.mark.e2e
-AGOS = [sys.executable, "-m", "agos.runtime.cli"]
+AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 
 
 @pytest.fixture(scope="module")

@@ -14,10 +14,10 @@ from pathlib import Path
 
 import pytest
 
-from agos.runtime.launcher import free_port, wait_listening
+from agos.deploy.launcher import free_port, wait_listening
 
 pytestmark = pytest.mark.e2e
-AGOS = [sys.executable, "-m", "agos.runtime.cli"]
+AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 TOWN02 = Path(__file__).resolve().parents[2] / "shared" / "maps" / "carla" / "Town02.xodr"
 
 

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from agos.runtime.launcher import free_port
+from agos.deploy.launcher import free_port
 
 pytestmark = pytest.mark.e2e
-AGOS = [sys.executable, "-m", "agos.runtime.cli"]
+AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 
 
 def _rows(db: Path) -> list[tuple[str, str]]:

@@ -19,17 +19,18 @@ from pathlib import Path
 import pytest
 
 from agos.agents.inprocess import InProcessAgents
-from agos.agents.policy import make_policy, tools_for
+from agos.agents.names import tools_for
+from agos.agents.registry import make_policy
 from agos.agents.vlm.standin_server import StandinServer
-from agos.runtime.launcher import free_port, wait_listening
+from agos.deploy.launcher import free_port, wait_listening
 from agos.runtime.settings import VlmOptions
-from agos.world.asset import open_town
-from agos.world.episode import EpisodeRunner, EpisodeSettings
-from agos.world.episodes import read_episodes
-from agos.world.scene import Scene
+from agos.world.episodes.sampling import read_episodes
+from agos.world.sim.engine import EpisodeRunner, EpisodeSettings
+from agos.world.sim.scene import Scene
+from agos.world.towns.asset import open_town
 
 pytestmark = pytest.mark.e2e
-AGOS = [sys.executable, "-m", "agos.runtime.cli"]
+AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 POLICIES = ["agos-agent", "baseline", "agos-agent:no_e2a", "agos-agent:no_rgpp", "agos-agent:no_both"]
 FAULTS = "429=0.15,500=0.1,timeout=0.02,fenced=0.3"
 

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import pytest
 
+from agos.agents.contract import action_for
 from agos.agents.inprocess import InProcessAgents
-from agos.agents.policy import action_for, make_policy
+from agos.agents.registry import make_policy
 from agos.runtime.schemas import Action, EpisodeRecord, EpisodeSpec, Observation, Role, StepEvent
-from agos.world.asset import build_town
-from agos.world.episode import EpisodeRunner, NullSink
-from agos.world.episodes import generate_episodes
-from agos.world.scene import Scene
+from agos.world.episodes.sampling import generate_episodes
+from agos.world.sim.engine import EpisodeRunner, NullSink
+from agos.world.sim.scene import Scene
+from agos.world.towns.asset import build_town
 
 
 @pytest.fixture(scope="module")
@@ -119,7 +120,7 @@ def test_reject_unfreezes_the_uav_and_records_the_candidate(world) -> None:
 
 
 def test_asset_hash_mismatch_is_refused(world) -> None:
-    from agos.world.asset import AssetMismatch, town_for
+    from agos.world.towns.asset import AssetMismatch, town_for
 
     spec: EpisodeSpec = world[2]["easy000"]
     with pytest.raises(AssetMismatch, match="grid-s7"):

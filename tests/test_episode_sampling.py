@@ -19,10 +19,7 @@ import numpy as np
 import pytest
 
 from agos.runtime.schemas import EpisodeSpec
-from agos.world import sensors
-from agos.world.asset import Town, build_town
-from agos.world.catalog import BODY_TYPES, NEAR_COLOURS, VIVID_COLOURS
-from agos.world.episodes import (
+from agos.world.episodes.sampling import (
     DIFFICULTIES,
     MIN_LOOKALIKE_SPACING_M,
     MIN_START_DISTANCE_M,
@@ -31,16 +28,19 @@ from agos.world.episodes import (
     read_episodes,
     sample_episode,
 )
-from agos.world.lanes import Lane, LaneNetwork
-from agos.world.placement import ParkingSlot
-from agos.world.scene import Scene
-from agos.world.solvability import UAV_VISIBLE_MIN_PX, check, reachable
-from agos.world.splits import SPLIT_STREAMS
-from agos.world.streets import strip
-from agos.world.town import Deck, TownLayout
-from agos.world.towns import TEST_TOWNS, TOWNS
+from agos.world.episodes.solvability import UAV_VISIBLE_MIN_PX, check, reachable
+from agos.world.episodes.splits import SPLIT_STREAMS
+from agos.world.sim import sensors
+from agos.world.sim.scene import Scene
+from agos.world.towns.asset import Town, build_town
+from agos.world.towns.catalog import BODY_TYPES, NEAR_COLOURS, VIVID_COLOURS
+from agos.world.towns.lanes import Lane, LaneNetwork
+from agos.world.towns.layout import Deck, TownLayout
+from agos.world.towns.placement import ParkingSlot
+from agos.world.towns.procedural import TEST_TOWNS, TOWNS
+from agos.world.towns.streets import strip
 
-AGOS = [sys.executable, "-m", "agos.runtime.cli"]
+AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 SEED = 1
 SOLVE_TOWNS = ("grid-s7", "tee-s17", "parks-s23")
 CASES = [(t, d) for t in SOLVE_TOWNS for d in DIFFICULTIES]

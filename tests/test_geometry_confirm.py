@@ -6,14 +6,14 @@ import math
 
 import pytest
 
-from agos.world.confirm import ConfirmEvidence, ConfirmSettings, check_confirm
-from agos.world.geometry import (
+from agos.runtime.geometry import (
     centroid,
     distance_to_polygon,
     distance_to_polygon_boundary,
     distance_to_segment,
     point_in_polygon,
 )
+from agos.world.sim.confirm import ConfirmEvidence, ConfirmSettings, check_confirm
 
 SQUARE = [(0.0, 0.0), (10.0, 0.0), (10.0, 10.0), (0.0, 10.0)]
 # An L shape: the square [0,10]^2 minus its top-right quarter [5,10]x[5,10].

@@ -10,8 +10,8 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from agos.world.lanes import LaneNetwork
-from agos.world.opendrive import OpenDriveError, load_lane_network
+from agos.world.towns.lanes import LaneNetwork
+from agos.world.towns.opendrive import OpenDriveError, load_lane_network
 
 MAPS = Path(__file__).resolve().parents[2] / "shared" / "maps"
 W = 3.5

@@ -12,8 +12,8 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from agos.world.lanes import Lane, LaneNetwork
-from agos.world.roadgraph import RoadGraphs, build_road_graphs
+from agos.world.towns.lanes import Lane, LaneNetwork
+from agos.world.towns.roadgraph import RoadGraphs, build_road_graphs
 
 
 def polyline(*corners: tuple[float, float], step: float = 0.5) -> np.ndarray:

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from agos.world import sensors
-from agos.world.sensors import (
+from agos.world.sim import sensors
+from agos.world.sim.sensors import (
     GRID_ROWS,
     cell_of_pixel,
     cell_polygon_world,

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 
-from agos.world.asset import Town, freeze, open_town
-from agos.world.episodes import sample_episode
-from agos.world.scene import Scene
-from agos.world.solvability import check, reachable
-from agos.world.towns import TOWNS
+from agos.world.episodes.sampling import sample_episode
+from agos.world.episodes.solvability import check, reachable
+from agos.world.sim.scene import Scene
+from agos.world.towns.asset import Town, freeze, open_town
+from agos.world.towns.procedural import TOWNS
 
 CARLA = Path(__file__).resolve().parents[2] / "shared" / "maps" / "carla"
 CARLA_TOWNS = ["Town01", "Town02", "Town04", "Town06", "Town07", "Town10HD"]
@@ -25,7 +25,7 @@ def _town(name: str) -> Town:
     path = CARLA / f"{name}.xodr"
     if not path.exists():
         pytest.skip(f"{path} not present")
-    from agos.world.imported import imported_layout
+    from agos.world.towns.imported import imported_layout
 
     return freeze(imported_layout(path))
 

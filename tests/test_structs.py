@@ -223,7 +223,7 @@ def test_heuristic_policies_act_alike_on_mirrors_and_models(observations) -> Non
     """The same decisions from a model and from its mirror, along a whole episode, both roles; a
     mirror observation is answered with a mirror action (action_for answers in kind) that passes
     the service's check and reads back as the model's action."""
-    from agos.agents.policy import make_policy
+    from agos.agents.registry import make_policy
 
     encoder, decoder = Encoder(), Decoder()
     on_models = {r: make_policy("heuristic", r) for r in ("uav", "ugv")}

@@ -131,7 +131,7 @@ def test_run_directory_with_results(tmp_path: Path) -> None:
 
 # ----- the CLI ---------------------------------------------------------------------------------
 def _agos(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "agos.runtime.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "agos.deploy.cli", *args], capture_output=True, text=True,
                           cwd=REPO, timeout=120)
 
 

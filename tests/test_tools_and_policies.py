@@ -9,15 +9,16 @@ import numpy as np
 import pytest
 
 from agos.agents.inprocess import InProcessAgents
-from agos.agents.policy import make_policy, split_name, tools_for
-from agos.world import sensors
-from agos.world.asset import open_town
-from agos.world.episode import EpisodeRunner, EpisodeSettings
-from agos.world.episodes import generate_episodes
-from agos.world.lanes import Lane, LaneNetwork
-from agos.world.options import shortest_path
-from agos.world.roadgraph import build_road_graphs
-from agos.world.scene import Scene
+from agos.agents.names import split_name, tools_for
+from agos.agents.registry import make_policy
+from agos.world.episodes.sampling import generate_episodes
+from agos.world.sim import sensors
+from agos.world.sim.engine import EpisodeRunner, EpisodeSettings
+from agos.world.sim.options import shortest_path
+from agos.world.sim.scene import Scene
+from agos.world.towns.asset import open_town
+from agos.world.towns.lanes import Lane, LaneNetwork
+from agos.world.towns.roadgraph import build_road_graphs
 
 
 @pytest.mark.parametrize("altitude", [40.0, 80.0, 120.0])

@@ -15,15 +15,15 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from agos.world import asset
-from agos.world.asset import AssetError, AssetMismatch, build_town, load_town, open_town, save_town, town_for
-from agos.world.topdown import COLOURS_BGR, region_map
-from agos.world.towns import RECIPES, TEST_TOWNS, TOWNS, resolve
+from agos.world.towns import asset
+from agos.world.towns.asset import AssetError, AssetMismatch, build_town, load_town, open_town, save_town, town_for
+from agos.world.towns.procedural import RECIPES, TEST_TOWNS, TOWNS, resolve
+from agos.world.towns.topdown import COLOURS_BGR, region_map
 
 MAPS = Path(__file__).resolve().parents[2] / "shared" / "maps"
 TOWN01 = MAPS / "carla" / "Town01.xodr"
 ZERO_WIDTH = MAPS / "opendrive-samples" / "zero_width.xodr"
-AGOS = [sys.executable, "-m", "agos.runtime.cli"]
+AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 
 
 def town(town_id: str) -> asset.Town:

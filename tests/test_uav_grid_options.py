@@ -8,10 +8,10 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from agos.world.lanes import Lane, LaneNetwork
-from agos.world.options import RoadOption, shortest_path, uav_options, ugv_options
-from agos.world.roadgraph import RoadGraphs, build_road_graphs
-from agos.world.uavgrid import ALTITUDE_M, SPACING_M, UavGrid, build_uav_grid
+from agos.world.sim.options import RoadOption, shortest_path, uav_options, ugv_options
+from agos.world.towns.lanes import Lane, LaneNetwork
+from agos.world.towns.roadgraph import RoadGraphs, build_road_graphs
+from agos.world.towns.uavgrid import ALTITUDE_M, SPACING_M, UavGrid, build_uav_grid
 
 # Road bounding box (0, 0)-(100, 60), expanded by 50 m: x in [-50, 150], y in [-50, 110].
 ROAD = np.array([[0.0, 0.0], [100.0, 60.0], [40.0, 20.0]])

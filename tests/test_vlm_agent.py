@@ -9,7 +9,7 @@ import logging
 
 import pytest
 
-from agos.agents.policy import make_policy
+from agos.agents.registry import make_policy
 from agos.agents.vlm import protocol
 from agos.agents.vlm.agos_prompts import ugv_prompt, ugv_stage
 from agos.agents.vlm.baseline_prompts import anchor_from_messages

@@ -442,7 +442,7 @@ def _listening_url(proc: subprocess.Popen, lines: list[str]) -> str | None:
 
 def test_cli_serves_on_a_free_port_and_stops_cleanly() -> None:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "agos.runtime.cli", "vlm-standin", "--port", "0", "--model", "cli-vl",
+    proc = subprocess.Popen([sys.executable, "-m", "agos.deploy.cli", "vlm-standin", "--port", "0", "--model", "cli-vl",
                              "--faults", "fenced=0.5", "--seed", "2"],
                             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []
@@ -461,6 +461,6 @@ def test_cli_serves_on_a_free_port_and_stops_cleanly() -> None:
 
 
 def test_cli_rejects_a_bad_fault_spec_naming_the_entry() -> None:
-    result = subprocess.run([sys.executable, "-m", "agos.runtime.cli", "vlm-standin", "--faults", "429=0.1,flaky=0.2"],
+    result = subprocess.run([sys.executable, "-m", "agos.deploy.cli", "vlm-standin", "--faults", "429=0.1,flaky=0.2"],
                             cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "'flaky=0.2'" in result.stderr and "unknown fault 'flaky'" in result.stderr

@@ -49,7 +49,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from agos.world.asset import AssetError, AssetMismatch
+    from agos.world.towns.asset import AssetError, AssetMismatch
 
     try:
         if args.command == "map":
@@ -86,10 +86,10 @@ def map_info(town) -> dict:
 
 
 def _map(args: argparse.Namespace) -> int:
-    from agos.world.asset import freeze, open_town, save_town
+    from agos.world.towns.asset import freeze, open_town, save_town
 
     if args.map_command == "import":
-        from agos.world.imported import imported_layout
+        from agos.world.towns.imported import imported_layout
 
         started = time.monotonic()
         layout = imported_layout(args.file, seed=args.seed)
@@ -121,7 +121,7 @@ def _map(args: argparse.Namespace) -> int:
     if args.map_command == "render":
         import cv2
 
-        from agos.world.topdown import debug_map
+        from agos.world.towns.topdown import debug_map
 
         nodes = [n.position_world_m for n in town.uav_grid.nodes.values()]
         image = debug_map(town.layout, town.roads, nodes, size_px=args.size, region=tuple(args.region) if args.region else None)
@@ -133,16 +133,16 @@ def _map(args: argparse.Namespace) -> int:
 
 
 def _episodes(args: argparse.Namespace) -> int:
-    from agos.world.episodes import read_episodes
+    from agos.world.episodes.sampling import read_episodes
 
     if args.episodes_command == "check":
         episodes = read_episodes(args.file)
         print(f"{args.file}: {len(episodes)} valid episodes")
         return 0
     if args.episodes_command == "sample":
-        from agos.world.asset import open_town
-        from agos.world.episodes import DIFFICULTIES, sample_episode, write_episodes
-        from agos.world.scene import Scene
+        from agos.world.episodes.sampling import DIFFICULTIES, sample_episode, write_episodes
+        from agos.world.sim.scene import Scene
+        from agos.world.towns.asset import open_town
 
         town = open_town(args.town)
         scene = Scene(town.layout)
@@ -164,8 +164,8 @@ def _episodes(args: argparse.Namespace) -> int:
     if args.episodes_command == "split":
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-        from agos.world.splits import build_split, plan_jobs
-        from agos.world.towns import TEST_TOWNS, TOWNS
+        from agos.world.episodes.splits import build_split, plan_jobs
+        from agos.world.towns.procedural import TEST_TOWNS, TOWNS
 
         trainval = [t for t in TOWNS if t not in TEST_TOWNS]
         jobs = plan_jobs(train=args.train, val=args.val, test=args.test, trainval_towns=trainval,

@@ -1,1 +1,1 @@
-"""placeholder"""
+"""agos.agents.heuristic: scripted policies from OpenCV colour and size matching (no ground truth)."""

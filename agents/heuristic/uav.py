@@ -14,11 +14,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from agos.agents.contract import action_for
 from agos.agents.heuristic.perception import TargetProfile, detect_from_above, profile_from_references
-from agos.agents.policy import action_for
+from agos.runtime.camera import cell_of_pixel, pixel_to_ground
 from agos.runtime.codec import decode_image
 from agos.runtime.schemas import Action, Observation
-from agos.world.camera import cell_of_pixel, pixel_to_ground
 
 SEEN_RADIUS_M = 41.0
 REJECTED_RADIUS_M = 12.0

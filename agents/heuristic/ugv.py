@@ -11,9 +11,9 @@ import math
 
 import numpy as np
 
+from agos.agents.contract import action_for
 from agos.agents.heuristic.perception import TargetProfile, detect_from_ground, profile_from_references
 from agos.agents.navigation import Navigator
-from agos.agents.policy import action_for
 from agos.runtime.codec import decode_image
 from agos.runtime.schemas import Action, Observation
 

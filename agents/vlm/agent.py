@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agos.agents.policy import split_name
+from agos.agents.names import split_name
 from agos.agents.vlm import agos_prompts, baseline_prompts
 from agos.agents.vlm.client import VlmClient, VlmError, image_part
 from agos.agents.vlm.parse import Parsed, to_action

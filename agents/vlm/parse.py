@@ -17,7 +17,7 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-from agos.agents.policy import action_for
+from agos.agents.contract import action_for
 from agos.runtime.schemas import Action, Observation
 
 FENCE = re.compile(r"```(?:json|JSON)?\s*(.*?)```", re.DOTALL)

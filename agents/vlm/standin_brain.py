@@ -22,9 +22,9 @@ import numpy as np
 from agos.agents.heuristic.perception import TargetProfile, detect_from_above, paint_mask, profile_from_references
 from agos.agents.vlm import protocol
 from agos.agents.vlm.protocol import SplitRequest
+from agos.runtime.camera import cell_of_pixel, pixel_to_ground
 from agos.runtime.codec import decode_image
 from agos.runtime.schemas import CameraIntrinsics, ImageFrame
-from agos.world.camera import cell_of_pixel, pixel_to_ground
 
 REJECTED_RADIUS_M = 12.0
 """A detection this close to a rejected region is not reported again."""

@@ -1,6 +1,6 @@
 """Starts agos processes as children (the no-Docker local launcher) and stops them all.
 
-Each child runs ``python -m agos.runtime.cli ...`` in its own session (a terminal Ctrl-C
+Each child runs ``python -m agos.deploy.cli ...`` in its own session (a terminal Ctrl-C
 reaches only the launcher, which then stops the children in order) with its output in
 ``<log_dir>/<name>.log``. On Linux a child also dies with its parent.
 """
@@ -30,7 +30,7 @@ class Launcher:
 
     def start(self, name: str, args: list[str]) -> subprocess.Popen:
         out = (self.log_dir / f"{name}.log").open("wb")
-        proc = subprocess.Popen([sys.executable, "-m", "agos.runtime.cli", *args], stdout=out,
+        proc = subprocess.Popen([sys.executable, "-m", "agos.deploy.cli", *args], stdout=out,
                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
                                 preexec_fn=die_with_parent)
         out.close()

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from agos.runtime.schemas import EpisodeSpec
-from agos.world.episodes import DIFFICULTIES, write_episodes
+from agos.world.episodes.sampling import DIFFICULTIES, write_episodes
 
 SPLIT_STREAMS = {"train": 0, "val": 100, "test": 200}
 """Disjoint random streams, so train and val never share an episode."""
@@ -50,9 +50,9 @@ _WORKER_TOWNS: dict = {}
 
 def run_job(job: Job) -> list[str]:
     """Sample one chunk in a worker process; returns the episodes as JSON lines."""
-    from agos.world.asset import open_town
-    from agos.world.episodes import sample_episode
-    from agos.world.scene import Scene
+    from agos.world.episodes.sampling import sample_episode
+    from agos.world.sim.scene import Scene
+    from agos.world.towns.asset import open_town
 
     if job.town not in _WORKER_TOWNS:
         town = open_town(job.town)

@@ -12,16 +12,16 @@ from pathlib import Path
 
 import numpy as np
 
-from agos.world.streets import Surface
-from agos.world.town import TownLayout
-from agos.world.towns import furnish
+from agos.world.towns.layout import TownLayout
+from agos.world.towns.procedural import furnish
+from agos.world.towns.streets import Surface
 
 KERB_PARKING_INSET_M = 0.9
 """Lateral offset of a kerb-side parked car's centre inside the lane edge."""
 
 
 def imported_layout(path: Path, *, seed: int = 0) -> TownLayout:
-    from agos.world.opendrive import load_lane_network
+    from agos.world.towns.opendrive import load_lane_network
 
     network = load_lane_network(path)
     _kerb_parking(network)

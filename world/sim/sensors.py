@@ -15,9 +15,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from agos.runtime.codec import encode_jpeg, encode_png
-from agos.runtime.schemas import CameraIntrinsics, ImageFrame
-from agos.world.camera import (  # noqa: F401 - re-exported: sensors is where callers look for them
+from agos.runtime.camera import (  # noqa: F401 - re-exported: sensors is where callers look for them
     GRID_COLS,
     GRID_ROWS,
     _pose,
@@ -29,7 +27,9 @@ from agos.world.camera import (  # noqa: F401 - re-exported: sensors is where ca
     parse_cell,
     pixel_to_ground,
 )
-from agos.world.scene import STUDIO_OFFSET_M, RenderResult, Scene
+from agos.runtime.codec import encode_jpeg, encode_png
+from agos.runtime.schemas import CameraIntrinsics, ImageFrame
+from agos.world.sim.scene import STUDIO_OFFSET_M, RenderResult, Scene
 
 UGV_CAMERA_HEIGHT_M = 1.7
 SIX_VIEWS: tuple[tuple[str, float], ...] = (

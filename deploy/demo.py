@@ -1,4 +1,4 @@
-"""``agos demo``: an evaluation run on the embedded defaults (see :mod:`agos.runtime.evaluate`).
+"""``agos demo``: an evaluation run on the embedded defaults (see :mod:`agos.deploy.evaluate`).
 
 Six generated episodes on ``grid-s7`` (two per difficulty), heuristic agents, ideal link,
 lockstep, one world worker; every process separate, on a router it starts (7447 or a free port).
@@ -10,7 +10,7 @@ from pathlib import Path
 
 from rich.console import Console
 
-from agos.runtime import evaluate
+from agos.deploy import evaluate
 from agos.runtime.settings import AgosConfig
 
 

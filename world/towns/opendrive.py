@@ -4,7 +4,7 @@
 line geometries), lane offsets, lane sections and lane widths (``<width>``, or ``<border>`` read as
 the t coordinate of the lane's outer edge), and the lane-, road- and junction-level links, and turns
 every ``driving`` lane (and both directions of every ``bidirectional`` lane) of every lane section
-into one :class:`~agos.world.lanes.Lane`:
+into one :class:`~agos.world.towns.lanes.Lane`:
 
 * the centre line is sampled at most ``step_m`` apart (along the lane itself, denser on the outside
   of tight curves), section ends included, first to last in the direction of travel: right lanes
@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from agos.world.lanes import Lane, LaneNetwork
+from agos.world.towns.lanes import Lane, LaneNetwork
 
 DEFAULT_WIDTH_M = 3.5
 """Width used for a lane that has neither usable ``<width>`` nor ``<border>`` records."""

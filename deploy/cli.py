@@ -176,11 +176,11 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
-    from agos.world.episodes import EpisodeFileError
+    from agos.world.episodes.sampling import EpisodeFileError
 
     try:
         if args.command == "demo":
-            from agos.runtime import demo
+            from agos.deploy import demo
 
             return demo.main(cfg, config_path=args.config, port=args.port, attach=args.connect is not None)
         if args.command == "eval":
@@ -196,12 +196,12 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
 
             return router.main(cfg.zenoh.listen, multicast_scouting=cfg.zenoh.multicast_scouting)
         if args.command == "world":
-            from agos.world import worker
+            from agos.world.sim import worker
 
             return worker.main(cfg, worker_id=args.worker_id)
         if args.command == "agent":
             from agos.agents import service
-            from agos.agents.policy import make_policy
+            from agos.agents.registry import make_policy
 
             try:
                 make_policy(args.policy or (cfg.run.policy_uav if args.role == "uav" else cfg.run.policy_ugv), args.role,
@@ -211,7 +211,7 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
                 return 2
             return service.main(cfg, role=args.role, policy_name=args.policy, concurrency=args.concurrency)
         if args.command == "check":
-            from agos.runtime.check import run_check
+            from agos.deploy.check import run_check
 
             return run_check(cfg, budget=args.budget, town_name=args.town, policy=args.policy)
         if args.command == "evaluator":
@@ -239,9 +239,9 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
 def _sweep(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+    from agos.deploy.sweep import run_sweep
     from agos.runtime.links import ProfileError
-    from agos.runtime.sweep import run_sweep
-    from agos.world.episodes import read_episodes
+    from agos.world.episodes.sampling import read_episodes
 
     try:
         values = [float(v) for v in args.values.split(",")]
@@ -261,7 +261,7 @@ def _sweep(args: argparse.Namespace) -> int:
 
 
 def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
-    from agos.runtime import evaluate
+    from agos.deploy import evaluate
     from agos.runtime.links import ProfileError
 
     try:

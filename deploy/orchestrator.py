@@ -166,7 +166,7 @@ class Orchestrator:
 
     def _answer_asset(self, query) -> None:
         """Serve a town asset from the local asset cache; unknown hashes get no reply."""
-        from agos.world.asset import cache_dir
+        from agos.world.towns.asset import cache_dir
 
         sha = query.key.rsplit("/", 1)[-1]
         path = cache_dir() / keys.check_chunk(sha, what="asset hash") / "asset.msgpack"

@@ -2,7 +2,7 @@
 
 A :class:`StreetPlan` is a planar graph: junction nodes and two-way streets between them, each
 street straight or bent through control points, possibly covered by a deck. :func:`plan_to_lanes`
-turns it into a :class:`~agos.world.lanes.LaneNetwork` (one 3.5 m lane per direction, traffic on
+turns it into a :class:`~agos.world.towns.lanes.LaneNetwork` (one 3.5 m lane per direction, traffic on
 the right, connector lanes across junctions for every manoeuvre except U-turns, a turnaround at
 dead ends) and into the :class:`Surface` strips the scene renders (asphalt with parking strips,
 junction patches, sidewalks, lane markings).
@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agos.world.lanes import TURNAROUND, Lane, LaneNetwork
+from agos.world.towns.lanes import TURNAROUND, Lane, LaneNetwork
 
 LANE_WIDTH_M = 3.5
 PARKING_WIDTH_M = 2.5

@@ -14,10 +14,11 @@ from dataclasses import dataclass
 import networkx as nx
 import numpy as np
 
-from agos.world import sensors
-from agos.world.asset import Town
-from agos.world.confirm import ConfirmEvidence, ConfirmSettings, check_confirm
-from agos.world.scene import Scene
+from agos.world.sim import sensors
+from agos.world.sim.confirm import ConfirmSettings, check_confirm
+from agos.world.sim.evidence import ground_evidence, line_of_sight, target_points
+from agos.world.sim.scene import Scene
+from agos.world.towns.asset import Town
 
 UAV_VISIBLE_MIN_PX = 30
 
@@ -30,41 +31,6 @@ class Solvability:
     @property
     def solvable(self) -> bool:
         return bool(self.verifying_anchors) and bool(self.uav_nodes)
-
-
-def target_points(position: tuple[float, float, float], yaw_rad: float) -> np.ndarray:
-    """Points on a parked vehicle's body used by line-of-sight rays."""
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    local = ((0, 0, 0.8), (0, 0, 1.3), (1.5, 0, 0.9), (-1.5, 0, 0.9), (0, 0.7, 0.9), (0, -0.7, 0.9))
-    return np.array([(position[0] + c * dx - s * dy, position[1] + s * dx + c * dy, z) for dx, dy, z in local])
-
-
-def line_of_sight(scene: Scene, xy: tuple[float, float], uid: int, points: np.ndarray) -> bool:
-    return scene.line_of_sight(np.array([xy[0], xy[1], sensors.UGV_CAMERA_HEIGHT_M]), uid, points)
-
-
-def facing_views(heading_rad: float, bearing_rad: float, fov_deg: float) -> list[tuple[str, float]]:
-    """The STOP_OBSERVE views whose field of view can contain a point at ``bearing_rad`` (with a
-    margin for the target's extent): the only views that can show it."""
-    out = []
-    for name, offset in sensors.SIX_VIEWS:
-        diff = (bearing_rad - heading_rad - math.radians(offset) + math.pi) % (2 * math.pi) - math.pi
-        if abs(diff) <= math.radians(fov_deg / 2 + 15.0):
-            out.append((name, offset))
-    return out
-
-
-def ground_evidence(scene: Scene, town: Town, node: int, uid: int, points: np.ndarray,
-                    target_xy: tuple[float, float], cam: sensors.CameraSettings) -> ConfirmEvidence:
-    """Checker evidence at a node as if the UGV stopped there. Only the views facing the target
-    are rendered; the others cannot show it, so the maximum pixel count is the same."""
-    xy = (float(town.roads.positions_world_m[node][0]), float(town.roads.positions_world_m[node][1]))
-    heading = town.roads.heading_at(node)
-    bearing = math.atan2(target_xy[1] - xy[1], target_xy[0] - xy[0])
-    shots = [sensors.ground_view(scene, name, xy, heading + math.radians(offset), cam)
-             for name, offset in facing_views(heading, bearing, cam.ground_fov_deg)]
-    return ConfirmEvidence(True, max((sensors.target_pixels(s, uid) for s in shots), default=0),
-                           math.dist(xy, target_xy), line_of_sight(scene, xy, uid, points))
 
 
 def check(scene: Scene, town: Town, uid: int, position: tuple[float, float, float], yaw_rad: float,

@@ -1,7 +1,7 @@
 """The lane network: the one road representation the world is built from.
 
 Procedural towns and imported OpenDRIVE maps both produce a :class:`LaneNetwork`; the fine and
-decision graphs (:mod:`agos.world.roadgraph`), parking slots, the rendered road surface and the
+decision graphs (:mod:`agos.world.towns.roadgraph`), parking slots, the rendered road surface and the
 off-road placement of buildings are all derived from it. World frame: x east, y north, metres.
 
 A :class:`Lane` is one drivable lane in its direction of travel: a dense centre line (points

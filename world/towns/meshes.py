@@ -9,7 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from agos.world.streets import Surface
+from agos.world.towns.streets import Surface
 
 Mesh = tuple[np.ndarray, np.ndarray]
 """(V, 3) float vertices and (T*3,) int indices."""

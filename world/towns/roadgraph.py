@@ -1,4 +1,4 @@
-"""UGV road graphs (paper Appendix A.1), built from any :class:`~agos.world.lanes.LaneNetwork`.
+"""UGV road graphs (paper Appendix A.1), built from any :class:`~agos.world.towns.lanes.LaneNetwork`.
 
 Fine graph: every lane sampled about every 2 m (equal spacing per lane, at most 2 m), edges in
 the direction of travel, the last node of a lane joined to the first node of each successor, and
@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import networkx as nx
 import numpy as np
 
-from agos.world.lanes import TURNAROUND, LaneNetwork
+from agos.world.towns.lanes import TURNAROUND, LaneNetwork
 
 FINE_SPACING_M = 2.0
 CRUISE_SPACING_M = 10.0

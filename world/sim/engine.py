@@ -29,6 +29,7 @@ import networkx as nx
 import numpy as np
 
 from agos.runtime.codec import encode_png
+from agos.runtime.geometry import centroid, distance_to_polygon
 from agos.runtime.links import IDEAL, CommProfile
 from agos.runtime.schemas import (
     Action,
@@ -52,16 +53,15 @@ from agos.runtime.schemas import (
 )
 from agos.runtime.structs import to_model
 from agos.runtime.traces import trace_stats
-from agos.world import sensors
-from agos.world.asset import Town
-from agos.world.comms import Channel
-from agos.world.confirm import ConfirmEvidence, ConfirmSettings, check_confirm
-from agos.world.geometry import centroid, distance_to_polygon
-from agos.world.options import shortest_path, uav_options, ugv_options
-from agos.world.roadgraph import RoadGraphs
-from agos.world.scene import Scene
-from agos.world.solvability import ground_evidence, line_of_sight, target_points
-from agos.world.topdown import RegionMap
+from agos.world.sim import sensors
+from agos.world.sim.comms import Channel
+from agos.world.sim.confirm import ConfirmEvidence, ConfirmSettings, check_confirm
+from agos.world.sim.evidence import ground_evidence, line_of_sight, target_points
+from agos.world.sim.options import shortest_path, uav_options, ugv_options
+from agos.world.sim.scene import Scene
+from agos.world.towns.asset import Town
+from agos.world.towns.roadgraph import RoadGraphs
+from agos.world.towns.topdown import RegionMap
 
 ROLE_ORDER: tuple[Role, Role] = ("uav", "ugv")
 

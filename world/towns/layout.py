@@ -1,6 +1,6 @@
 """A town layout: the lane network plus everything the scene draws and episodes use.
 
-Pure data (no PyBullet). Built by a procedural generator (:mod:`agos.world.towns`) or by the
+Pure data (no PyBullet). Built by a procedural generator (:mod:`agos.world.towns.procedural`) or by the
 OpenDRIVE importer; the same generator and seed (or the same file) give the same layout.
 """
 
@@ -10,10 +10,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agos.world.catalog import BODY_TYPES, NEUTRAL_COLOURS
-from agos.world.lanes import LaneNetwork
-from agos.world.placement import Building, ParkingSlot, Tree
-from agos.world.streets import Surface
+from agos.world.towns.catalog import BODY_TYPES, NEUTRAL_COLOURS
+from agos.world.towns.lanes import LaneNetwork
+from agos.world.towns.placement import Building, ParkingSlot, Tree
+from agos.world.towns.streets import Surface
 
 
 @dataclass(frozen=True)

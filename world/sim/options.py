@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import networkx as nx
 
-from agos.world.roadgraph import RoadGraphs
-from agos.world.uavgrid import UavGrid
+from agos.world.towns.roadgraph import RoadGraphs
+from agos.world.towns.uavgrid import UavGrid
 
 NEAR_M = 10.0
 FAR_M = 30.0

@@ -103,12 +103,12 @@ class StepChecks:
 
 def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "heuristic",
               console: Console | None = None) -> int:
-    from agos.agents.policy import tools_for
-    from agos.world.asset import open_town
-    from agos.world.episode import EpisodeRunner, EpisodeSettings
-    from agos.world.episodes import generate_episodes
-    from agos.world.scene import Scene
-    from agos.world.worker import BusDecisionSource, BusSink, MissingAgent
+    from agos.agents.names import tools_for
+    from agos.world.episodes.sampling import generate_episodes
+    from agos.world.sim.engine import EpisodeRunner, EpisodeSettings
+    from agos.world.sim.scene import Scene
+    from agos.world.sim.worker import BusDecisionSource, BusSink, MissingAgent
+    from agos.world.towns.asset import open_town
 
     console = console or Console()
     stop = install_stop_handlers()

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from agos.world.town import TownLayout
+from agos.world.towns.layout import TownLayout
 
 COLOURS_BGR = {
     "ground": (200, 210, 214), "road": (70, 70, 72), "junction": (78, 78, 80), "sidewalk": (170, 172, 175),

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agos.world.catalog import CARGO_WHITE, GLASS, TYRE, body_type, colour_rgb
-from agos.world.meshes import chunks, slab_mesh, strip_mesh, surface_mesh, vertex_normals
-from agos.world.town import TownLayout
+from agos.world.towns.catalog import CARGO_WHITE, GLASS, TYRE, body_type, colour_rgb
+from agos.world.towns.layout import TownLayout
+from agos.world.towns.meshes import chunks, slab_mesh, strip_mesh, surface_mesh, vertex_normals
 
 
 def _import_pybullet_quietly():

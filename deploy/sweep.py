@@ -51,11 +51,11 @@ def _run_point_episode(args: tuple[dict, int, str, list[str], str]) -> str:
     """Worker process: one episode under one profile and link seed; returns the record JSON."""
     profile_data, link_seed, episode_json, policies, _ = args
     from agos.agents.inprocess import InProcessAgents
-    from agos.agents.policy import make_policy
+    from agos.agents.registry import make_policy
     from agos.runtime.schemas import EpisodeSpec
-    from agos.world.asset import town_for
-    from agos.world.episode import EpisodeRunner, EpisodeSettings
-    from agos.world.scene import Scene
+    from agos.world.sim.engine import EpisodeRunner, EpisodeSettings
+    from agos.world.sim.scene import Scene
+    from agos.world.towns.asset import town_for
 
     spec = EpisodeSpec.model_validate_json(episode_json)
     key = spec.asset_sha256
@@ -71,7 +71,7 @@ def _run_point_episode(args: tuple[dict, int, str, list[str], str]) -> str:
 
 def run_sweep(episodes_file: Path, out_dir: Path, *, base: str, param: str, values: list[float], seeds: list[int],
               policies: tuple[str, str], workers: int, progress: Callable[[], None] | None = None) -> list[dict]:
-    from agos.world.episodes import read_episodes
+    from agos.world.episodes.sampling import read_episodes
 
     episodes = read_episodes(episodes_file)
     profile = load_profile(base)

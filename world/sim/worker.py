@@ -39,9 +39,9 @@ from agos.runtime.schemas import (
 from agos.runtime.settings import AgosConfig
 from agos.runtime.structs import mirror
 from agos.runtime.viz import FrameStream
-from agos.world.asset import AssetError, AssetMismatch, Town, town_for
-from agos.world.episode import EpisodeRunner
-from agos.world.scene import Scene
+from agos.world.sim.engine import EpisodeRunner
+from agos.world.sim.scene import Scene
+from agos.world.towns.asset import AssetError, AssetMismatch, Town, town_for
 
 log = logging.getLogger("agos.world")
 ACTIONS = (Action, mirror(Action))

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from agos.world.lanes import LaneNetwork
-from agos.world.streets import Surface
+from agos.world.towns.lanes import LaneNetwork
+from agos.world.towns.streets import Surface
 
 CELL_M = 1.0
 BUILDING_PALETTE: tuple[tuple[float, float, float], ...] = (

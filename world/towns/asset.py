@@ -24,12 +24,12 @@ import msgspec
 import networkx as nx
 import numpy as np
 
-from agos.world.lanes import Lane, LaneNetwork
-from agos.world.placement import Building, ParkingSlot, Tree
-from agos.world.roadgraph import RoadGraphs, _build_decision_graph, build_road_graphs
-from agos.world.streets import Surface
-from agos.world.town import Deck, ParkedVehicle, TownLayout
-from agos.world.uavgrid import UavGrid, UavNode, build_uav_grid
+from agos.world.towns.lanes import Lane, LaneNetwork
+from agos.world.towns.layout import Deck, ParkedVehicle, TownLayout
+from agos.world.towns.placement import Building, ParkingSlot, Tree
+from agos.world.towns.roadgraph import RoadGraphs, _build_decision_graph, build_road_graphs
+from agos.world.towns.streets import Surface
+from agos.world.towns.uavgrid import UavGrid, UavNode, build_uav_grid
 
 ASSET_FORMAT = 1
 
@@ -141,7 +141,7 @@ def freeze(layout: TownLayout) -> Town:
 # ----- procedural towns, files and the local cache -----------------------------------------------
 @functools.lru_cache(maxsize=8)
 def build_town(generator: str, seed: int) -> Town:
-    from agos.world.towns import build_layout
+    from agos.world.towns.procedural import build_layout
 
     return freeze(build_layout(generator, seed))
 
@@ -195,7 +195,7 @@ def open_town(name: str | Path) -> Town:
         if not (cached / "asset.msgpack").exists():
             save_town(town, cached)
         return town
-    from agos.world.towns import resolve
+    from agos.world.towns.procedural import resolve
 
     return build_town(*resolve(str(name)))
 

@@ -22,7 +22,8 @@ import cv2
 import networkx as nx
 import numpy as np
 
-from agos.world.placement import (
+from agos.world.towns.layout import Deck, TownLayout, park_background
+from agos.world.towns.placement import (
     ParkingSlot,
     Raster,
     free_areas,
@@ -31,7 +32,7 @@ from agos.world.placement import (
     road_raster,
     scatter_trees,
 )
-from agos.world.streets import (
+from agos.world.towns.streets import (
     JUNCTION_SETBACK_M,
     ROAD_HALF_WIDTH_M,
     SIDEWALK_WIDTH_M,
@@ -42,7 +43,6 @@ from agos.world.streets import (
     strip,
     trim,
 )
-from agos.world.town import Deck, TownLayout, park_background
 
 
 @dataclass(frozen=True)

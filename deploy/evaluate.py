@@ -20,14 +20,14 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from agos.agents.policy import needs_vlm, tools_for
+from agos.agents.names import needs_vlm, tools_for
+from agos.deploy.launcher import Launcher, free_port, wait_listening
+from agos.deploy.orchestrator import Orchestrator
 from agos.evaluator.metrics import by_difficulty
 from agos.evaluator.store import ResultStore, results_path
 from agos.evaluator.table import results_table
 from agos.runtime.bus import ZenohBus
-from agos.runtime.launcher import Launcher, free_port, wait_listening
 from agos.runtime.links import load_profile
-from agos.runtime.orchestrator import Orchestrator
 from agos.runtime.process import install_stop_handlers
 from agos.runtime.schemas import EpisodeSpec
 from agos.runtime.settings import AgosConfig
@@ -59,9 +59,9 @@ class RunPlan:
 
 
 def generated_episodes(cfg: AgosConfig) -> list[EpisodeSpec]:
-    from agos.world.asset import open_town
-    from agos.world.episodes import generate_episodes
-    from agos.world.scene import Scene
+    from agos.world.episodes.sampling import generate_episodes
+    from agos.world.sim.scene import Scene
+    from agos.world.towns.asset import open_town
 
     town = open_town(cfg.run.town)
     scene = Scene(town.layout)  # episodes are checked solvable by rendering
@@ -86,7 +86,7 @@ def vlm_plan(cfg: AgosConfig, policies: dict[str, str], standin: str | None) -> 
 
 def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: str, stamp: bool,
              vlm_standin: str | None = None) -> RunPlan:
-    from agos.world.episodes import read_episodes, write_episodes
+    from agos.world.episodes.sampling import read_episodes, write_episodes
 
     # Everything that can be wrong with the command fails before episodes are generated.
     if run_dir is None:
@@ -112,7 +112,7 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
 
 
 def resume_plan(run_dir: Path) -> RunPlan:
-    from agos.world.episodes import read_episodes
+    from agos.world.episodes.sampling import read_episodes
 
     path = run_dir / RUN_FILE
     if not path.exists():

@@ -4,7 +4,7 @@ easy: 150 m x 150 m region, no distractors; mid: 300 m x 300 m, none; hard: 300 
 2-3 look-alikes (the target's body type in a near colour, or its colour on another type).
 Targets and look-alikes are parked on drivable roads (free parking slots inside the region, not
 under decks, not on plazas). Every episode is checked solvable by rendering
-(:mod:`agos.world.solvability`); a region that fails is resampled.
+(:mod:`agos.world.sim.evidence`); a region that fails is resampled.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ import numpy as np
 from pydantic import ValidationError
 
 from agos.runtime.schemas import Difficulty, EpisodeSpec, TownRef, VehicleSpec
-from agos.world.asset import Town
-from agos.world.catalog import BODY_TYPES, NEAR_COLOURS, VIVID_COLOURS
-from agos.world.placement import ParkingSlot
+from agos.world.towns.asset import Town
+from agos.world.towns.catalog import BODY_TYPES, NEAR_COLOURS, VIVID_COLOURS
+from agos.world.towns.placement import ParkingSlot
 
 REGION_SIZE_M: dict[str, float] = {"easy": 150.0, "mid": 300.0, "hard": 300.0}
 DIFFICULTIES: tuple[Difficulty, ...] = ("easy", "mid", "hard")
@@ -116,7 +116,7 @@ def _candidate(town: Town, difficulty: Difficulty, index: int, seed: int, split:
 
 
 def _solvable(town: Town, scene, spec: EpisodeSpec) -> bool:
-    from agos.world.solvability import check, reachable
+    from agos.world.episodes.solvability import check, reachable
 
     uid = scene.add_vehicle(spec.target.model, spec.target.colour, spec.target.position_world_m, spec.target.yaw_rad)
     others = [scene.add_vehicle(d.model, d.colour, d.position_world_m, d.yaw_rad) for d in spec.distractors]

@@ -1,0 +1,39 @@
+"""Policy names: ``base[:variant]`` with the ablation variants, which policies ask a VLM, and the
+world-side tools a run's policies use. Pure names, no policy code, so any layer above may read them.
+"""
+
+from __future__ import annotations
+
+ABLATIONS = {"": (True, True), "no_e2a": (False, True), "no_rgpp": (True, False), "no_both": (False, False)}
+KNOWN = ("heuristic[:no_e2a|no_rgpp|no_both], agos-agent[:no_e2a|no_rgpp|no_both], baseline, oracle, random, "
+         "standin-<N>ms")
+VLM_POLICIES = ("agos-agent", "baseline")
+"""Policies that ask a vision-language model over an OpenAI-compatible endpoint."""
+NO_CANDIDATES = ("baseline",)
+"""Policies that coordinate through text messages only: no ANNOTATE_CANDIDATE / GO_TO_CANDIDATE."""
+
+
+def needs_vlm(name: str) -> bool:
+    return split_name(name)[0] in VLM_POLICIES
+
+
+def split_name(name: str) -> tuple[str, str]:
+    """``heuristic:no_rgpp`` -> ("heuristic", "no_rgpp"); raises ValueError for unknown variants."""
+    base, _, variant = name.partition(":")
+    if variant not in ABLATIONS:
+        raise ValueError(f"unknown policy variant {variant!r} in {name!r}; variants: no_e2a, no_rgpp, no_both")
+    if variant and base in NO_CANDIDATES:
+        raise ValueError(f"{base} has no candidate tools, so it has no {variant} ablation")
+    return base, variant
+
+
+def tools_for(policies: dict[str, str]) -> dict[str, bool]:
+    """The world-side tools a run's policies use: structured candidates (off for the Baseline), E2A and
+    RGPP (off in ablations), oracle hints."""
+    e2a = rgpp = candidates = True
+    for name in policies.values():
+        base, variant = split_name(name)
+        e2a, rgpp = e2a and ABLATIONS[variant][0], rgpp and ABLATIONS[variant][1]
+        candidates = candidates and base not in NO_CANDIDATES
+    return {"candidates": candidates, "e2a": e2a, "rgpp": rgpp,
+            "oracle": any(split_name(n)[0] == "oracle" for n in policies.values())}

@@ -1,0 +1,4 @@
+"""agos.world.towns: the offline town pipeline. Procedural street plans and OpenDRIVE maps become
+one lane network, then a furnished layout, road graphs and the UAV grid, frozen as an asset whose
+sha256 names it. Pure data and geometry: nothing here renders or simulates.
+"""
