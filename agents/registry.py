@@ -1,7 +1,6 @@
 """The policy registry: a policy name (see :mod:`agos.agents.names`) to a policy object for one role.
 Implementations are imported only when asked for, so a process loads just the policy it serves.
 """
-"""
 
 from __future__ import annotations
 
