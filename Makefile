@@ -6,7 +6,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint unit e2e clean
+.PHONY: demo test lint typecheck contracts unit e2e clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -17,9 +17,19 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/agos demo
 
-test: $(STAMP)
-	$(BIN)/ruff check .
+test: lint contracts typecheck
 	$(BIN)/python -m pytest -q
+
+# The layer contracts in pyproject.toml: runtime at the bottom; world, agents, evaluator beside each
+# other; deploy on top; no import cycles.
+contracts: $(STAMP)
+	$(BIN)/lint-imports
+
+# mypy sees the top-level folders under their agos.* names through a folder of links.
+typecheck: $(STAMP)
+	mkdir -p .typecheck/agos
+	for d in runtime world agents evaluator deploy; do ln -sfn ../../$$d .typecheck/agos/$$d; done
+	cd .typecheck && ../$(BIN)/mypy --config-file ../pyproject.toml -p agos
 
 unit: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not e2e"
@@ -31,4 +41,4 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache .ruff_cache *.egg-info
+	rm -rf $(VENV) runs .pytest_cache .ruff_cache .mypy_cache .typecheck *.egg-info

@@ -4,24 +4,17 @@ A policy may keep per-episode memory (keyed by ``episode_id``); the service call
 :meth:`Policy.end_episode` when an episode's result is seen so memory does not grow.
 Policies never see ground truth: only :class:`~agos.runtime.schemas.Observation`.
 
-Over the bus, the agent service delivers an observation as its compiled mirror
-(:mod:`agos.runtime.structs`): the same fields and nested values, read the same way, but without
-the pydantic methods. In-process runs pass the model itself. Read observations; do not rely on
-``model_dump``/``model_copy`` (``structs.to_model`` gives the model when one is needed).
-:func:`action_for` answers in the same kind (a mirror action for a mirror observation), so a
-decision over the bus touches no pydantic code; a policy may also return an :class:`Action` model.
+Policies receive the real :class:`~agos.runtime.schemas.Observation` (a msgspec struct), over
+the bus and in-process alike, and answer an :class:`~agos.runtime.schemas.Action`, usually built
+with :func:`action_for`. Structs are not checked when built: the agent service encodes the answer
+and reads it back as the world will, and answers WAIT for one that fails, as for a policy error.
 """
 
 from __future__ import annotations
 
 from typing import Protocol
 
-import msgspec
-
 from agos.runtime.schemas import Action, Observation, Role
-from agos.runtime.structs import mirror
-
-_MIRROR_ACTION = mirror(Action)
 
 
 class Policy(Protocol):
@@ -43,10 +36,7 @@ class Policy(Protocol):
 
 
 def action_for(obs: Observation, name: str, **fields: object) -> Action:
-    """An action answering ``obs`` (run, episode, role and decision index filled in), in the
-    observation's kind: the model for a model; for a mirror (over the bus), the mirror of
-    :class:`Action`, which is built without checks: the agent service checks its types before
-    sending it (``codec.encode_checked``) and answers WAIT for one that fails, as for a policy error."""
-    kind = _MIRROR_ACTION if isinstance(obs, msgspec.Struct) else Action
-    return kind(run_id=obs.run_id, episode_id=obs.episode_id, role=obs.role,
-                decision_index=obs.decision_index, action=name, **fields)
+    """An action answering ``obs`` (run, episode, role and decision index filled in). Built
+    without checks, like any struct: the agent service checks it before sending it."""
+    return Action(run_id=obs.run_id, episode_id=obs.episode_id, role=obs.role,
+                  decision_index=obs.decision_index, action=name, **fields)

@@ -15,13 +15,13 @@ import numpy as np
 from agos.agents.contract import action_for
 from agos.agents.navigation import Navigator
 from agos.runtime.camera import cell_of_pixel, ground_to_pixel
-from agos.runtime.schemas import Action, Observation
+from agos.runtime.schemas import Action, Observation, Role
 
 STOP_WITHIN_M = 25.0
 
 
 class OracleUav:
-    role = "uav"
+    role: Role = "uav"
     name = "oracle"
     inline = True  # microseconds, no I/O: answered on the receiving thread (agents/service.py)
 
@@ -57,7 +57,7 @@ def _cell_of(obs: Observation, xy: tuple[float, float]) -> str | None:
 
 
 class OracleUgv:
-    role = "ugv"
+    role: Role = "ugv"
     name = "oracle"
     inline = True
 

@@ -8,10 +8,11 @@ Every observation on ``agos/<run>/ep/<ep>/obs/<role>`` is answered on the matchi
 ``concurrency`` at a time: policies with an ``act_async`` coroutine (remote models, the
 fixed-latency stand-in) overlap their waiting; plain ``act`` policies run in worker threads;
 ``inline`` policies (microseconds, no I/O: random, oracle, standin-0ms) are answered on the
-thread that received the observation. Observations reach policies as compiled mirrors of the
-model (runtime/structs.py: decoding into them costs a fraction of building pydantic models).
-A policy that raises is logged and answered with a legal WAIT, so an agent bug costs a
-decision, never the episode. A restarted service simply answers what the world re-requests.
+thread that received the observation. Policies receive the decoded ``Observation`` struct and
+answer an ``Action`` struct, which is encoded and read back as the world will read it before it
+is sent. A policy that raises (or answers what the world would refuse) is logged and answered
+with a legal WAIT, so an agent bug costs a decision, never the episode. A restarted service
+simply answers what the world re-requests.
 """
 
 from __future__ import annotations
@@ -31,16 +32,12 @@ from agos.agents.contract import Policy, action_for
 from agos.agents.registry import make_policy
 from agos.runtime import keys
 from agos.runtime.bus import Bus, Sample, ZenohBus, zenoh_config
-from agos.runtime.codec import DecodeError, Decoder, encode_checked
+from agos.runtime.codec import DecodeError, decode, decode_as, encode
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role
 from agos.runtime.settings import AgosConfig
-from agos.runtime.structs import mirror
 
 log = logging.getLogger("agos.agent")
-OBSERVATIONS = (mirror(Observation), Observation)
-"""What an observation arrives as: its compiled mirror (the hot path; read into a subclass, see
-``structs.tagged``) or, rarely, the model."""
 
 
 class _Dispatch:
@@ -56,7 +53,6 @@ class _Dispatch:
                  on_loop: Callable[[Observation | EpisodeRecord], None]) -> None:
         self.bus, self.policy, self.run_id, self.loop, self.on_loop = bus, policy, run_id, loop, on_loop
         self.inline = bool(getattr(policy, "inline", False))
-        self.decoder = Decoder()  # observations repeat references and searchable area: validated once
         self.lock = threading.Lock()
 
     def put(self, sample: Sample) -> None:
@@ -67,17 +63,16 @@ class _Dispatch:
         """One received payload (``key`` names it in the log if it cannot be read)."""
         with self.lock:
             try:
-                message = self.decoder.decode(payload)
+                message = decode(payload)
             except DecodeError as exc:
                 log.warning("ignoring undecodable payload on %s: %s", key, exc)
                 return
-            if isinstance(message, OBSERVATIONS):
+            if type(message) is Observation:
                 if self.inline:
                     started = time.monotonic()
                     publish_action(self.bus, self.run_id, message, decide(self.policy, message), started)
                     return
             elif type(message) is EpisodeRecord:
-                self.decoder.forget(message.episode_id)
                 if self.inline:
                     end_episode(self.bus, self.policy, self.run_id, message.episode_id)
                     return
@@ -165,8 +160,8 @@ def _policy_failed(obs: Observation) -> Action:
 
 def publish_action(bus: ZenohBus, run_id: str, obs: Observation, action: Action, started: float) -> None:
     """Stamp the policy's wall-clock latency (realtime mode charges it in simulated time), check the
-    answer as the world will read it (a mirror action from ``action_for`` is built without checks)
-    and send it; one the world would refuse is logged and replaced by a legal WAIT."""
+    answer as the world will read it (structs are built without checks) and send it; one the world
+    would refuse is logged and replaced by a legal WAIT."""
     latency = round(time.monotonic() - started, 4)
     try:
         payload = _stamped(action, latency)
@@ -177,9 +172,12 @@ def publish_action(bus: ZenohBus, run_id: str, obs: Observation, action: Action,
 
 
 def _stamped(action: Action, latency_s: float) -> bytes:
-    """``action`` with its latency, encoded and checked (``codec.encode_checked``)."""
+    """``action`` with its latency, encoded and read back as an ``Action`` (in C), as the world
+    reads it: raises when the world would refuse it (a wrong type, an unknown action name)."""
     action.agent_wall_latency_s = latency_s
-    return encode_checked(action)
+    payload = encode(action)
+    decode_as(payload, Action)
+    return payload
 
 
 def end_episode(bus: ZenohBus, policy: Policy, run_id: str, episode_id: str) -> None:

@@ -3,8 +3,8 @@
 1. Decision round trip (``--only breakdown``: the same with timers inside both processes, to see
    where the time beyond the ping-pong goes): the world's own code (``BusDecisionSource.decide``) encodes an
    observation with real encoded images, an agent service (a separate process, zero-latency
-   stand-in policy) decodes it and answers, the world decodes the action — against a raw zenoh
-   ping-pong of the same bytes through the same router. Goal <= 1.3x.
+   stand-in policy) decodes it and answers, the world decodes the answer into the ``Action`` it
+   applies — against a raw zenoh ping-pong of the same bytes through the same router. Goal <= 1.3x.
 2. Slow observers: world ticks (the decision, then the step event and coordination state on the
    control and visualisation keys, a frame offered to viewers) for a fixed time with and without
    an observer that spends 20 ms on every sample: the agos Observer (ring buffer, visualisation
@@ -35,13 +35,14 @@ import threading
 import time
 from pathlib import Path
 
+import msgspec
+
 from agos.deploy.launcher import free_port, wait_listening
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, ZenohBus
 from agos.runtime.codec import decode, encode
 from agos.runtime.process import StopFlag
 from agos.runtime.schemas import Observation, StepEvent
-from agos.runtime.structs import to_model
 from agos.runtime.viz import FrameStream
 from agos.world.sim.worker import BusDecisionSource, BusSink
 
@@ -83,15 +84,13 @@ from bench_runtime import timed
 from agos.agents import service
 from agos.agents.registry import make_policy
 from agos.runtime.bus import ZenohBus, zenoh_config
-from agos.runtime.codec import Decoder
 from agos.runtime.process import StopFlag
 spent = {}
 policy = make_policy("standin-0ms", "uav")
 service._Dispatch.take = timed(service._Dispatch.take, spent, "agent: receive to answer sent")
-Decoder.decode = timed(Decoder.decode, spent, "agent: decode")
-Decoder._complete = timed(Decoder._complete, spent, "agent: decode, after the top-level read")
+service.decode = timed(service.decode, spent, "agent: decode")
 policy.act = timed(policy.act, spent, "agent: policy")
-service.encode_checked = timed(service.encode_checked, spent, "agent: encode and check action")
+service._stamped = timed(service._stamped, spent, "agent: encode and check action")
 ZenohBus.publish = timed(ZenohBus.publish, spent, "agent: publish action")
 async def main():
     bus = ZenohBus(zenoh_config(connect=[sys.argv[1]]))
@@ -133,14 +132,14 @@ def sample_observation() -> Observation:
     with contextlib.suppress(StopIteration):
         EpisodeRunner(scene, town, spec, run_id="bench", worker_id="bench").run(Capture({}))
     scene.close()
-    return captured[0].model_copy(update={"run_id": "bench", "episode_id": "e0"})
+    return msgspec.structs.replace(captured[0], run_id="bench", episode_id="e0")
 
 
 class World:
     """One episode's decisions made by the world worker's own code (world/sim/worker.py)."""
 
     def __init__(self, bus: ZenohBus, obs: Observation, episode: str = "e0") -> None:
-        self.obs = obs.model_copy(update={"episode_id": episode})
+        self.obs = msgspec.structs.replace(obs, episode_id=episode)
         self.frames = FrameStream(bus)
         self.source = BusDecisionSource(bus, "bench", episode, worker_id="bench", timeout_s=5.0, stop=StopFlag(),
                                         frames=self.frames)
@@ -151,11 +150,12 @@ class World:
         # As in world/sim/engine.py: a new Observation each decision, its searchable area a new list
         # of the episode's same Waypoint objects (built once per episode).
         self.index += 1
-        return self.obs.model_copy(update={"decision_index": self.index,
-                                           "active_uav_waypoints": list(self.obs.active_uav_waypoints)})
+        return msgspec.structs.replace(self.obs, decision_index=self.index,
+                                       active_uav_waypoints=list(self.obs.active_uav_waypoints))
 
     def round_trips(self, n: int) -> list[float]:
-        """Encode with the episode's encoder, publish, wait for the action, decode it."""
+        """The whole decision as the world lives it: encode, publish, wait for the answer and decode
+        it into the ``Action`` struct that ``EpisodeRunner._apply`` takes as it is (no conversion)."""
         times = []
         for _ in range(n):
             obs = self._next()
@@ -177,7 +177,7 @@ class World:
             decisions += time.perf_counter() - t0
             self.sink.step(StepEvent(run_id="bench", episode_id=obs.episode_id, role="uav",
                                      decision_index=obs.decision_index, episode_step=obs.decision_index,
-                                     sim_time_s=obs.sim_time_s, requested=to_model(action), applied="WAIT", pose_after=obs.pose))
+                                     sim_time_s=obs.sim_time_s, requested=action, applied="WAIT", pose_after=obs.pose))
             self.sink.coordination(obs.coordination, {"uav": obs.coordination, "ugv": obs.coordination})
             count += 1
         return (time.perf_counter() - start) / count, decisions / count
@@ -258,7 +258,7 @@ def concurrency_rate(endpoint: str, obs: Observation, episodes: int = 32, second
     bus = ZenohBus.connect(endpoint)
     stop = time.monotonic() + seconds
     counts = [0] * episodes
-    small = obs.model_copy(update={"images": obs.images[:1], "references": obs.references[:1]})
+    small = msgspec.structs.replace(obs, images=obs.images[:1], references=obs.references[:1])
 
     def loop(k: int) -> None:
         inbox = Inbox()
@@ -269,7 +269,7 @@ def concurrency_rate(endpoint: str, obs: Observation, episodes: int = 32, second
         index = 0
         while time.monotonic() < stop:
             index += 1
-            bus.publish(key, encode(small.model_copy(update={"episode_id": f"c{k}", "decision_index": index})))
+            bus.publish(key, encode(msgspec.structs.replace(small, episode_id=f"c{k}", decision_index=index)))
             while time.monotonic() < stop + 2:
                 sample = inbox.get(1.0)
                 if sample is not None and decode(sample.payload).decision_index == index:
@@ -406,12 +406,12 @@ def round_trip_breakdown(obs: Observation, payload: bytes) -> None:
     time beyond the raw ping-pong goes, measured in situ, not in a micro-benchmark."""
     import json
 
-    from agos.runtime.codec import Decoder, Encoder
+    from agos.world.sim import worker
 
     spent: dict[str, list[float]] = {}
-    original_encode, original_decode = Encoder.encode_reused, Decoder.decode
-    Encoder.encode_reused = timed(original_encode, spent, "world: encode observation")
-    Decoder.decode = timed(original_decode, spent, "world: decode action")
+    original_encode, original_decode = worker.encode_into, worker.decode_as
+    worker.encode_into = timed(original_encode, spent, "world: encode observation")
+    worker.decode_as = timed(original_decode, spent, "world: decode action")
     try:
         with tempfile.TemporaryDirectory() as tmp:
             report = Path(tmp) / "agent.json"
@@ -426,7 +426,7 @@ def round_trip_breakdown(obs: Observation, payload: bytes) -> None:
                 bus.close()
             agent_spent = json.loads(report.read_text())
     finally:
-        Encoder.encode_reused, Decoder.decode = original_encode, original_decode
+        worker.encode_into, worker.decode_as = original_encode, original_decode
     print(f"round trip with timers {1000 * t_rt:.2f} ms vs raw ping-pong {1000 * t_ping:.2f} ms: "
           f"{1e6 * (t_rt - t_ping):.0f} us more; medians per decision, in situ:")
     for label, value in [*((k, statistics.median(v)) for k, v in spent.items()), *agent_spent.items()]:

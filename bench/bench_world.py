@@ -55,7 +55,7 @@ def observation_costs(repeats: int) -> None:
 
     town = open_town("grid-s7")
     scene = Scene(town.layout)
-    cam = sensors.CameraSettings()
+    cam = sensors.CameraConfig()
     xy, alt, heading = (5.0, 5.0), 80.0, 0.3
     region = (xy[0] - 150, xy[1] - 150, xy[0] + 150, xy[1] + 150)
     region_map = RegionMap(town.layout, region, size_px=cam.map_px)

@@ -27,6 +27,7 @@ import statistics
 import time
 from dataclasses import dataclass, field
 
+import msgspec
 from rich.console import Console
 from rich.table import Table
 
@@ -103,9 +104,10 @@ class StepChecks:
 
 def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "heuristic",
               console: Console | None = None) -> int:
-    from agos.agents.names import tools_for
+    from agos.deploy.configure import episode_config
     from agos.world.episodes.sampling import generate_episodes
-    from agos.world.sim.engine import EpisodeRunner, EpisodeSettings
+    from agos.world.sim.configure import episode_settings, with_budget
+    from agos.world.sim.engine import EpisodeRunner
     from agos.world.sim.scene import Scene
     from agos.world.sim.worker import BusDecisionSource, BusSink, MissingAgent
     from agos.world.towns.asset import open_town
@@ -116,22 +118,20 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "he
     run_id = cfg.run.run_id
     bus = ZenohBus.connect(cfg.zenoh.connect, connect_timeout_s=cfg.zenoh.connect_timeout_s)
     town = open_town(town_name)
-    scene = Scene(town.layout)
+    config = episode_config(cfg, policies={"uav": policy, "ugv": policy}, decision_budget=budget)
+    scene = Scene(town.layout, renderer=config.renderer)
     record: EpisodeRecord | None = None
     try:
         spec = generate_episodes(town, scene, per_difficulty=1, seed=cfg.run.episode_seed)[0]
-        spec = spec.model_copy(update={"episode_id": f"check-{spec.episode_id}", "decision_budget": budget})
+        spec = with_budget(msgspec.structs.replace(spec, episode_id=f"check-{spec.episode_id}"), config)
         console.print(f"checking the agents of run {run_id!r} on {cfg.zenoh.connect}: episode {spec.episode_id}, "
                       f"{budget} decisions")
         source = BusDecisionSource(bus, run_id, spec.episode_id, worker_id=f"check-{os.getpid()}",
-                                   timeout_s=cfg.run.decision_timeout_s, stop=stop, agent_wait_s=cfg.run.agent_wait_s)
+                                   timeout_s=config.decision_timeout_s, stop=stop, agent_wait_s=cfg.run.agent_wait_s)
         sink = StepChecks(BusSink(bus, run_id, spec.episode_id), v)
         try:
-            tools = tools_for({"uav": policy, "ugv": policy})
-            settings = EpisodeSettings(candidates=tools["candidates"], e2a=tools["e2a"], rgpp=tools["rgpp"],
-                                       oracle=tools["oracle"])
             record = EpisodeRunner(scene, town, spec, run_id=run_id, worker_id="check", sink=sink,
-                                   settings=settings).run(CheckingSource(source, v))
+                                   settings=episode_settings(config)).run(CheckingSource(source, v))
             v.check("subscribed", True)
         except MissingAgent as exc:
             v.check("subscribed", False, str(exc))

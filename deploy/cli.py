@@ -64,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "e.g. 429=0.1,500=0.05); VLM policies then use it")
 
     sw = sub.add_parser("sweep", help="a comm-profile parameter grid x link seeds: table and plots with CIs")
+    sw.add_argument("--config", type=Path, help="TOML settings file: its [world] section shapes the episodes")
     sw.add_argument("--split", type=Path, required=True, help="JSONL episode file")
     sw.add_argument("--comm", default="ideal", help="base profile")
     sw.add_argument("--param", default="loss.p", help="dotted profile field, e.g. loss.p, latency.mean_s")
@@ -105,6 +106,8 @@ def build_parser() -> argparse.ArgumentParser:
     metrics = sub.add_parser("metrics", help="every metric of a run per difficulty (or town)")
     metrics.add_argument("path", type=Path, help="runs/<run>, a results.sqlite, or a JSONL file of episode summaries")
     metrics.add_argument("--json", action="store_true", help="print JSON (rates as fractions, distances in m)")
+    metrics.add_argument("--allow-mixed", action="store_true",
+                        help="pool episodes run under different episode configurations (refused by default)")
     metrics.add_argument("--by", choices=["difficulty", "town"], default="difficulty")
 
     comp = sub.add_parser("compare", help="paired comparison of two runs on their shared episodes")
@@ -112,11 +115,15 @@ def build_parser() -> argparse.ArgumentParser:
     comp.add_argument("run_b", type=Path)
     comp.add_argument("--resamples", type=int, default=10_000)
     comp.add_argument("--seed", type=int, default=0)
+    comp.add_argument("--allow-mixed", action="store_true",
+                        help="pool episodes run under different episode configurations (refused by default)")
     comp.add_argument("--json", action="store_true")
 
     report = sub.add_parser("report", help="paper-style tables (md, csv, tex), outcomes and the stage-wise PNG")
     report.add_argument("runs", type=Path, nargs="+")
     report.add_argument("--out", type=Path, required=True)
+    report.add_argument("--allow-mixed", action="store_true",
+                        help="pool episodes run under different episode configurations (refused by default)")
     report.add_argument("--labels", nargs="+", help="one label per run; a leading '+' marks an agent variant row")
 
     check = sub.add_parser("check", help="conformance checks")
@@ -166,7 +173,8 @@ def _config(args: argparse.Namespace) -> AgosConfig:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        cfg = _config(args) if args.command in ("demo", "eval", "router", "world", "agent", "evaluator", "check") else None
+        cfg = _config(args) if args.command in ("demo", "eval", "sweep", "router", "world", "agent", "evaluator",
+                                                "check") else None
         return _dispatch(args, cfg)
     except ConfigError as exc:
         print(str(exc), file=sys.stderr)
@@ -186,7 +194,7 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
         if args.command == "eval":
             return _eval(args, cfg)
         if args.command == "sweep":
-            return _sweep(args)
+            return _sweep(args, cfg)
         if args.command == "watch":
             from agos.runtime import observer
 
@@ -236,9 +244,10 @@ def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
     raise AssertionError(args.command)
 
 
-def _sweep(args: argparse.Namespace) -> int:
+def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+    from agos.deploy.configure import episode_config
     from agos.deploy.sweep import run_sweep
     from agos.runtime.links import ProfileError
     from agos.world.episodes.sampling import read_episodes
@@ -247,9 +256,10 @@ def _sweep(args: argparse.Namespace) -> int:
         values = [float(v) for v in args.values.split(",")]
         seeds = [int(v) for v in args.seeds.split(",")]
         total = len(values) * len(seeds) * len(read_episodes(args.split))
+        config = episode_config(cfg, policies={"uav": args.policy, "ugv": args.policy}, comm=args.comm)
         with Progress(TextColumn("[bold]sweep"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()) as bar:
             task = bar.add_task("episodes", total=total)
-            table = run_sweep(args.split, args.out, base=args.comm, param=args.param, values=values, seeds=seeds,
+            table = run_sweep(args.split, args.out, config=config, param=args.param, values=values, seeds=seeds,
                               policies=(args.policy, args.policy), workers=args.workers,
                               progress=lambda: bar.advance(task))
     except (ProfileError, ValueError) as exc:

@@ -20,14 +20,15 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-from agos.agents.names import needs_vlm, tools_for
+from agos.agents.names import needs_vlm
+from agos.deploy.configure import episode_config
 from agos.deploy.launcher import Launcher, free_port, wait_listening
 from agos.deploy.orchestrator import Orchestrator
 from agos.evaluator.metrics import by_difficulty
 from agos.evaluator.store import ResultStore, results_path
 from agos.evaluator.table import results_table
 from agos.runtime.bus import ZenohBus
-from agos.runtime.links import load_profile
+from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.process import install_stop_handlers
 from agos.runtime.schemas import EpisodeSpec
 from agos.runtime.settings import AgosConfig
@@ -46,8 +47,8 @@ class RunPlan:
     run_dir: Path
     episodes: list[EpisodeSpec]
     policies: dict[str, str]
-    comm: str
-    timing_mode: str
+    config: EpisodeConfig
+    """Everything that shapes the run's episodes; sent whole in every job grant."""
     resumed: bool = False
     vlm: dict[str, Any] = field(default_factory=dict)
     """VLM policies: ``base_url`` and ``model``, or ``standin`` (its fault string) for a stand-in server
@@ -94,17 +95,17 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
         run_dir = cfg.run.runs_dir / run_id
     if (run_dir / "results.sqlite").exists():
         raise RunDirError(f"{run_dir}: already holds results; resume it with: agos eval --resume {run_dir}")
-    load_profile(comm)
     policies = {"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv}
-    tools_for(policies)  # unknown policy names fail here too
+    config = episode_config(cfg, policies=policies, comm=comm, timing_mode=timing_mode)  # bad names fail here
     vlm = vlm_plan(cfg, policies, vlm_standin)
     episodes = read_episodes(cfg.run.episodes_file) if cfg.run.episodes_file else generated_episodes(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_episodes(run_dir / "episodes.jsonl", episodes)
-    plan = RunPlan(run_dir, episodes, policies, comm, timing_mode, vlm=vlm)
+    plan = RunPlan(run_dir, episodes, policies, config, vlm=vlm)
     (run_dir / RUN_FILE).write_text(json.dumps({
         "run_id": plan.run_id, "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "policies": plan.policies, "comm": comm, "timing_mode": timing_mode, "episodes": len(episodes), "vlm": vlm,
+        "policies": plan.policies, "comm": config.comm.name, "timing_mode": config.timing_mode, "episodes": len(episodes),
+        "vlm": vlm, "config_hash": config.config_hash(), "episode_config": config.model_dump(mode="json"),
         "episode_source": str(cfg.run.episodes_file or f"generated: {cfg.run.town}, {cfg.run.per_difficulty}/difficulty, "
                                                          f"seed {cfg.run.episode_seed}"),
     }, indent=2) + "\n")
@@ -118,8 +119,14 @@ def resume_plan(run_dir: Path) -> RunPlan:
     if not path.exists():
         raise RunDirError(f"{run_dir}: no {RUN_FILE}; not an agos run directory")
     meta = json.loads(path.read_text())
-    return RunPlan(run_dir, read_episodes(run_dir / "episodes.jsonl"), meta["policies"], meta["comm"],
-                   meta["timing_mode"], resumed=True, vlm=meta.get("vlm", {}))
+    if "episode_config" not in meta:
+        raise RunDirError(f"{path}: made by an agos without episode configurations; start a new run")
+    try:
+        config = EpisodeConfig.model_validate(meta["episode_config"])
+    except ValueError as exc:
+        raise RunDirError(f"{path}: episode_config is not valid here ({str(exc).splitlines()[0]})") from None
+    return RunPlan(run_dir, read_episodes(run_dir / "episodes.jsonl"), meta["policies"], config, resumed=True,
+                   vlm=meta.get("vlm", {}))
 
 
 def stored_episodes(run_dir: Path) -> set[str]:
@@ -192,7 +199,6 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
         config_path: Path | None = None, console: Console | None = None, stuck_after_s: float = 180.0) -> int:
     console = console or Console()
     stop = install_stop_handlers()
-    profile = load_profile(plan.comm)
     done_before = stored_episodes(plan.run_dir)
     launcher = Launcher(None if attach else plan.run_dir / "logs")
     started = time.monotonic()
@@ -210,9 +216,9 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
                 return 1
         bus = ZenohBus.connect(endpoint, connect_timeout_s=cfg.zenoh.connect_timeout_s)
         orch = Orchestrator(bus, plan.run_id, plan.episodes, policies=plan.policies,
-                            comm_profile=profile.model_dump(), timing_mode=plan.timing_mode,
+                            config=plan.config,
                             already_stored=done_before, resumed=plan.resumed, stuck_after_s=stuck_after_s,
-                            tools=tools_for(plan.policies))
+                            )
         orch.publish_manifest("running")
         if done_before:
             console.print(f"resuming {plan.run_dir}: {len(orch.stored)} of {orch.total} episodes already finished; "
@@ -264,8 +270,9 @@ def _summary(console: Console, plan: RunPlan, orch: Orchestrator | None, attach:
         records = [orch.records[e] for e in sorted(orch.stored) if e in orch.records]
     if records:
         where = "attached" if attach else f"{processes} processes"
-        console.print(results_table(by_difficulty(records), title=f"{plan.run_id}: {len(records)} episodes, "
-                                    f"{plan.policies['uav']}/{plan.policies['ugv']} policies, comm {plan.comm}, {where}"))
+        title = (f"{plan.run_id}: {len(records)} episodes, {plan.policies['uav']}/{plan.policies['ugv']} policies, "
+                 f"comm {plan.config.comm.name}, {where}")
+        console.print(results_table(by_difficulty(records), title=title))
     console.print(f"results: {path}", highlight=False)
     if not attach:
         console.print(f"logs:    {plan.run_dir / 'logs'}", highlight=False)

@@ -2,7 +2,7 @@
 tracks which episodes are stored.
 
 * Workers ask on ``agos/<run>/ctl/jobs`` (a queryable) and get the next episode with its attempt
-  number, the run's comm profile and timing mode; ``None`` while others are still running; or
+  number and the run's whole episode configuration (runtime/episode_config.py); ``None`` while others are still running; or
   ``run_finished``.
 * A worker whose liveliness token (``agos/<run>/live/world/<id>``) vanishes, or whose episode
   shows no step event for ``stuck_after_s`` of wall time, loses its leases: those episodes go back
@@ -20,11 +20,11 @@ import time
 from collections import deque
 from dataclasses import dataclass
 from datetime import UTC, datetime
-from typing import Any
 
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, ZenohBus
 from agos.runtime.codec import DecodeError, decode, encode
+from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.records import failure_record
 from agos.runtime.schemas import EpisodeRecord, EpisodeSpec, JobGrant, JobRequest, ResultAck, RunManifest
 
@@ -42,13 +42,13 @@ class Lease:
 
 class Orchestrator:
     def __init__(self, bus: ZenohBus, run_id: str, episodes: list[EpisodeSpec], *, policies: dict[str, str],
-                 comm_profile: dict[str, Any] | None = None, timing_mode: str = "lockstep",
+                 config: EpisodeConfig | None = None,
                  stuck_after_s: float = 180.0, max_attempts: int = 3, already_stored: set[str] | None = None,
-                 tools: dict[str, bool] | None = None,
                  resumed: bool = False, clock=time.monotonic) -> None:
         self.bus, self.run_id = bus, run_id
-        self.policies, self.comm_profile, self.timing_mode = policies, comm_profile, timing_mode
-        self.tools = tools or {"e2a": True, "rgpp": True, "oracle": False}
+        self.policies = policies
+        self.config = config or EpisodeConfig()
+        self._config_map = self.config.model_dump(mode="json")  # sent whole in every grant
         self.stuck_after_s, self.max_attempts, self.resumed = stuck_after_s, max_attempts, resumed
         self._clock = clock
         done = already_stored or set()
@@ -86,7 +86,7 @@ class Orchestrator:
     def publish_manifest(self, status: str) -> None:
         self.bus.publish(keys.manifest(self.run_id), RunManifest(
             run_id=self.run_id, status=status, policies=self.policies, n_episodes=self.total,
-            comm_profile=(self.comm_profile or {}).get("name", "ideal"), timing_mode=self.timing_mode,
+            comm_profile=self.config.comm.name, timing_mode=self.config.timing_mode, config_hash=self.config.config_hash(),
             created_utc=self.created_utc, resumed=self.resumed))
 
     def pump(self, timeout_s: float) -> list[EpisodeRecord]:
@@ -135,7 +135,7 @@ class Orchestrator:
             log.error("%s failed %d times (%s); recording an infrastructure failure", episode_id, lease.attempt, why)
             self.bus.publish(keys.result(self.run_id, episode_id), failure_record(
                 self.run_id, lease.spec, status="world_crashed", worker_id=lease.worker,
-                error=f"gave up after {lease.attempt} attempts: {why}"))
+                error=f"gave up after {lease.attempt} attempts: {why}", config=self.config))
             return
         log.warning("re-leasing %s (attempt %d): %s", episode_id, lease.attempt + 1, why)
         self.pending.appendleft((lease.spec, lease.attempt + 1))
@@ -159,8 +159,7 @@ class Orchestrator:
                 self.first_lease_s = now
             self.leases[spec.episode_id] = Lease(spec, worker, attempt, now, now)
             log.info("leased %s to %s (attempt %d)", spec.episode_id, worker, attempt)
-            query.reply(encode(JobGrant(episode=spec, attempt=attempt, comm_profile=self.comm_profile,
-                                        timing_mode=self.timing_mode, tools=self.tools)))
+            query.reply(encode(JobGrant(episode=spec, attempt=attempt, config=self._config_map)))
         else:
             query.reply(encode(JobGrant(episode=None, run_finished=self.finished)))
 

@@ -20,7 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from agos.runtime.links import CommProfile, load_profile
+from agos.runtime.codec import from_json, to_json
+from agos.runtime.episode_config import EpisodeConfig
+from agos.runtime.links import CommProfile
 
 METRICS = ("SR", "SPL", "DS")
 
@@ -47,40 +49,49 @@ class Point:
 _CACHE: dict[str, Any] = {}
 
 
-def _run_point_episode(args: tuple[dict, int, str, list[str], str]) -> str:
-    """Worker process: one episode under one profile and link seed; returns the record JSON."""
-    profile_data, link_seed, episode_json, policies, _ = args
+def _run_point_episode(args: tuple[str, str, list[str], str]) -> str:
+    """Worker process: one episode under one point's episode configuration; returns the record JSON."""
+    config_json, episode_json, policies, _ = args
     from agos.agents.inprocess import InProcessAgents
     from agos.agents.registry import make_policy
+    from agos.runtime.episode_config import EpisodeConfig
     from agos.runtime.schemas import EpisodeSpec
-    from agos.world.sim.engine import EpisodeRunner, EpisodeSettings
+    from agos.world.sim.configure import episode_settings, with_budget
+    from agos.world.sim.engine import EpisodeRunner
     from agos.world.sim.scene import Scene
     from agos.world.towns.asset import town_for
 
-    spec = EpisodeSpec.model_validate_json(episode_json)
+    spec = from_json(episode_json, EpisodeSpec)
     key = spec.asset_sha256
     if key not in _CACHE:
         town = town_for(spec.town.generator, spec.town.seed, spec.asset_sha256, town_id=spec.town.town_id)
         _CACHE[key] = (town, Scene(town.layout))
     town, scene = _CACHE[key]
-    settings = EpisodeSettings(comm=CommProfile.model_validate(profile_data), link_seed=link_seed)
+    config = EpisodeConfig.model_validate_json(config_json)
+    spec = with_budget(spec, config)
     agents = InProcessAgents({"uav": make_policy(policies[0], "uav"), "ugv": make_policy(policies[1], "ugv")})
-    record = EpisodeRunner(scene, town, spec, run_id="sweep", worker_id="sweep", settings=settings).run(agents)
-    return record.model_dump_json()
+    record = EpisodeRunner(scene, town, spec, run_id="sweep", worker_id="sweep",
+                           settings=episode_settings(config)).run(agents)
+    return to_json(record).decode()
 
 
-def run_sweep(episodes_file: Path, out_dir: Path, *, base: str, param: str, values: list[float], seeds: list[int],
-              policies: tuple[str, str], workers: int, progress: Callable[[], None] | None = None) -> list[dict]:
+def run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, param: str, values: list[float],
+              seeds: list[int], policies: tuple[str, str], workers: int,
+              progress: Callable[[], None] | None = None) -> list[dict]:
+    """Run every episode at every (value, link seed) point: ``config`` (from
+    :func:`agos.deploy.configure.episode_config`) with its comm profile's ``param`` set to the value
+    and ``link_seed`` to the seed."""
     from agos.world.episodes.sampling import read_episodes
 
     episodes = read_episodes(episodes_file)
-    profile = load_profile(base)
     points = [Point(v, s) for v in values for s in seeds]
-    jobs = [(with_param(profile, param, p.value).model_dump(), p.seed, e.model_dump_json(), list(policies), str(i))
-            for i, p in enumerate(points) for e in episodes]
+    point_configs = [config.model_copy(update={"comm": with_param(config.comm, param, p.value), "link_seed": p.seed})
+                     for p in points]
+    jobs = [(point_configs[i].model_dump_json(), to_json(e).decode(), list(policies), str(i))
+            for i in range(len(points)) for e in episodes]
     results: dict[int, list[str]] = {i: [] for i in range(len(points))}
     with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
-        futures = {pool.submit(_run_point_episode, job): int(job[4]) for job in jobs}
+        futures = {pool.submit(_run_point_episode, job): int(job[3]) for job in jobs}
         for future in as_completed(futures):
             results[futures[future]].append(future.result())
             if progress:

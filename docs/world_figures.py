@@ -38,7 +38,7 @@ def label(img: np.ndarray, text: str) -> np.ndarray:
 
 def figures(town: Town, tag: str) -> None:
     scene = Scene(town.layout)
-    cam = sensors.CameraSettings()
+    cam = sensors.CameraConfig()
     spec = sample_episode(town, scene, "hard", 0, seed=5)
     t = spec.target
     uid = scene.add_vehicle(t.model, t.colour, t.position_world_m, t.yaw_rad)

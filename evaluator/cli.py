@@ -6,13 +6,15 @@ import argparse
 import json
 import sys
 from dataclasses import asdict
+from pathlib import Path
 
 from rich.console import Console
 
 from agos.evaluator.metrics import aggregate, as_json
+from agos.evaluator.pooling import require_one_configuration
 from agos.evaluator.reports import RunResults, write_report
 from agos.evaluator.stats import compare
-from agos.evaluator.summary import SummaryError, read_run
+from agos.evaluator.summary import EpisodeSummary, SummaryError, read_run
 from agos.evaluator.table import comparison_table, metrics_table
 
 
@@ -21,17 +23,25 @@ def _console() -> Console:
     return Console(width=None if sys.stdout.isatty() else 160)
 
 
+def _read(path: Path, allow_mixed: bool) -> list[EpisodeSummary]:
+    """A run's summaries, refused when they mix episode configurations (unless ``allow_mixed``)."""
+    summaries = read_run(path)
+    require_one_configuration(summaries, where=str(path), allow_mixed=allow_mixed)
+    return summaries
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         if args.command == "metrics":
-            summaries = aggregate(read_run(args.path), args.by)
+            summaries = aggregate(_read(args.path, args.allow_mixed), args.by)
             if args.json:
                 print(json.dumps(as_json(summaries), indent=2))
             else:
                 _console().print(metrics_table(summaries, title=str(args.path), group=args.by))
             return 0
         if args.command == "compare":
-            result = compare(read_run(args.run_a), read_run(args.run_b), resamples=args.resamples, seed=args.seed)
+            run_a, run_b = _read(args.run_a, args.allow_mixed), _read(args.run_b, args.allow_mixed)
+            result = compare(run_a, run_b, resamples=args.resamples, seed=args.seed)
             if args.json:
                 print(json.dumps(asdict(result), indent=2))
             else:
@@ -51,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
             if len(labels) != len(args.runs):
                 print(f"report error: {len(labels)} labels for {len(args.runs)} runs", file=sys.stderr)
                 return 2
-            runs = [RunResults(label, read_run(path)) for label, path in zip(labels, args.runs, strict=True)]
+            runs = [RunResults(label, _read(path, args.allow_mixed)) for label, path in zip(labels, args.runs, strict=True)]
             for path in write_report(runs, args.out):
                 print(path)
             return 0

@@ -10,6 +10,7 @@ import sqlite3
 from datetime import UTC, datetime
 from pathlib import Path
 
+from agos.runtime.codec import from_json, to_json
 from agos.runtime.schemas import EpisodeRecord
 
 SCHEMA = """
@@ -44,7 +45,7 @@ class ResultStore:
         run re-plays episodes that failed for reasons outside the agents); nothing ever replaces a
         ``finished`` record, and a repeated submission is ignored."""
         row = (record.run_id, record.episode_id, record.difficulty, record.status, int(record.success),
-               record.model_dump_json(), datetime.now(UTC).isoformat(timespec="seconds"))
+               to_json(record).decode(), datetime.now(UTC).isoformat(timespec="seconds"))
         with self._db:
             cur = self._db.execute("INSERT OR IGNORE INTO episodes VALUES (?, ?, ?, ?, ?, ?, ?)", row)
             if cur.rowcount == 0 and record.status == "finished":
@@ -60,7 +61,7 @@ class ResultStore:
     def records(self, run_id: str | None = None) -> list[EpisodeRecord]:
         sql = "SELECT record_json FROM episodes" + (" WHERE run_id = ?" if run_id else "") + " ORDER BY episode_id"
         rows = self._db.execute(sql, (run_id,) if run_id else ())
-        return [EpisodeRecord.model_validate_json(r[0]) for r in rows]
+        return [from_json(r[0], EpisodeRecord) for r in rows]
 
     def raw_records(self) -> list[tuple[str, str]]:
         """(episode id, record JSON) of every stored episode, in episode order."""

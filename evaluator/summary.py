@@ -54,6 +54,8 @@ class _SummaryIn(TypedDict):
     run_id: NotRequired[str | None]
     link: NotRequired[dict[str, Any] | None]
     tools: NotRequired[dict[str, bool] | None]
+    config_hash: NotRequired[str | None]
+    config: NotRequired[dict[str, Any] | None]
 
 
 _SUMMARY = TypeAdapter(_SummaryIn)
@@ -102,6 +104,10 @@ class EpisodeSummary:
     """Link statistics of degraded messaging (optional)."""
     candidate_tools: bool = True
     """The policy could annotate candidates (False for the Baseline: ACG is undefined, not 0)."""
+    config_hash: str | None = None
+    """Short hash of the episode configuration the episode ran with (None: not recorded)."""
+    config: dict[str, Any] | None = None
+    """That configuration (runtime/episode_config.py) as stored, to name what differs."""
 
     @classmethod
     def from_valid(cls, d: dict[str, Any]) -> EpisodeSummary:
@@ -112,7 +118,8 @@ class EpisodeSummary:
             tuple(CandidateSummary(c["distance_to_polygon_m"], c["center_error_m"], c.get("status"))
                   for c in d["candidates"]),
             d["decisions_uav"], d["decisions_ugv"], d.get("status", "finished"), d.get("termination"),
-            d.get("town_id"), d.get("run_id"), d.get("link"), (d.get("tools") or {}).get("candidates", True))
+            d.get("town_id"), d.get("run_id"), d.get("link"), (d.get("tools") or {}).get("candidates", True),
+            d.get("config_hash"), d.get("config"))
 
     @classmethod
     def model_validate(cls, data: dict[str, Any]) -> EpisodeSummary:

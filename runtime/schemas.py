@@ -1,20 +1,25 @@
-"""Wire messages of agos: one pydantic model per message type (DESIGN.md §4, a contract).
+"""Wire messages of agos: one ``msgspec.Struct`` per message type (DESIGN.md §4, a contract).
 
-Every payload on the bus is a msgpack map with ``v`` (schema version) and ``type``. Models here
-are plain data: numbers, strings, lists, maps and raw bytes, so any msgpack decoder in any
-language reads them. Positions are world-frame metres (x east, y north, z up); yaw is radians,
-counter-clockwise from +x. Times are simulated seconds unless a name says ``wall``.
+Every payload on the bus is a msgpack map with ``type`` (the tag of the message's struct) and ``v``
+(schema version). Messages here are plain data: numbers, strings, lists, maps and raw bytes, so
+any msgpack decoder in any language reads them. Positions are world-frame metres (x east, y north,
+z up); yaw is radians, counter-clockwise from +x. Times are simulated seconds unless a name says
+``wall``.
 
-Decode any payload with :func:`agos.runtime.codec.decode`, which dispatches on ``type`` through
-one discriminated union.
+These classes are the only definition of each message: the world builds them, policies read and
+answer them, the evaluator stores them. A struct is not validated when it is built (as a dataclass
+is not): every value is type-checked in C when a payload is decoded (:func:`agos.runtime.codec.decode`,
+which dispatches on ``type`` through :data:`WireMessage`), and a sender that builds from untrusted
+parts checks its message by decoding what it encodes (the agent service does this for actions).
+Build with the declared types (floats for ``float`` fields): an ``int`` where a ``float`` is
+declared is decoded fine but written as a msgpack int, which changes the payload's size.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Annotated, Any, Literal, Self
+from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+import msgspec
 
 SCHEMA_VERSION = 1
 
@@ -44,28 +49,24 @@ EpisodeStatus = Literal["finished", "agent_crashed", "world_crashed", "timeout",
 Termination = Literal["confirmed", "false_confirm", "budget_exhausted", "sim_time_limit", "error"]
 
 
-class Model(BaseModel):
-    """Base of every data model: strict field names, field docstrings become descriptions."""
-
-    model_config = ConfigDict(extra="forbid", use_attribute_docstrings=True, frozen=False)
-
-    def model_copy(self, *, update: Mapping[str, Any] | None = None, deep: bool = False) -> Self:
-        """pydantic's copy, refusing an ``update`` key that is not a field (pydantic would store it
-        beside the fields, unchecked, and the hot-path encoder would send it: runtime/codec.py)."""
-        unknown = sorted(set(update or ()) - set(type(self).model_fields))
-        if unknown:
-            raise ValueError(f"{type(self).__name__} has no field {', '.join(unknown)}")
-        return super().model_copy(update=update, deep=deep)
+class Part(msgspec.Struct, forbid_unknown_fields=True):
+    """Base of every wire struct: unknown fields are refused when decoding."""
 
 
-class Pose(Model):
+class Message(Part, tag_field="type"):
+    """Base of the top-level messages: tagged by ``type`` (written first), versioned by ``v``."""
+
+    v: int = SCHEMA_VERSION
+
+
+class Pose(Part, kw_only=True):
     position_world_m: Vec3
     """Position in the world frame, metres."""
     yaw_rad: float
     """Heading, radians counter-clockwise from world +x."""
 
 
-class CameraIntrinsics(Model):
+class CameraIntrinsics(Part, kw_only=True):
     width_px: int
     height_px: int
     fx_px: float
@@ -74,7 +75,7 @@ class CameraIntrinsics(Model):
     cy_px: float
 
 
-class ImageFrame(Model):
+class ImageFrame(Part, kw_only=True):
     """One encoded image with the camera that took it."""
 
     name: str
@@ -92,7 +93,7 @@ class ImageFrame(Model):
     """Ground or object scale, where the image has one (reference views, maps)."""
 
 
-class Waypoint(Model):
+class Waypoint(Part, kw_only=True):
     waypoint_id: str
     position_world_m: Vec3
     kind: str
@@ -109,7 +110,7 @@ class Waypoint(Model):
 CandidateStatus = Literal["pending", "arrived", "rejected", "confirmed", "false_confirm"]
 
 
-class Candidate(Model):
+class Candidate(Part, kw_only=True):
     """A handoff region; each role holds its own copy, updated through the link model."""
 
     candidate_id: str
@@ -125,7 +126,7 @@ class Candidate(Model):
     """Road decision anchor chosen by road-graph path planning, if reachable."""
 
 
-class MessageRecord(Model):
+class MessageRecord(Part, kw_only=True):
     sender: Role
     receiver: Role
     text: str
@@ -133,25 +134,23 @@ class MessageRecord(Model):
     delivered_sim_time_s: float
 
 
-class CoordinationState(Model):
+class CoordinationState(Message, tag="coordination_state", kw_only=True):
     """C_t: what the roles share (candidates, messages, poses, budget)."""
 
-    v: int = SCHEMA_VERSION
-    type: Literal["coordination_state"] = "coordination_state"
     run_id: str
     episode_id: str
     sim_time_s: float
-    candidates: list[Candidate] = Field(default_factory=list)
-    messages: list[MessageRecord] = Field(default_factory=list)
+    candidates: list[Candidate] = []
+    messages: list[MessageRecord] = []
     """Most recent delivered messages, oldest first."""
-    poses: dict[str, Pose] = Field(default_factory=dict)
+    poses: dict[str, Pose] = {}
     decisions_used: int = 0
     decision_budget: int = 80
     annotations_used: int = 0
     max_annotations: int = 5
 
 
-class OracleHints(Model):
+class OracleHints(Part, kw_only=True):
     """Ground truth, given only to the ``oracle`` policy (an upper bound and solvability check)."""
 
     target_world_m: Vec2
@@ -161,11 +160,9 @@ class OracleHints(Model):
     """A CONFIRM now would pass the checker (UGV after STOP_OBSERVE)."""
 
 
-class Observation(Model):
+class Observation(Message, tag="observation", kw_only=True):
     """World -> agent: everything a role may know at its decision ``decision_index``."""
 
-    v: int = SCHEMA_VERSION
-    type: Literal["observation"] = "observation"
     run_id: str
     episode_id: str
     role: Role
@@ -181,7 +178,7 @@ class Observation(Model):
     waypoint_options: list[Waypoint]
     region_world_m: tuple[float, float, float, float]
     """Episode region (x_min, y_min, x_max, y_max)."""
-    active_uav_waypoints: list[Waypoint] = Field(default_factory=list)
+    active_uav_waypoints: list[Waypoint] = []
     """All active UAV grid nodes of the episode (UAV only): the searchable area."""
     coordination: CoordinationState
     grid_rows: str = "ABCDE"
@@ -192,7 +189,7 @@ class Observation(Model):
     """Only when the run's policy is ``oracle``; never for other policies."""
 
 
-class DecisionTrace(Model):
+class DecisionTrace(Part, kw_only=True):
     """How a model-backed policy reached one decision (VLM policies; None for scripted ones).
 
     Retries, re-asks and repairs are counted here, never as decisions (DS counts decisions)."""
@@ -223,11 +220,9 @@ class DecisionTrace(Model):
     """Why the endpoint gave no answer at all (the decision then became a fallback)."""
 
 
-class Action(Model):
+class Action(Message, tag="action", kw_only=True):
     """Agent -> world: one decision."""
 
-    v: int = SCHEMA_VERSION
-    type: Literal["action"] = "action"
     run_id: str
     episode_id: str
     role: Role
@@ -244,9 +239,7 @@ class Action(Model):
     """Model-backed policies: how the decision was reached (stored with the episode)."""
 
 
-class AgentMessage(Model):
-    v: int = SCHEMA_VERSION
-    type: Literal["agent_message"] = "agent_message"
+class AgentMessage(Message, tag="agent_message", kw_only=True):
     run_id: str
     episode_id: str
     sender: Role
@@ -256,7 +249,7 @@ class AgentMessage(Model):
     delivered_sim_time_s: float
 
 
-class VehicleSpec(Model):
+class VehicleSpec(Part, kw_only=True):
     model: str
     """Body type from the catalog (``sedan``, ``suv`` ...)."""
     colour: str
@@ -264,7 +257,7 @@ class VehicleSpec(Model):
     yaw_rad: float
 
 
-class TownRef(Model):
+class TownRef(Part, kw_only=True):
     generator: str
     """A procedural generator (``grid``, ``irregular``, ``curved``, ``tee``, ``deck``, ``parks``)
     or ``opendrive`` for an imported map (found by its asset hash)."""
@@ -272,11 +265,9 @@ class TownRef(Model):
     town_id: str
 
 
-class EpisodeSpec(Model):
+class EpisodeSpec(Message, tag="episode_spec", kw_only=True):
     """One episode (DESIGN.md §6, a contract). JSON, one per line in a split file."""
 
-    v: int = SCHEMA_VERSION
-    type: Literal["episode_spec"] = "episode_spec"
     episode_id: str
     """Versioned id, e.g. ``grid-s7-easy-000-v1``."""
     town: TownRef
@@ -284,7 +275,7 @@ class EpisodeSpec(Model):
     difficulty: Difficulty
     region_world_m: tuple[float, float, float, float]
     target: VehicleSpec
-    distractors: list[VehicleSpec] = Field(default_factory=list)
+    distractors: list[VehicleSpec] = []
     uav_start_waypoint: str
     ugv_start_waypoint: str
     active_uav_waypoints: list[str]
@@ -292,7 +283,7 @@ class EpisodeSpec(Model):
     seed: int
 
 
-class CandidateOutcome(Model):
+class CandidateOutcome(Part, kw_only=True):
     candidate_id: str
     cell: str
     center_world_m: Vec2
@@ -303,7 +294,7 @@ class CandidateOutcome(Model):
     """Distance from the candidate centre to the target centre (CErr)."""
 
 
-class LedgerEntry(Model):
+class LedgerEntry(Part, kw_only=True):
     """One transmission between the roles through the link model."""
 
     seq: int
@@ -320,7 +311,7 @@ class LedgerEntry(Model):
     drop_reason: str | None = None
 
 
-class LinkStats(Model):
+class LinkStats(Part, kw_only=True):
     """Per-episode summary of the ledger (DESIGN.md §7 ``link`` field)."""
 
     profile: str
@@ -338,14 +329,14 @@ class LinkStats(Model):
     """Candidates the UGV never learned of."""
 
 
-class StoredTrace(DecisionTrace):
+class StoredTrace(DecisionTrace, kw_only=True):
     """A decision trace as stored with the episode: which role and decision it belongs to."""
 
     role: Role
     decision_index: int
 
 
-class RoleTraceStats(Model):
+class RoleTraceStats(Part, kw_only=True):
     """Per-role totals of the decision traces of an episode (model-backed policies)."""
 
     decisions: int
@@ -359,11 +350,9 @@ class RoleTraceStats(Model):
     mean_latency_s: float | None
 
 
-class EpisodeRecord(Model):
+class EpisodeRecord(Message, tag="episode_record", kw_only=True):
     """World -> evaluator: the episode summary (DESIGN.md §7 fields plus provenance)."""
 
-    v: int = SCHEMA_VERSION
-    type: Literal["episode_record"] = "episode_record"
     run_id: str
     episode_id: str
     difficulty: Difficulty
@@ -397,16 +386,16 @@ class EpisodeRecord(Model):
     comm_profile: str = "ideal"
     timing_mode: Literal["lockstep", "realtime"] = "lockstep"
     link: LinkStats | None = None
-    ledger: list[LedgerEntry] = Field(default_factory=list)
+    ledger: list[LedgerEntry] = []
     confirm_rejection: str | None = None
     """Why the checker refused the final CONFIRM (a false confirm), else None."""
     error: str | None = None
     """What went wrong in the infrastructure (status other than finished), else None."""
-    tools: dict[str, bool] = Field(default_factory=dict)
+    tools: dict[str, bool] = {}
     """World-side tools the episode ran with (``candidates``, ``e2a``, ``rgpp``, ``oracle``)."""
-    agent_stats: dict[str, RoleTraceStats] = Field(default_factory=dict)
+    agent_stats: dict[str, RoleTraceStats] = {}
     """Per role, totals of its decision traces (empty for scripted policies)."""
-    decision_traces: list[StoredTrace] = Field(default_factory=list)
+    decision_traces: list[StoredTrace] = []
     """Every decision of model-backed policies, in the order the world applied them."""
 
     @property
@@ -415,11 +404,9 @@ class EpisodeRecord(Model):
         return self.tools.get("candidates", True)
 
 
-class StepEvent(Model):
+class StepEvent(Message, tag="step", kw_only=True):
     """World -> observers and evaluator: one applied decision, with oracle facts."""
 
-    v: int = SCHEMA_VERSION
-    type: Literal["step"] = "step"
     run_id: str
     episode_id: str
     role: Role
@@ -439,11 +426,9 @@ class StepEvent(Model):
     """Age of the teammate information in this role's view when it decided."""
 
 
-class VizFrame(Model):
+class VizFrame(Message, tag="viz_frame", kw_only=True):
     """World -> observers (visualisation stream, lossy): one role's camera view at one decision, small."""
 
-    v: int = SCHEMA_VERSION
-    type: Literal["viz_frame"] = "viz_frame"
     run_id: str
     episode_id: str
     role: Role
@@ -454,9 +439,7 @@ class VizFrame(Model):
     """JPEG, at most ``runtime.viz.THUMB_PX`` a side; the camera pose as in the observation, no intrinsics."""
 
 
-class EpisodeStarted(Model):
-    v: int = SCHEMA_VERSION
-    type: Literal["episode_started"] = "episode_started"
+class EpisodeStarted(Message, tag="episode_started", kw_only=True):
     run_id: str
     episode_id: str
     difficulty: Difficulty
@@ -465,18 +448,14 @@ class EpisodeStarted(Model):
     asset_sha256: str
 
 
-class ResultAck(Model):
-    v: int = SCHEMA_VERSION
-    type: Literal["result_ack"] = "result_ack"
+class ResultAck(Message, tag="result_ack", kw_only=True):
     run_id: str
     episode_id: str
     newly_stored: bool
     """False when the record was already stored (a duplicate submission)."""
 
 
-class RunManifest(Model):
-    v: int = SCHEMA_VERSION
-    type: Literal["run_manifest"] = "run_manifest"
+class RunManifest(Message, tag="run_manifest", kw_only=True):
     run_id: str
     status: Literal["running", "finished", "interrupted"]
     policies: dict[str, str]
@@ -487,15 +466,11 @@ class RunManifest(Model):
     resumed: bool = False
 
 
-class JobRequest(Model):
-    v: int = SCHEMA_VERSION
-    type: Literal["job_request"] = "job_request"
+class JobRequest(Message, tag="job_request", kw_only=True):
     worker_id: str
 
 
-class JobGrant(Model):
-    v: int = SCHEMA_VERSION
-    type: Literal["job_grant"] = "job_grant"
+class JobGrant(Message, tag="job_grant", kw_only=True):
     episode: EpisodeSpec | None
     """The leased episode, or None when there is nothing left."""
     run_finished: bool = False
@@ -504,13 +479,13 @@ class JobGrant(Model):
     comm_profile: dict[str, Any] | None = None
     """The run's link model (a CommProfile as a map), so remote workers need no profile file."""
     timing_mode: Literal["lockstep", "realtime"] = "lockstep"
-    tools: dict[str, bool] = Field(
+    tools: dict[str, bool] = msgspec.field(
         default_factory=lambda: {"candidates": True, "e2a": True, "rgpp": True, "oracle": False})
     """World-side tools of the run's policy: structured candidates (ANNOTATE_CANDIDATE; off for the
     Baseline), Ego-to-Allo projection, road-graph path planning (GO_TO_CANDIDATE), oracle hints."""
 
 
-WireMessage = Annotated[
+WireMessage = (
     CoordinationState
     | Observation
     | Action
@@ -523,6 +498,6 @@ WireMessage = Annotated[
     | RunManifest
     | JobRequest
     | JobGrant
-    | VizFrame,
-    Field(discriminator="type"),
-]
+    | VizFrame
+)
+"""Every top-level message; a payload's ``type`` says which (runtime/codec.py decodes through it)."""

@@ -14,6 +14,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from agos.runtime.episode_config import EpisodeConfig
+
 ENV_PREFIX = "AGOS_"
 
 
@@ -45,47 +47,10 @@ class RunSettings(_Section):
     """JSONL episode file; when set, it replaces the generated episodes."""
     policy_uav: str = "heuristic"
     policy_ugv: str = "heuristic"
-    decision_timeout_s: float = Field(60.0, gt=0)
-    """Wall-clock wait for an action before the world logs a WAIT fallback."""
     agent_wait_s: float = Field(30.0, gt=0)
     """How long a world worker waits for both agent services at an episode's first decision
     before it records the episode as failed, naming the missing role."""
     workers: int = Field(1, ge=1)
-
-
-class WorldSettings(_Section):
-    renderer: Literal["tiny", "egl"] = "tiny"
-    nadir_px: int = Field(512, ge=64)
-    ground_px: int = Field(256, ge=64)
-    rgb_encoding: Literal["jpeg", "png"] = "jpeg"
-    uav_speed_mps: float = Field(10.0, gt=0)
-    ugv_speed_mps: float = Field(8.0, gt=0)
-    wait_max_s: float = Field(20.0, gt=0)
-    max_annotations: int = Field(5, ge=1)
-    uav_visible_min_pixels: int = Field(30, ge=1)
-    """Oracle: target pixels for "visible from the air", at 512 x 512 (scaled with nadir_px²)."""
-    confirm_min_pixels: int = Field(50, ge=1)
-    """CONFIRM checker: target pixels in one of the six views, at 256 x 256 (scaled with ground_px²)."""
-    confirm_max_distance_m: float = Field(50.0, gt=0)
-    require_fresh_stop: bool = True
-    require_line_of_sight: bool = True
-
-    def episode_settings(self) -> Any:
-        """The world's :class:`~agos.world.sim.engine.EpisodeSettings` (imported here: PyBullet is
-        loaded only by processes that simulate)."""
-        from agos.world.sim.confirm import ConfirmSettings
-        from agos.world.sim.engine import EpisodeSettings
-        from agos.world.sim.sensors import CameraSettings
-
-        return EpisodeSettings(
-            uav_speed_mps=self.uav_speed_mps, ugv_speed_mps=self.ugv_speed_mps, wait_max_s=self.wait_max_s,
-            max_annotations=self.max_annotations,
-            uav_visible_min_px=max(1, round(self.uav_visible_min_pixels * (self.nadir_px / 512) ** 2)),
-            confirm=ConfirmSettings(require_fresh_stop=self.require_fresh_stop,
-                                    min_target_pixels=max(1, round(self.confirm_min_pixels * (self.ground_px / 256) ** 2)),
-                                    max_distance_m=self.confirm_max_distance_m,
-                                    require_line_of_sight=self.require_line_of_sight),
-            cameras=CameraSettings(nadir_px=self.nadir_px, ground_px=self.ground_px, rgb_encoding=self.rgb_encoding))
 
 
 class VlmOptions(_Section):
@@ -115,7 +80,9 @@ class VlmOptions(_Section):
 class AgosConfig(_Section):
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     run: RunSettings = Field(default_factory=RunSettings)
-    world: WorldSettings = Field(default_factory=WorldSettings)
+    world: EpisodeConfig = Field(default_factory=EpisodeConfig)
+    """Everything that shapes an episode (runtime/episode_config.py); the orchestrator's copy, with
+    the run's comm profile, timing and tools set, is what every world worker runs with."""
     vlm: VlmOptions = Field(default_factory=VlmOptions)
 
 
@@ -152,9 +119,12 @@ def load_config(path: Path | None = None, *, overrides: dict[str, Any] | None = 
     for name, value in env.items():
         if not name.startswith(ENV_PREFIX) or "__" not in name:
             continue
-        section, _, key = name[len(ENV_PREFIX):].lower().partition("__")
-        env_layer.setdefault(section, {})[key] = value
-        _validate(_merge(data, {section: {key: value}}), f"environment {name}")
+        path = name[len(ENV_PREFIX):].lower().split("__")  # AGOS_WORLD__CAMERAS__NADIR_PX
+        nested: dict[str, Any] = {path[-1]: value}
+        for part in reversed(path[:-1]):
+            nested = {part: nested}
+        env_layer = _merge(env_layer, nested)
+        _validate(_merge(data, nested), f"environment {name}")
     data = _merge(data, env_layer)
     if overrides:
         data = _merge(data, {s: {k: v for k, v in kv.items() if v is not None} for s, kv in overrides.items()})

@@ -15,7 +15,7 @@ from agos.agents.registry import make_policy
 from agos.agents.service import serve_async
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, MemoryBus
-from agos.runtime.codec import Encoder, decode, encode
+from agos.runtime.codec import decode, encode
 from agos.runtime.process import StopFlag
 from agos.runtime.schemas import Action, CoordinationState, EpisodeRecord, Observation, Pose, Waypoint
 
@@ -65,7 +65,7 @@ class Serving:
 def test_inline_policy_is_answered_on_the_publishing_thread() -> None:
     with Serving(make_policy("standin-0ms", "uav")) as svc:
         assert svc.policy.inline
-        svc.bus.publish(keys.obs(RUN, "e1", "uav"), Encoder().encode(_obs()))
+        svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(_obs()))
         sample = svc.actions.get(0)  # already there when publish returns: no hand-over to the loop
         assert sample is not None
         action = decode(sample.payload)
@@ -149,27 +149,29 @@ def test_policy_errors_cost_a_wait_and_episodes_end(inline: bool) -> None:
 
 
 class Mistyped:
-    """Answers through ``action_for`` (a mirror action for a mirror observation, built without
-    checks) with values the world would refuse."""
+    """Answers through ``action_for`` (an ``Action`` struct, built without checks) with values the
+    world would refuse, or with no action at all."""
 
     role, name, inline = "uav", "mistyped", True
 
     def act(self, obs) -> Action:
         if obs.decision_index == 1:
             return action_for(obs, "FLY")  # not an action name
-        return action_for(obs, "MOVE_TO_UAV_WAYPOINT", waypoint_id=7)  # not a string
+        if obs.decision_index == 2:
+            return action_for(obs, "MOVE_TO_UAV_WAYPOINT", waypoint_id=7)  # not a string
+        return {"action": "WAIT"}  # not an Action
 
     def end_episode(self, episode_id: str) -> None:
         pass
 
 
-def test_mistyped_mirror_answers_cost_a_wait() -> None:
+def test_mistyped_answers_cost_a_wait() -> None:
     with Serving(Mistyped()) as svc:
-        for index in (1, 2):
-            svc.bus.publish(keys.obs(RUN, "e1", "uav"), Encoder().encode(_obs(index=index)))
-        got = [decode(svc.actions.get(5.0).payload) for _ in range(2)]
-        assert [(a.decision_index, a.action, a.rationale) for a in got] == [
-            (1, "WAIT", "policy error (see agent log)"), (2, "WAIT", "policy error (see agent log)")]
+        for index in (1, 2, 3):
+            svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(_obs(index=index)))
+        got = [decode(svc.actions.get(5.0).payload) for _ in range(3)]
+        assert [(type(a), a.decision_index, a.action, a.rationale) for a in got] == [
+            (Action, i, "WAIT", "policy error (see agent log)") for i in (1, 2, 3)]
 
 
 def test_observations_are_subscribed_exactly_while_a_world_holds_the_episode() -> None:
@@ -185,12 +187,12 @@ def test_observations_are_subscribed_exactly_while_a_world_holds_the_episode() -
         svc.bus.declare_token(keys.episode_live(RUN, "e9", "w1"))  # handled after the two changes above
         assert wait_until(lambda: svc.bus.wait_for_subscriber(keys.obs(RUN, "e9", "uav"), 0))
         assert svc.bus.wait_for_subscriber(exact, 0)  # w2 still runs e1
-        svc.bus.publish(exact, Encoder().encode(_obs()))
+        svc.bus.publish(exact, encode(_obs()))
         assert svc.actions.get(0) is not None
         svc.bus.undeclare_token(second)
         assert wait_until(lambda: not svc.bus.wait_for_subscriber(exact, 0))
         assert [(s.key.split("/")[3], s.payload) for s in ready.drain()] == [("e9", b"+"), ("e1", b"-")]
-        svc.bus.publish(exact, Encoder().encode(_obs(index=2)))
+        svc.bus.publish(exact, encode(_obs(index=2)))
         assert svc.actions.get(0.1) is None
 
 

@@ -2,11 +2,26 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import msgpack
+import msgspec
 import numpy as np
 import pytest
 
-from agos.runtime.codec import DecodeError, Decoder, Encoder, decode, decode_image, encode, encode_jpeg, encode_png
+from agos.runtime.codec import (
+    DecodeError,
+    decode,
+    decode_as,
+    decode_image,
+    encode,
+    encode_into,
+    encode_jpeg,
+    encode_png,
+    from_json,
+    to_json,
+)
 from agos.runtime.schemas import (
     SCHEMA_VERSION,
     Action,
@@ -14,6 +29,7 @@ from agos.runtime.schemas import (
     Candidate,
     CandidateOutcome,
     CoordinationState,
+    DecisionTrace,
     EpisodeRecord,
     EpisodeSpec,
     ImageFrame,
@@ -24,10 +40,11 @@ from agos.runtime.schemas import (
     TownRef,
     VehicleSpec,
     Waypoint,
+    WireMessage,
 )
-from agos.runtime.structs import mirror, to_model
 
 RAW = bytes(range(256)) + b"\x89PNG\r\n\x1a\n\x00\xff"  # not valid UTF-8: must stay bytes
+EXAMPLES = Path(__file__).resolve().parents[1] / "docs" / "examples"
 
 
 def _action() -> Action:
@@ -74,34 +91,71 @@ def _observation() -> Observation:
     )
 
 
-def _grant() -> JobGrant:
-    spec = EpisodeSpec(
+def _spec() -> EpisodeSpec:
+    return EpisodeSpec(
         episode_id="grid-s7-easy-000-v1", town=TownRef(generator="grid", seed=7, town_id="grid-s7"),
         asset_sha256="cd" * 32, difficulty="easy", region_world_m=(0.0, 0.0, 150.0, 150.0),
         target=VehicleSpec(model="sedan", colour="red", position_world_m=(1.0, 2.0, 0.0), yaw_rad=1.5),
         uav_start_waypoint="U1_1", ugv_start_waypoint="R7", active_uav_waypoints=["U1_1", "U1_2"], seed=3,
     )
-    return JobGrant(episode=spec)
+
+
+def _grant() -> JobGrant:
+    return JobGrant(episode=_spec())
 
 
 MESSAGES = [_action, _record, _observation, _grant]
 
 
+def _as_map(value):
+    """What a payload should hold, built independently of the codec: a struct as the map of its
+    fields (its ``type`` tag too), tuples as lists."""
+    if isinstance(value, msgspec.Struct):
+        tag = type(value).__struct_config__.tag
+        fields = {name: _as_map(getattr(value, name)) for name in value.__struct_fields__}
+        return {"type": tag, **fields} if tag is not None else fields
+    if isinstance(value, (list, tuple)):
+        return [_as_map(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _as_map(v) for k, v in value.items()}
+    return value
+
+
 @pytest.mark.parametrize("make", MESSAGES)
-def test_payload_is_the_models_dump_packed(make) -> None:
-    """msgspec writes a model through its fields: byte for byte msgpack-python's packing of model_dump."""
+def test_payload_is_the_plain_map_of_the_fields(make) -> None:
+    """msgpack-python reads a payload into the map of the message's fields, ``type`` first, and
+    packs that map into the same bytes (so the sizes the link model charges are those of the map)."""
     message = make()
-    assert encode(message) == msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
+    plain = msgpack.unpackb(encode(message), raw=False)
+    assert plain == _as_map(message)
+    assert list(plain)[:2] == ["type", "v"] and list(plain)[2:] == list(type(message).__struct_fields__)[1:]
+    assert encode(message) == msgpack.packb(plain, use_bin_type=True)
 
 
-def test_payload_holds_only_declared_fields() -> None:
-    stray = _action()
-    stray.__dict__["note"] = "not a field"  # stored beside the fields (model_copy refuses to)
-    assert encode(stray) == encode(_action())
+def test_payloads_keep_their_size_and_content() -> None:
+    """The same bytes as the pydantic models wrote before the structs (msgpack-python's packing of
+    ``model_dump``), but for the order of ``v`` and ``type``: lengths taken from that version."""
+    for make, size in ((_action, 202), (_observation, 1767)):
+        plain = msgpack.unpackb(encode(make()), raw=False)
+        old_order = {"v": plain.pop("v"), "type": plain.pop("type"), **plain}
+        assert len(encode(make())) == len(msgpack.packb(old_order, use_bin_type=True)) == size
+    assert msgpack.unpackb(encode(_action()), raw=False) == {
+        "type": "action", "v": 1, "run_id": "r1", "episode_id": "e1", "role": "ugv", "decision_index": 3,
+        "action": "GO_TO_CANDIDATE", "waypoint_id": None, "cell": None, "candidate_id": "C002",
+        "message": "heading there", "rationale": "closest", "agent_wall_latency_s": 0.25, "trace": None}
 
 
-def test_numpy_scalars_are_written_as_numbers() -> None:
-    assert encode({"x": np.float32(0.5), "n": np.int64(3)}) == msgpack.packb({"x": 0.5, "n": 3})
+def test_numpy_values_are_written_as_numbers_and_lists() -> None:
+    assert encode({"x": np.float32(0.5), "n": np.int64(3), "a": np.arange(3)}) == msgpack.packb(
+        {"x": 0.5, "n": 3, "a": [0, 1, 2]})
+    pose = Pose(position_world_m=(np.float64(1.0), np.float32(2.0), 3.0), yaw_rad=np.float32(0.5))
+    assert encode(pose) == encode(Pose(position_world_m=(1.0, 2.0, 3.0), yaw_rad=0.5))
+
+
+def test_encode_into_reuses_a_buffer() -> None:
+    buffer = bytearray(b"old content, longer than nothing")
+    encode_into(_action(), buffer)
+    assert bytes(buffer) == encode(_action())
 
 
 @pytest.mark.parametrize("make", MESSAGES)
@@ -110,6 +164,22 @@ def test_round_trip(make) -> None:
     back = decode(encode(message))
     assert type(back) is type(message)
     assert back == message
+
+
+def test_decode_as_reads_one_type_and_refuses_others() -> None:
+    assert decode_as(encode(_action()), Action) == _action()
+    with pytest.raises(DecodeError, match="type"):
+        decode_as(encode(_record()), Action)
+
+
+def test_decoded_numbers_take_the_declared_types() -> None:
+    """A sender may write an int where a float is declared (a struct is not checked when built);
+    the receiver reads a float, and tuples where tuples are declared."""
+    data = msgpack.unpackb(encode(_action()), raw=False)
+    data["agent_wall_latency_s"] = 1
+    back = decode(msgpack.packb(data))
+    assert back.agent_wall_latency_s == 1.0 and isinstance(back.agent_wall_latency_s, float)
+    assert isinstance(decode(encode(_observation())).pose.position_world_m, tuple)
 
 
 def test_observation_image_bytes_survive() -> None:
@@ -126,7 +196,7 @@ def test_record_candidates_survive() -> None:
     assert [c.candidate_id for c in back.candidates] == ["C001", "C002"]
     assert back.candidates[1].center_world_m == (10.0, 20.0)
     assert back.shortest_path_length_m == 98.25
-    assert back.error is None
+    assert back.error is None and back.candidate_tools
 
 
 def test_payload_is_plain_msgpack_map() -> None:
@@ -141,19 +211,21 @@ def test_payload_is_plain_msgpack_map() -> None:
     assert isinstance(plain["images"][0]["data"], bytes)
     assert plain["pose"]["position_world_m"] == [10.0, 20.0, 80.0]  # tuples become arrays
     assert plain["region_world_m"] == [-75.0, -75.0, 75.0, 75.0]
-
-    action = msgpack.unpackb(encode(_action()), raw=False, ext_hook=no_ext)
-    assert action["type"] == "action"
-    assert action["v"] == 1
-    assert action["decision_index"] == 3
-    assert action["waypoint_id"] is None
+    assert plain["coordination"]["type"] == "coordination_state"  # a nested message keeps its tag
 
 
-def test_payload_built_without_models_decodes() -> None:
+def test_payload_built_without_structs_decodes() -> None:
     payload = msgpack.packb({"v": 1, "type": "job_request", "worker_id": "w9"}, use_bin_type=True)
     request = decode(payload)
     assert type(request).__name__ == "JobRequest"
     assert request.worker_id == "w9"
+
+
+def test_every_message_type_decodes_by_its_tag() -> None:
+    for kind in WireMessage.__args__:
+        assert isinstance(kind.__struct_config__.tag, str)
+    tags = [kind.__struct_config__.tag for kind in WireMessage.__args__]
+    assert len(set(tags)) == len(tags)
 
 
 def _action_dict() -> dict:
@@ -163,62 +235,108 @@ def _action_dict() -> dict:
 def test_missing_field_is_named() -> None:
     data = _action_dict()
     del data["decision_index"]
-    with pytest.raises(DecodeError, match="decision_index") as info:
+    with pytest.raises(DecodeError, match=r"field decision_index: .*missing required"):
         decode(msgpack.packb(data))
-    assert "required" in str(info.value).lower()
 
 
 def test_wrong_type_is_named() -> None:
     data = _action_dict()
     data["role"] = "tank"
-    with pytest.raises(DecodeError, match="role"):
+    with pytest.raises(DecodeError, match="field role: Invalid enum value 'tank'"):
         decode(msgpack.packb(data))
     data = _action_dict()
     data["decision_index"] = "three"
-    with pytest.raises(DecodeError, match="decision_index"):
+    with pytest.raises(DecodeError, match="field decision_index: Expected `int`, got `str`"):
         decode(msgpack.packb(data))
 
 
 def test_nested_wrong_type_is_named() -> None:
     data = msgpack.unpackb(encode(_record()), raw=False)
     data["candidates"][1]["distance_to_polygon_m"] = "far"
-    with pytest.raises(DecodeError, match=r"candidates\.1\.distance_to_polygon_m"):
+    with pytest.raises(DecodeError, match=r"field candidates\.1\.distance_to_polygon_m: Expected `float`"):
+        decode(msgpack.packb(data))
+    data = msgpack.unpackb(encode(_observation()), raw=False)
+    del data["coordination"]["candidates"][0]["cell"]
+    with pytest.raises(DecodeError, match=r"field coordination\.candidates\.0\.cell: .*missing"):
         decode(msgpack.packb(data))
 
 
-def test_unknown_type_is_named() -> None:
-    with pytest.raises(DecodeError, match="type") as info:
+def test_unknown_type_is_refused() -> None:
+    with pytest.raises(DecodeError, match=r"field type: .*'teleport'"):
         decode(msgpack.packb({"v": 1, "type": "teleport", "run_id": "r"}))
-    assert "teleport" in str(info.value)
 
 
 def test_missing_type_is_named() -> None:
-    with pytest.raises(DecodeError, match="'type'"):
+    with pytest.raises(DecodeError, match=r"field type: .*missing required"):
         decode(msgpack.packb({"v": 1, "run_id": "r"}))
 
 
 def test_extra_field_rejected() -> None:
     data = _action_dict()
     data["bogus"] = 1
-    with pytest.raises(DecodeError, match="bogus"):
+    with pytest.raises(DecodeError, match=r"field bogus: .*unknown"):
         decode(msgpack.packb(data))
 
 
 @pytest.mark.parametrize("payload", [msgpack.packb([1, 2, 3]), msgpack.packb("action"), msgpack.packb(5),
-                                     msgpack.packb(None)])
+                                     msgpack.packb(None), b"\x92\x01"])
 def test_non_map_payload(payload: bytes) -> None:
     with pytest.raises(DecodeError, match="not a msgpack map"):
         decode(payload)
 
 
-@pytest.mark.parametrize("payload", [b"", b"\xc1", b"\x92\x01", msgpack.packb({"v": 1}) + b"\x00"])
+@pytest.mark.parametrize("payload", [b"", b"\xc1", encode(_action()) + b"\x00",
+                                     encode(_action()).replace(b"\xa2r1", b"\xa2\xff\xfe", 1)])  # not UTF-8
 def test_non_msgpack_payload(payload: bytes) -> None:
     with pytest.raises(DecodeError, match="not msgpack"):
         decode(payload)
 
 
+def test_too_deep_payload_is_refused() -> None:
+    head = msgpack.packb({"type": "job_grant", "v": 1, "episode": None})
+    deep = b"\x84" + head[1:] + b"\xaccomm_profile" + b"\x81\xa1a" * 3000 + b"\xc0"  # comm_profile: any map
+    with pytest.raises(DecodeError, match="nested too deeply"):
+        decode(deep)
+
+
 def test_decode_error_is_value_error() -> None:
     assert issubclass(DecodeError, ValueError)
+
+
+# --- JSON: records in result files, episode specs in split files --------------------------------
+
+
+@pytest.mark.parametrize("make", [_record, _spec])
+def test_json_round_trip(make) -> None:
+    message = make()
+    text = to_json(message)
+    assert json.loads(text) == json.loads(json.dumps(_as_map(message)))
+    assert from_json(text, type(message)) == message
+
+
+def test_records_written_before_the_structs_still_read() -> None:
+    """Result files and example summaries written by the pydantic models (``v`` before ``type``)
+    read into the struct, and write back the same keys and values."""
+    for line in (EXAMPLES / "heuristic-512px.jsonl").read_text().splitlines()[:5]:
+        record = from_json(line, EpisodeRecord)
+        old, new = json.loads(line), json.loads(to_json(record))
+        assert {key: new[key] for key in old} == old
+
+
+def test_json_errors_name_the_field() -> None:
+    data = json.loads(to_json(_spec()))
+    data["town"]["seed"] = "seven"
+    with pytest.raises(DecodeError, match=r"field town\.seed: Expected `int`, got `str`"):
+        from_json(json.dumps(data), EpisodeSpec)
+    with pytest.raises(DecodeError, match="not JSON"):
+        from_json("{not json", EpisodeSpec)
+
+
+def test_traces_read_back_with_their_defaults() -> None:
+    trace = DecisionTrace(policy="p", model="m", stage="search", prompt_sha256="0" * 64, image_bytes={"a": 1},
+                          raw_reply=None, parsed_action="WAIT", fallback=False)
+    action = msgspec.structs.replace(_action(), trace=trace)
+    assert decode(encode(action)).trace == trace
 
 
 # --- image helpers -------------------------------------------------------------------------------
@@ -287,103 +405,3 @@ def test_jpeg_round_trip_close_and_rgb() -> None:
 def test_decode_image_rejects_garbage() -> None:
     with pytest.raises(ValueError, match="could not be decoded"):
         decode_image(b"definitely not an image")
-
-
-# ----- Encoder / Decoder: the decision hot path ------------------------------------------------
-
-
-def _big_observation(decision_index: int = 2, episode_id: str = "e1") -> Observation:
-    """An observation with reference views and a searchable area (the fields REPEATED caches)."""
-    obs = _observation()
-    refs = [ImageFrame(name=f"ref_{k}", kind="rgb", encoding="png", data=RAW + bytes([k]), metres_per_px=0.02)
-            for k in range(3)]
-    area = [Waypoint(waypoint_id=f"U{i}_{j}", position_world_m=(40.0 * i, 40.0 * j, 80.0), kind="uav_grid")
-            for i in range(4) for j in range(4)]
-    return obs.model_copy(update={"references": refs, "active_uav_waypoints": area, "decision_index": decision_index,
-                                  "episode_id": episode_id})
-
-
-def test_encoder_payload_is_the_same_map_as_encode() -> None:
-    encoder = Encoder()
-    for k in range(3):  # a miss, then hits on the same objects, then equal copies
-        obs = _big_observation(k + 1)
-        if k == 2:
-            obs = obs.model_copy(update={"active_uav_waypoints": [w.model_copy() for w in obs.active_uav_waypoints]})
-        payload = encoder.encode(obs)
-        assert payload == encode(obs)
-        assert decode(payload) == obs
-
-
-def test_encoder_notices_a_changed_repeated_field() -> None:
-    encoder = Encoder()
-    obs = _big_observation()
-    encoder.encode(obs)
-    changed = obs.model_copy(update={"active_uav_waypoints": obs.active_uav_waypoints[:-1]})
-    assert decode(encoder.encode(changed)).active_uav_waypoints == obs.active_uav_waypoints[:-1]
-    obs.references.append(obs.references[0])  # mutated in place: same list object, new content
-    assert len(decode(encoder.encode(obs)).references) == 4
-
-
-def test_encoder_falls_back_for_what_vars_cannot_write() -> None:
-    """The encoder writes models with ``vars`` (C) and starts over with the full hook for anything
-    else, such as a numpy scalar assigned after validation: the same bytes as ``encode`` either way."""
-    obs = _big_observation()
-    obs.pose.yaw_rad = np.float64(0.25)
-    obs.coordination.decisions_used = np.int64(3)
-    encoder = Encoder()
-    assert encoder.encode(obs) == bytes(encoder.encode_reused(obs)) == encode(obs)
-    assert decode(encode(obs)).coordination.decisions_used == 3
-
-
-def test_model_copy_refuses_an_unknown_field() -> None:
-    """pydantic would keep it beside the fields, unchecked, and it would go out on the wire."""
-    with pytest.raises(ValueError, match="Observation has no field bogus"):
-        _observation().model_copy(update={"decision_index": 2, "bogus": 1})
-    assert _observation().model_copy(update={"decision_index": 2}).decision_index == 2
-
-
-def test_encoder_passes_other_messages_through() -> None:
-    assert Encoder().encode(_action()) == encode(_action())
-
-
-def test_decoder_matches_decode_and_reuses_repeated_parts() -> None:
-    decoder = Decoder()
-    first = decoder.decode(encode(_big_observation(1)))
-    second = decoder.decode(Encoder().encode(_big_observation(2)))
-    assert isinstance(first, mirror(Observation))  # read straight into the compiled mirror
-    assert to_model(first) == _big_observation(1) and to_model(second) == _big_observation(2)
-    assert second.references[0] is first.references[0]  # validated once
-    assert second.active_uav_waypoints[5] is first.active_uav_waypoints[5]
-    other = decoder.decode(encode(_big_observation(1, episode_id="e2")))
-    assert other.references[0] is not first.references[0]  # per episode
-    changed = _big_observation(3)
-    changed.active_uav_waypoints[0].kind = "moved"
-    assert decoder.decode(encode(changed)).active_uav_waypoints[0].kind == "moved"
-    decoder.forget("e1")
-    assert decoder.decode(encode(_big_observation(4))).references[0] is not first.references[0]
-    for make in MESSAGES:
-        assert to_model(decoder.decode(encode(make()))) == make()
-
-
-def test_decoder_errors_read_like_decode() -> None:
-    decoder = Decoder()
-    decoder.decode(encode(_big_observation()))
-    data = msgpack.unpackb(encode(_big_observation()), raw=False)
-    data["active_uav_waypoints"][1]["position_world_m"] = "north"
-    bad = [msgpack.packb(data), b"", b"\xc1", msgpack.packb([1]), encode(_action()) + b"\x00",
-           encode(_big_observation()).replace(b"\xa2e1", b"\xa2\xff\xfe", 1),  # a string that is not UTF-8
-           b"\x91" * 2000 + b"\x00", b"\x82\xa4type\xabobservation\xa6run_id" + b"\x91" * 2000 + b"\x00",  # too deep
-           msgpack.packb({"v": 1, "type": "teleport"})]
-    for payload in bad:
-        with pytest.raises(DecodeError) as expected:
-            decode(payload)
-        with pytest.raises(DecodeError) as got:
-            decoder.decode(payload)
-        assert str(got.value) == str(expected.value)
-
-
-def test_decoder_cache_is_bounded() -> None:
-    decoder = Decoder(capacity=4)
-    for k in range(10):
-        decoder.decode(encode(_big_observation(episode_id=f"e{k}")))
-    assert len(decoder._seen) == 4

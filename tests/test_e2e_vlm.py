@@ -16,6 +16,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import msgspec
 import pytest
 
 from agos.agents.inprocess import InProcessAgents
@@ -54,7 +55,7 @@ def reference(episode_file) -> dict[str, dict]:
             settings = EpisodeSettings(candidates=tools["candidates"], e2a=tools["e2a"], rgpp=tools["rgpp"])
             agents = InProcessAgents({r: make_policy(policy, r, vlm=options) for r in ("uav", "ugv")})
             record = EpisodeRunner(scene, town, spec, run_id="ref", worker_id="w", settings=settings).run(agents)
-            out[policy] = record.model_dump()
+            out[policy] = msgspec.to_builtins(record)
     scene.close()
     return out
 

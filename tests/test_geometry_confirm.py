@@ -13,7 +13,7 @@ from agos.runtime.geometry import (
     distance_to_segment,
     point_in_polygon,
 )
-from agos.world.sim.confirm import ConfirmEvidence, ConfirmSettings, check_confirm
+from agos.world.sim.confirm import ConfirmEvidence, ConfirmConfig, check_confirm
 
 SQUARE = [(0.0, 0.0), (10.0, 0.0), (10.0, 10.0), (0.0, 10.0)]
 # An L shape: the square [0,10]^2 minus its top-right quarter [5,10]x[5,10].
@@ -105,7 +105,7 @@ def test_centroid() -> None:
 # --- CONFIRM checker -----------------------------------------------------------------------------
 
 GOOD = ConfirmEvidence(fresh_stop=True, max_target_pixels=500, distance_m=20.0, line_of_sight=True)
-DEFAULT = ConfirmSettings()
+DEFAULT = ConfirmConfig()
 
 
 def _with(**changes) -> ConfirmEvidence:
@@ -166,32 +166,32 @@ def test_all_failures_together_in_order() -> None:
 
 
 def test_switch_off_fresh_stop() -> None:
-    settings = ConfirmSettings(require_fresh_stop=False)
+    settings = ConfirmConfig(require_fresh_stop=False)
     assert check_confirm(_with(fresh_stop=False), settings) == []
     # the other checks still apply
     assert check_confirm(_with(fresh_stop=False, line_of_sight=False), settings) == ["no clear line of sight"]
 
 
 def test_switch_off_visibility() -> None:
-    settings = ConfirmSettings(min_target_pixels=0)
+    settings = ConfirmConfig(min_target_pixels=0)
     assert check_confirm(_with(max_target_pixels=0), settings) == []
     assert check_confirm(_with(max_target_pixels=0, fresh_stop=False), settings) == ["no fresh STOP_OBSERVE"]
 
 
 def test_raise_visibility_threshold() -> None:
-    settings = ConfirmSettings(min_target_pixels=1000)
+    settings = ConfirmConfig(min_target_pixels=1000)
     assert check_confirm(GOOD, settings) == ["target not visible (500 < 1000 px)"]
 
 
 def test_switch_off_distance() -> None:
-    settings = ConfirmSettings(max_distance_m=math.inf)
+    settings = ConfirmConfig(max_distance_m=math.inf)
     assert check_confirm(_with(distance_m=10_000.0), settings) == []
-    tight = ConfirmSettings(max_distance_m=10.0)
+    tight = ConfirmConfig(max_distance_m=10.0)
     assert len(check_confirm(GOOD, tight)) == 1  # 20 m > 10 m
 
 
 def test_switch_off_line_of_sight() -> None:
-    settings = ConfirmSettings(require_line_of_sight=False)
+    settings = ConfirmConfig(require_line_of_sight=False)
     assert check_confirm(_with(line_of_sight=False), settings) == []
     assert check_confirm(_with(line_of_sight=False, max_target_pixels=3), settings) == [
         "target not visible (3 < 50 px)"
@@ -199,7 +199,7 @@ def test_switch_off_line_of_sight() -> None:
 
 
 def test_everything_off_accepts_anything() -> None:
-    settings = ConfirmSettings(require_fresh_stop=False, min_target_pixels=0, max_distance_m=math.inf,
+    settings = ConfirmConfig(require_fresh_stop=False, min_target_pixels=0, max_distance_m=math.inf,
                                require_line_of_sight=False)
     bad = ConfirmEvidence(fresh_stop=False, max_target_pixels=0, distance_m=1e6, line_of_sight=False)
     assert check_confirm(bad, settings) == []

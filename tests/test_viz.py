@@ -3,6 +3,7 @@ cannot slow the world is in test_e2e_faults.py."""
 
 from __future__ import annotations
 
+import msgspec
 import numpy as np
 
 from agos.runtime import keys
@@ -41,7 +42,7 @@ def test_thumbnail_is_small_and_true() -> None:
 
 def test_no_rgb_view_no_frame() -> None:
     obs = _obs()
-    assert thumbnail(obs.model_copy(update={"images": obs.images[:1]})) is None
+    assert thumbnail(msgspec.structs.replace(obs, images=obs.images[:1])) is None
 
 
 def test_decode_viz_reads_other_messages() -> None:

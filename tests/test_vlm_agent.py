@@ -4,6 +4,7 @@ re-asks, logged fallbacks, traces, and the API key kept out of everything record
 from __future__ import annotations
 
 import asyncio
+import copy
 import json
 import logging
 
@@ -15,6 +16,7 @@ from agos.agents.vlm.agos_prompts import ugv_prompt, ugv_stage
 from agos.agents.vlm.baseline_prompts import anchor_from_messages
 from agos.agents.vlm.request import Memory
 from agos.agents.vlm.standin_server import StandinServer
+from agos.runtime.codec import to_json
 from agos.runtime.schemas import MessageRecord
 from agos.runtime.settings import VlmOptions
 
@@ -58,7 +60,7 @@ def test_ugv_stages() -> None:
 
 
 def test_baseline_anchor_is_the_latest_uninspected_uav_coordinate(observations) -> None:
-    obs = next(o for o in observations if o.role == "ugv").model_copy(deep=True)
+    obs = copy.deepcopy(next(o for o in observations if o.role == "ugv"))
     obs.coordination.messages = [
         MessageRecord(sender="uav", receiver="ugv", text="CLEAR_MATCH: search around (126, -116).", sent_sim_time_s=1,
                       delivered_sim_time_s=1),
@@ -105,7 +107,7 @@ def test_the_api_key_never_reaches_traces_or_logs(observations, caplog, monkeypa
         action = _agent(server.url, api_key_env="AGOS_TEST_KEY", trace_file=trace_file).act(uav)
         sent = [dict(r.headers) for r in server.recorded]
     assert any(h.get("authorization") == f"Bearer {secret}" or h.get("Authorization") == f"Bearer {secret}" for h in sent)
-    assert secret not in action.model_dump_json()
+    assert secret not in to_json(action).decode()
     assert secret not in trace_file.read_text() and json.loads(trace_file.read_text())["decision_index"] == 1
     assert secret not in caplog.text
 
@@ -192,5 +194,5 @@ def test_an_echoed_key_is_redacted_from_errors(observations, monkeypatch) -> Non
     agent = _agent("http://stand.in/v1", api_key_env="AGOS_TEST_KEY")
     agent._client = VlmClient("http://stand.in/v1", "agos-standin", api_key_env="AGOS_TEST_KEY", transport=echo)
     action = asyncio.run(agent.act_async(uav))
-    assert action.trace.fallback and "401" in action.trace.error and secret not in action.model_dump_json()
+    assert action.trace.fallback and "401" in action.trace.error and secret not in to_json(action).decode()
 

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from agos.runtime.codec import decode_image
-from agos.runtime.schemas import ImageFrame
+from agos.runtime.schemas import CameraIntrinsics, ImageFrame
 
 HUE_TOLERANCE = 7  # OpenCV hue units (0-179)
 SAT_MIN = 90
@@ -89,7 +89,7 @@ def profile_from_references(references: list[ImageFrame]) -> TargetProfile:
         if len(spaint):
             side_values.append(float(np.median(spaint[:, 2])))
         if name == "ref_side" and frame.world_from_camera is not None and frame.intrinsics is not None:
-            paint_top = _painted_top_m(frame, smask & (hue_distance(shsv[:, :, 0], hue) <= HUE_TOLERANCE)
+            paint_top = _painted_top_m(frame.intrinsics, frame.world_from_camera, smask & (hue_distance(shsv[:, :, 0], hue) <= HUE_TOLERANCE)
                                        & (shsv[:, :, 1] >= SAT_MIN), width_m=width_px * scale)
     if not side_values:
         side_values = [value_top]
@@ -97,14 +97,14 @@ def profile_from_references(references: list[ImageFrame]) -> TargetProfile:
                          length_px * scale, width_px * scale, paint_top)
 
 
-def _painted_top_m(frame: ImageFrame, mask: np.ndarray, *, width_m: float) -> float:
+def _painted_top_m(intr: CameraIntrinsics, world_from_camera: list[float], mask: np.ndarray, *,
+                   width_m: float) -> float:
     """Height of the painted parts in a side reference: rays through the painted pixels meet
     the vehicle's near side (a vertical plane width/2 from its centre line)."""
     vs, us = np.nonzero(mask)
     if len(vs) == 0:
         return 0.0
-    intr = frame.intrinsics
-    pose = np.asarray(frame.world_from_camera).reshape(4, 4)
+    pose = np.asarray(world_from_camera).reshape(4, 4)
     rays = pose[:3, :3] @ np.stack([(us - intr.cx_px) / intr.fx_px, (vs - intr.cy_px) / intr.fy_px, np.ones(len(us))])
     eye = pose[:3, 3]
     near = math.hypot(eye[0], eye[1]) - width_m / 2

@@ -18,7 +18,7 @@ from agos.agents.contract import action_for
 from agos.agents.heuristic.perception import TargetProfile, detect_from_above, profile_from_references
 from agos.runtime.camera import cell_of_pixel, pixel_to_ground
 from agos.runtime.codec import decode_image
-from agos.runtime.schemas import Action, Observation
+from agos.runtime.schemas import Action, Observation, Role
 
 SEEN_RADIUS_M = 41.0
 REJECTED_RADIUS_M = 12.0
@@ -31,7 +31,7 @@ class _Memory:
 
 
 class HeuristicUav:
-    role = "uav"
+    role: Role = "uav"
     name = "heuristic"
 
     def __init__(self) -> None:

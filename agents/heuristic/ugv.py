@@ -15,7 +15,7 @@ from agos.agents.contract import action_for
 from agos.agents.heuristic.perception import TargetProfile, detect_from_ground, profile_from_references
 from agos.agents.navigation import Navigator
 from agos.runtime.codec import decode_image
-from agos.runtime.schemas import Action, Observation
+from agos.runtime.schemas import Action, Observation, Role
 
 MIN_PIXELS = 80
 
@@ -24,7 +24,7 @@ APPROACH_WITHIN_M = 12.0
 
 
 class HeuristicUgv:
-    role = "ugv"
+    role: Role = "ugv"
     name = "heuristic"
 
     def __init__(self) -> None:

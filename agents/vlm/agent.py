@@ -22,6 +22,7 @@ import math
 from collections.abc import Callable
 from pathlib import Path
 
+import msgspec
 import numpy as np
 
 from agos.agents.names import split_name
@@ -233,7 +234,7 @@ class VlmAgent:
     def _append_trace(self, obs: Observation, action: Action) -> None:
         assert action.trace is not None and self._trace_path is not None
         line = {"run_id": obs.run_id, "episode_id": obs.episode_id, "role": self.role,
-                "decision_index": obs.decision_index, **action.trace.model_dump()}
+                "decision_index": obs.decision_index, **msgspec.structs.asdict(action.trace)}
         self._trace_path.parent.mkdir(parents=True, exist_ok=True)
         with self._trace_path.open("a") as f:
             f.write(json.dumps(line) + "\n")

@@ -91,7 +91,7 @@ def uav_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prom
         b.image(protocol.AERIAL, nadir, "Your downward camera image with the A1-E5 grid")
     b.map(obs)
     b.references(obs, top_only=b.images != "all")
-    if stage == "candidate_active":
+    if active is not None:  # stage == "candidate_active"
         b.text(f"STAGE: candidate {active['id']} (cell {active['cell']}) is with the UGV for checking "
                f"(status {active['status']}). You cannot annotate now. Hold position with WAIT, or move on to "
                "cover unvisited waypoints; a short message to the UGV is allowed.")
@@ -122,7 +122,7 @@ def uav_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prom
     return Prompt(UAV_SYSTEM, b.parts, stage, list(obs.legal_actions), b.image_bytes)
 
 
-def ugv_stage(obs: Observation, active: dict[str, Any] | None, rejected: list, *, rgpp: bool) -> str:
+def ugv_stage(obs: Observation, active: dict[str, Any] | None, rejected: list[list[float]], *, rgpp: bool) -> str:
     if obs.mode == "stop_6view":
         return "six_view"
     if active is not None:
@@ -161,7 +161,7 @@ def ugv_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prom
     return Prompt(UGV_SYSTEM, b.parts, stage, list(obs.legal_actions), b.image_bytes)
 
 
-def _ugv_stage_text(stage: str, active: dict[str, Any] | None, rejected: list, *, rgpp: bool) -> str:
+def _ugv_stage_text(stage: str, active: dict[str, Any] | None, rejected: list[list[float]], *, rgpp: bool) -> str:
     if stage == "six_view":
         who = f" for candidate {active['id']}" if active else ""
         return (f"STAGE: six-view check{who}. Look at all six panels (front-left, front, front-right, back-left, "
@@ -169,9 +169,11 @@ def _ugv_stage_text(stage: str, active: dict[str, Any] | None, rejected: list, *
                 "body type, close to you and not hidden. Otherwise REJECT" + (f" with candidate_id {active['id']}" if active
                                                                                else "") + " and tell the UAV.")
     if stage == "arrival":
+        assert active is not None, "ugv_stage gives this stage only with an active candidate"
         return (f"STAGE: you have reached the area of candidate {active['id']}. Use STOP_OBSERVE now to look around, "
                 "and send the UAV a short arrival message.")
     if stage == "candidate_reminder":
+        assert active is not None, "ugv_stage gives this stage only with an active candidate"
         if rgpp:
             return (f"STAGE: PRIORITY. The UAV reported candidate {active['id']} (cell {active['cell']}, centre "
                     f"({active['center_m'][0]:.0f}, {active['center_m'][1]:.0f}) m, {active['distance_m']:.0f} m away). "

@@ -146,13 +146,15 @@ class VlmClient:
         choice = choices[0] if isinstance(choices, list) and choices else None
         if not isinstance(choice, dict):
             raise ValueError("no choices[0] object")
-        message = choice.get("message") if isinstance(choice.get("message"), dict) else {}
+        raw_message = choice.get("message")
+        message: dict[str, Any] = raw_message if isinstance(raw_message, dict) else {}
         content = message.get("content")
         if isinstance(content, list):  # content parts: keep the text ones
             content = "".join(str(p.get("text", "")) for p in content if isinstance(p, dict))
         elif content is not None and not isinstance(content, str):
             content = str(content)
-        usage = data.get("usage") if isinstance(data.get("usage"), dict) else {}
+        raw_usage = data.get("usage")
+        usage: dict[str, Any] = raw_usage if isinstance(raw_usage, dict) else {}
         reason = choice.get("finish_reason")
         return Reply(text=content, finish_reason=reason if isinstance(reason, str) else None,
                      prompt_tokens=_count(usage.get("prompt_tokens")), completion_tokens=_count(usage.get("completion_tokens")),

@@ -95,7 +95,9 @@ def split_request(messages: list[dict[str, Any]]) -> SplitRequest:
     unlabelled = 0
     for message in messages:
         content = message.get("content")
-        parts = [{"type": "text", "text": content}] if isinstance(content, str) else (content or [])
+        parts: list[dict[str, Any]] = (
+            [{"type": "text", "text": content}] if isinstance(content, str) else (content or [])
+        )
         label = None
         for part in parts:
             if part.get("type") == "text":

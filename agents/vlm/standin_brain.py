@@ -136,10 +136,12 @@ def _agos_ugv(req: SplitRequest, state: dict[str, Any], profile: TargetProfile) 
             return {"action": "CONFIRM", **cid, "message": "Target confirmed.", "reason": "a nearby car matches"}
         return {"action": "REJECT", **cid, "message": f"{active['id'] if active else 'This area'}: not the target.",
                 "reason": "no matching car nearby in the six views"}
-    if stage == "arrival":
-        return {"action": "STOP_OBSERVE", "message": f"Arrived at {active['id']}; looking around.",
-                "reason": "arrived at the candidate"}
-    if stage == "candidate_reminder":
+    if stage in ("arrival", "candidate_reminder"):
+        if active is None:
+            raise ValueError(f"stage {stage!r} without an active_candidate in the state block")
+        if stage == "arrival":
+            return {"action": "STOP_OBSERVE", "message": f"Arrived at {active['id']}; looking around.",
+                    "reason": "arrived at the candidate"}
         if "GO_TO_CANDIDATE" in legal:
             return {"action": "GO_TO_CANDIDATE", "candidate_id": active["id"], "message": f"On my way to {active['id']}.",
                     "reason": "the UAV's candidate comes first"}

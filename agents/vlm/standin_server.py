@@ -735,13 +735,16 @@ class _Handler(BaseHTTPRequestHandler):
     def _body(self) -> bytes | None:
         """The request body, or None after answering 400/411/413 (the connection is then closed)."""
         if "chunked" in self.headers.get("Transfer-Encoding", "").lower():
-            return self._refuse(400, "chunked request bodies are not supported; send Content-Length")
+            self._refuse(400, "chunked request bodies are not supported; send Content-Length")
+            return None
         try:
             length = int(self.headers.get("Content-Length", ""))
         except ValueError:
-            return self._refuse(411, "a Content-Length header is required")
+            self._refuse(411, "a Content-Length header is required")
+            return None
         if not 0 <= length <= MAX_BODY_BYTES:
-            return self._refuse(413, f"request body over {MAX_BODY_BYTES} bytes")
+            self._refuse(413, f"request body over {MAX_BODY_BYTES} bytes")
+            return None
         return self.rfile.read(length)
 
     def _refuse(self, status: int, message: str) -> None:

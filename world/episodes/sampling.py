@@ -9,14 +9,14 @@ under decks, not on plazas). Every episode is checked solvable by rendering
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Iterable
 from pathlib import Path
 
+import msgspec
 import numpy as np
-from pydantic import ValidationError
 
+from agos.runtime.codec import field_path, to_json
 from agos.runtime.schemas import Difficulty, EpisodeSpec, TownRef, VehicleSpec
 from agos.world.towns.asset import Town
 from agos.world.towns.catalog import BODY_TYPES, NEAR_COLOURS, VIVID_COLOURS
@@ -146,7 +146,10 @@ def write_episodes(path: Path, episodes: Iterable[EpisodeSpec]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w") as fh:
         for ep in episodes:
-            fh.write(ep.model_dump_json() + "\n")
+            fh.write(to_json(ep).decode() + "\n")
+
+
+_SPEC_LINE = msgspec.json.Decoder(EpisodeSpec)
 
 
 def read_episodes(path: Path) -> list[EpisodeSpec]:
@@ -160,15 +163,12 @@ def read_episodes(path: Path) -> list[EpisodeSpec]:
         if not line.strip():
             continue
         try:
-            data = json.loads(line)
-        except json.JSONDecodeError as exc:
-            raise EpisodeFileError(f"{path}:{lineno}: not valid JSON ({exc.msg})") from exc
-        try:
-            episodes.append(EpisodeSpec.model_validate(data))
-        except ValidationError as exc:
-            err = exc.errors()[0]
-            field = ".".join(str(p) for p in err["loc"])
-            raise EpisodeFileError(f"{path}:{lineno}: field '{field}': {err['msg']}") from exc
+            episodes.append(_SPEC_LINE.decode(line))
+        except msgspec.ValidationError as exc:
+            field, message = field_path(exc)
+            raise EpisodeFileError(f"{path}:{lineno}: field '{field}': {message}") from exc
+        except msgspec.DecodeError as exc:
+            raise EpisodeFileError(f"{path}:{lineno}: not valid JSON ({exc})") from exc
     if not episodes:
         raise EpisodeFileError(f"{path}: no episodes in file")
     return episodes

@@ -15,7 +15,7 @@ import networkx as nx
 import numpy as np
 
 from agos.world.sim import sensors
-from agos.world.sim.confirm import ConfirmSettings, check_confirm
+from agos.world.sim.confirm import ConfirmConfig, check_confirm
 from agos.world.sim.evidence import ground_evidence, line_of_sight, target_points
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import Town
@@ -34,10 +34,10 @@ class Solvability:
 
 
 def check(scene: Scene, town: Town, uid: int, position: tuple[float, float, float], yaw_rad: float,
-          active_uav: list[str], *, confirm: ConfirmSettings | None = None,
-          cam: sensors.CameraSettings | None = None, max_renders: int = 8) -> Solvability:
-    confirm = confirm or ConfirmSettings()
-    cam = cam or sensors.CameraSettings()
+          active_uav: list[str], *, confirm: ConfirmConfig | None = None,
+          cam: sensors.CameraConfig | None = None, max_renders: int = 8) -> Solvability:
+    confirm = confirm or ConfirmConfig()
+    cam = cam or sensors.CameraConfig()
     target_xy = (position[0], position[1])
     points = target_points(position, yaw_rad)
     ids, xy = town.roads.anchor_array()

@@ -14,9 +14,15 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from agos.runtime.schemas import EpisodeSpec
+from agos.runtime.codec import from_json, to_json
+from agos.runtime.schemas import Difficulty, EpisodeSpec
 from agos.world.episodes.sampling import DIFFICULTIES, write_episodes
+
+if TYPE_CHECKING:
+    from agos.world.sim.scene import Scene
+    from agos.world.towns.asset import Town
 
 SPLIT_STREAMS = {"train": 0, "val": 100, "test": 200}
 """Disjoint random streams, so train and val never share an episode."""
@@ -26,7 +32,7 @@ SPLIT_STREAMS = {"train": 0, "val": 100, "test": 200}
 class Job:
     split: str
     town: str
-    difficulty: str
+    difficulty: Difficulty
     start: int
     count: int
     seed: int
@@ -45,7 +51,7 @@ def plan_jobs(*, train: int, val: int, test: int, trainval_towns: list[str], tes
     return jobs
 
 
-_WORKER_TOWNS: dict = {}
+_WORKER_TOWNS: dict[str, tuple[Town, Scene]] = {}
 
 
 def run_job(job: Job) -> list[str]:
@@ -59,7 +65,7 @@ def run_job(job: Job) -> list[str]:
         _WORKER_TOWNS[job.town] = (town, Scene(town.layout))
     town, scene = _WORKER_TOWNS[job.town]
     stream = SPLIT_STREAMS[job.split] + DIFFICULTIES.index(job.difficulty)
-    return [sample_episode(town, scene, job.difficulty, i, seed=job.seed, stream=stream, split=job.split).model_dump_json()
+    return [to_json(sample_episode(town, scene, job.difficulty, i, seed=job.seed, stream=stream, split=job.split)).decode()
             for i in range(job.start, job.start + job.count)]
 
 
@@ -81,7 +87,7 @@ def build_split(out_dir: Path, jobs: list[Job], *, workers: int, progress: Calla
     for split in ("train", "val", "test"):
         lines = [line for job in jobs if job.split == split for line in results[job]]
         if lines:
-            write_episodes(out_dir / f"{split}.jsonl", [EpisodeSpec.model_validate_json(x) for x in lines])
+            write_episodes(out_dir / f"{split}.jsonl", [from_json(x, EpisodeSpec) for x in lines])
         counts[split] = len(lines)
     manifest = {"counts": counts, "towns": sorted({j.town for j in jobs}), "seed": jobs[0].seed if jobs else None}
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")

@@ -15,6 +15,7 @@ Every transmission is written to the ledger.
 
 from __future__ import annotations
 
+import copy
 import heapq
 from dataclasses import dataclass, field
 
@@ -40,7 +41,7 @@ class RoleView:
         for cand in candidates:
             mine = self.candidates.get(cand.candidate_id)
             if mine is None or STATUS_RANK[cand.status] > STATUS_RANK[mine.status]:
-                self.candidates[cand.candidate_id] = cand.model_copy()
+                self.candidates[cand.candidate_id] = copy.copy(cand)
                 changed = True
         return changed
 
@@ -98,7 +99,7 @@ class Channel:
 
     def sync(self, sender: Role, t: float, pose: Pose, geometry: tuple[float, bool], *, kind: str = "sync") -> None:
         """Send the sender's knowledge (its candidates and its pose) to the teammate."""
-        cands = [c.model_copy() for _, c in sorted(self.views[sender].candidates.items())]
+        cands = [copy.copy(c) for _, c in sorted(self.views[sender].candidates.items())]
         payload = {"candidates": cands, "pose": pose, "t": t}
         size = len(encode(payload))
         self._send(sender, kind, t, payload, size, geometry)

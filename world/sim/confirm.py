@@ -14,14 +14,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from agos.runtime.episode_config import ConfirmConfig
 
-@dataclass(frozen=True)
-class ConfirmSettings:
-    require_fresh_stop: bool = True
-    min_target_pixels: int = 50
-    """Per view, at the default 256 x 256 ground view size."""
-    max_distance_m: float = 50.0
-    require_line_of_sight: bool = True
+
+ConfirmSettings = ConfirmConfig  # TODO(integration): drop once engine.py says ConfirmConfig
 
 
 @dataclass(frozen=True)

@@ -19,12 +19,14 @@ Choices where the paper is silent (also in docs/ARCHITECTURE.md):
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
+import msgspec
 import networkx as nx
 import numpy as np
 
@@ -51,7 +53,6 @@ from agos.runtime.schemas import (
     Termination,
     Waypoint,
 )
-from agos.runtime.structs import to_model
 from agos.runtime.traces import trace_stats
 from agos.world.sim import sensors
 from agos.world.sim.comms import Channel
@@ -105,8 +106,7 @@ class DecisionSource(Protocol):
     """Where actions come from: agents over zenoh, or policies called in-process in tests."""
 
     def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
-        """Return one action per observed role (the model or its compiled mirror,
-        :mod:`agos.runtime.structs`); ``None`` when none arrived in time."""
+        """Return one action per observed role; ``None`` when none arrived in time."""
         ...
 
 
@@ -183,7 +183,7 @@ class EpisodeRunner:
         self.termination: Termination | None = None
         self.active_uav = set(spec.active_uav_waypoints)
         # The searchable area never changes within an episode: built once, so every UAV
-        # observation carries the same Waypoint objects (the wire Encoder then packs it once).
+        # observation carries the same Waypoint objects.
         self.searchable_area = [self._uav_waypoint(n) for n in sorted(self.active_uav)]
         self.confirm_failure: str | None = None
         self._uav_target_px = 0
@@ -261,7 +261,7 @@ class EpisodeRunner:
             if arrival.message is not None:
                 self.messages.append(arrival.message)
                 self.sink.message(AgentMessage(run_id=self.run_id, episode_id=self.spec.episode_id,
-                                               **arrival.message.model_dump()))
+                                               **msgspec.structs.asdict(arrival.message)))
             if arrival.changed:
                 self._wake(arrival.receiver)
             if (arrival.receiver == "uav" and self.uav.frozen
@@ -375,7 +375,6 @@ class EpisodeRunner:
 
     # ----- actions --------------------------------------------------------------------------
     def _apply(self, role: Role, obs: Observation, action: Action | None) -> None:
-        action = to_model(action)  # a mirror from the bus becomes the model the step records keep
         self.decisions_used += 1
         if self.cfg.timing_mode == "realtime" and action is not None and action.agent_wall_latency_s:
             # A slow decision takes effect late; the teammate's schedule is unaffected.
@@ -399,7 +398,7 @@ class EpisodeRunner:
             self.fallbacks += 1
             self._wait(role)
         if action is not None and action.trace is not None:
-            self.traces.append(StoredTrace(role=role, decision_index=obs.decision_index, **action.trace.model_dump()))
+            self.traces.append(StoredTrace(role=role, decision_index=obs.decision_index, **msgspec.structs.asdict(action.trace)))
         if action is not None and action.message and fallback is None:
             self.channel.message(role, self.sim_time_s, action.message, self._link_geometry())
         self.channel.sync(role, self.sim_time_s, self._pose(role), self._link_geometry())
@@ -454,7 +453,7 @@ class EpisodeRunner:
                              created_sim_time_s=now,
                              approach_waypoint_id=RoadGraphs.anchor_id(approach) if approach is not None else None)
             self.candidates.append(cand)
-            self.channel.views["uav"].candidates[cand.candidate_id] = cand.model_copy()
+            self.channel.views["uav"].candidates[cand.candidate_id] = copy.copy(cand)
             uav.frozen, uav.frozen_since = True, now
             uav.ready_at = now + self.cfg.short_action_s
             return cand.candidate_id
@@ -631,7 +630,7 @@ class EpisodeRunner:
                 poses[other] = view.teammate_pose
         return CoordinationState(
             run_id=self.run_id, episode_id=self.spec.episode_id, sim_time_s=self.sim_time_s,
-            candidates=[c.model_copy() for c in candidates], messages=messages[-self.cfg.recent_messages:],
+            candidates=[copy.copy(c) for c in candidates], messages=messages[-self.cfg.recent_messages:],
             poses=poses, decisions_used=self.decisions_used, decision_budget=self.spec.decision_budget,
             annotations_used=len(self.candidates), max_annotations=self.cfg.max_annotations)
 

@@ -38,7 +38,7 @@ def facing_views(heading_rad: float, bearing_rad: float, fov_deg: float) -> list
 
 
 def ground_evidence(scene: Scene, town: Town, node: int, uid: int, points: np.ndarray,
-                    target_xy: tuple[float, float], cam: sensors.CameraSettings) -> ConfirmEvidence:
+                    target_xy: tuple[float, float], cam: sensors.CameraConfig) -> ConfirmEvidence:
     """Checker evidence at a node as if the UGV stopped there. Only the views facing the target
     are rendered; the others cannot show it, so the maximum pixel count is the same."""
     xy = (float(town.roads.positions_world_m[node][0]), float(town.roads.positions_world_m[node][1]))

@@ -97,12 +97,13 @@ def ugv_options(roads: RoadGraphs, node: int, route: list[int]) -> list[RoadOpti
                     hops.append((succ[0], d + roads.decision.edges[a, succ[0]]["length_m"]))
     back = _backward_anchor(roads, route)
     if back is not None and back != node and back not in options:
+        back_length: float | None
         try:
-            length = nx.shortest_path_length(roads.fine, node, back, weight="length_m")
+            back_length = nx.shortest_path_length(roads.fine, node, back, weight="length_m")
         except nx.NetworkXNoPath:
-            length = None
-        if length is not None and length <= MAX_RETURN_PATH_M:
-            offer(back, length, "backward")
+            back_length = None
+        if back_length is not None and back_length <= MAX_RETURN_PATH_M:
+            offer(back, back_length, "backward")
     return sorted(options.values(), key=lambda o: (o.option, o.path_length_m, o.anchor))
 
 

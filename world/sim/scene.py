@@ -79,11 +79,11 @@ class Scene:
         self._renderer_flag = pb.ER_TINY_RENDERER
         if renderer == "egl":
             # The plugin must be loaded before any body exists, or renders come back empty.
-            import pkgutil
+            import importlib.util
 
-            egl = pkgutil.get_loader("eglRenderer")
-            if egl is None or pb.loadPlugin(egl.get_filename(), "_eglRendererPlugin",
-                                            physicsClientId=self.client) < 0:
+            egl = importlib.util.find_spec("eglRenderer")
+            if egl is None or egl.origin is None or pb.loadPlugin(egl.origin, "_eglRendererPlugin",
+                                                                  physicsClientId=self.client) < 0:
                 raise RuntimeError("EGL renderer plugin could not be loaded")
             self._renderer_flag = pb.ER_BULLET_HARDWARE_OPENGL
         self._semantic: dict[int, int] = {}

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from agos.runtime.episode_config import CameraConfig
 from agos.runtime.camera import (  # noqa: F401 - re-exported: sensors is where callers look for them
     GRID_COLS,
     GRID_ROWS,
@@ -40,16 +41,7 @@ DEPTH_SCALE_M = 0.005
 """Depth PNGs store uint16 units of 5 mm (0 to 327 m)."""
 
 
-@dataclass(frozen=True)
-class CameraSettings:
-    nadir_px: int = 512
-    nadir_fov_deg: float = 60.0
-    ground_px: int = 256
-    ground_fov_deg: float = 70.0
-    reference_px: int = 160
-    rgb_encoding: str = "jpeg"
-    map_px: int = 384
-    """Side of the top-down map M of the episode region (0: no map)."""
+CameraSettings = CameraConfig  # TODO(integration): drop once engine.py says CameraConfig
 
 
 @dataclass

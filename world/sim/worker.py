@@ -9,17 +9,18 @@ wall-clock deadline turns a missing action into a logged WAIT). The record is pu
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 import socket
 import time
 import traceback
 
+from pydantic import ValidationError
+
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, Sample, ZenohBus, zenoh_config
-from agos.runtime.codec import DecodeError, Decoder, Encoder, decode, encode
-from agos.runtime.links import CommProfile
+from agos.runtime.codec import DecodeError, decode, decode_as, encode, encode_into
+from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.records import failure_record
 from agos.runtime.schemas import (
@@ -37,14 +38,13 @@ from agos.runtime.schemas import (
     StepEvent,
 )
 from agos.runtime.settings import AgosConfig
-from agos.runtime.structs import mirror
 from agos.runtime.viz import FrameStream
+from agos.world.sim.configure import episode_settings, with_budget
 from agos.world.sim.engine import EpisodeRunner
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import AssetError, AssetMismatch, Town, town_for
 
 log = logging.getLogger("agos.world")
-ACTIONS = (Action, mirror(Action))
 ACK_WAIT_S = 3.0
 SUBMIT_ATTEMPTS = 20
 RESEND_S = 5.0
@@ -98,10 +98,9 @@ class BusDecisionSource:
         # One exact subscription per role, not ``act/*``: zenoh delivers to an exact key expression
         # more cheaply, 6-15 us per decision in situ (docs/ARCHITECTURE.md §6, "Decision round trip").
         self._handles = [bus.subscribe(keys.act(run_id, episode_id, role), self.inbox) for role in keys.ROLES]
-        self.encoders = {role: Encoder() for role in keys.ROLES}  # each packs its role's repeated parts once
+        self.buffers = {role: bytearray() for role in keys.ROLES}  # each role's last observation, reused
         self.obs_keys = {role: keys.obs(run_id, episode_id, role) for role in keys.ROLES}
         self.viz_keys = {role: keys.viz_frame(run_id, episode_id, role) for role in keys.ROLES}
-        self.decoder = Decoder(first="action")  # actions arrive as compiled mirrors (the runner makes models of them)
         self._ready: dict[str, set[str]] = {role: set() for role in keys.ROLES}  # role -> agents subscribed
         self._ready_changes = Inbox()
         self._handles.append(bus.watch_liveliness(keys.episode_ready(run_id, episode_id, "*", "*"), self._ready_changes))
@@ -141,13 +140,12 @@ class BusDecisionSource:
             (self._ready[role].add if change.payload == b"+" else self._ready[role].discard)(agent)
 
     def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
-        """Actions as their compiled mirrors (type-checked while read; ``EpisodeRunner`` makes
-        models of them when it applies them), ``None`` for a role that did not answer in time."""
-        payloads = {}
+        """The ``Action`` structs the agents answered (type-checked while read, applied as they are),
+        ``None`` for a role that did not answer in time."""
         self._check_agents(observations)
         for role, obs in observations.items():
-            payloads[role] = self.encoders[role].encode_reused(obs)  # untouched until this role's next decision
-            self.bus.publish(self.obs_keys[role], payloads[role])
+            encode_into(obs, self.buffers[role])  # zenoh copies it on put; kept for a resend
+            self.bus.publish(self.obs_keys[role], self.buffers[role])
             if self.frames is not None:
                 self.frames.offer(self.viz_keys[role], obs)
         pending = {role: obs.decision_index for role, obs in observations.items()}
@@ -159,18 +157,18 @@ class BusDecisionSource:
             if time.monotonic() >= resend_at and pending:
                 for role in pending:
                     log.info("%s: re-requesting %s decision %d", self.episode_id, role, pending[role])
-                    self.bus.publish(self.obs_keys[role], payloads[role])
+                    self.bus.publish(self.obs_keys[role], self.buffers[role])
                 resend_at = time.monotonic() + RESEND_S
             if sample is None:
                 if time.monotonic() >= deadline:
                     break
                 continue
             try:
-                action = self.decoder.decode(sample.payload)
+                action = decode_as(sample.payload, Action)
             except DecodeError as exc:
                 log.warning("%s: undecodable action on %s: %s", self.episode_id, sample.key, exc)
                 continue
-            if isinstance(action, ACTIONS) and pending.get(action.role) == action.decision_index:
+            if pending.get(action.role) == action.decision_index:
                 actions[action.role] = action
                 del pending[action.role]
         for role in pending:
@@ -179,11 +177,27 @@ class BusDecisionSource:
         return actions
 
 
+class GrantError(ValueError):
+    """A job grant this worker cannot run (its episode configuration does not validate here)."""
+
+
+def episode_config_of(grant: JobGrant) -> EpisodeConfig:
+    """The run's episode configuration sent in ``grant``; :class:`GrantError` names the field when
+    this version of agos cannot read it (an orchestrator of another version)."""
+    try:
+        return EpisodeConfig.model_validate(grant.config)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err["loc"]) or "<config>"
+        raise GrantError(f"job grant: episode configuration field {where}: {err['msg']} "
+                         "(orchestrator and world worker run different agos versions?)") from None
+
+
 class WorldWorker:
     def __init__(self, cfg: AgosConfig, bus: ZenohBus, stop: StopFlag, worker_id: str) -> None:
         self.cfg, self.bus, self.stop, self.worker_id = cfg, bus, stop, worker_id
         self.run_id = cfg.run.run_id
-        self._scenes: dict[tuple[str, int], tuple[Town, Scene]] = {}
+        self._scenes: dict[tuple[str, int, str], tuple[Town, Scene]] = {}
         self.frames = FrameStream(bus)
 
     def serve(self) -> int:
@@ -212,12 +226,12 @@ class WorldWorker:
         self.frames.close()
         return 0
 
-    def _scene(self, spec: EpisodeSpec) -> tuple[Town, Scene]:
-        key = (spec.town.generator, spec.town.seed)
+    def _scene(self, spec: EpisodeSpec, renderer: str) -> tuple[Town, Scene]:
+        key = (spec.town.generator, spec.town.seed, renderer)
         if key not in self._scenes:
             town = town_for(spec.town.generator, spec.town.seed, spec.asset_sha256, town_id=spec.town.town_id,
                             fetch=self._fetch_asset)
-            self._scenes[key] = (town, Scene(town.layout, renderer=self.cfg.world.renderer))
+            self._scenes[key] = (town, Scene(town.layout, renderer=renderer))
         return self._scenes[key]
 
     def _fetch_asset(self, sha256: str) -> bytes:
@@ -230,39 +244,36 @@ class WorldWorker:
     def run_episode(self, spec: EpisodeSpec, grant: JobGrant | None = None) -> None:
         started = time.monotonic()
         log.info("episode %s (%s) starts, attempt %d", spec.episode_id, spec.difficulty, grant.attempt if grant else 1)
-        settings = self.cfg.world.episode_settings()
-        if grant is not None:
-            comm = CommProfile.model_validate(grant.comm_profile) if grant.comm_profile else settings.comm
-            settings = dataclasses.replace(settings, comm=comm, timing_mode=grant.timing_mode,
-                                           candidates=grant.tools.get("candidates", True),
-                                           e2a=grant.tools.get("e2a", True), rgpp=grant.tools.get("rgpp", True),
-                                           oracle=grant.tools.get("oracle", False))
         source = None
+        config = self.cfg.world  # run_episode without a grant: this process's own settings
         try:
-            town, scene = self._scene(spec)
+            if grant is not None:
+                config = episode_config_of(grant)  # the run's configuration, whatever this host's settings
+            spec = with_budget(spec, config)
+            town, scene = self._scene(spec, config.renderer)
             started_msg = encode(EpisodeStarted(
                 run_id=self.run_id, episode_id=spec.episode_id, difficulty=spec.difficulty,
                 worker_id=self.worker_id, town_id=town.town_id, asset_sha256=town.sha256))
             self.bus.publish(keys.events(self.run_id, spec.episode_id), started_msg)
             self.bus.publish_viz(keys.viz_events(self.run_id, spec.episode_id), started_msg)
             source = BusDecisionSource(self.bus, self.run_id, spec.episode_id, worker_id=self.worker_id,
-                                       timeout_s=self.cfg.run.decision_timeout_s, stop=self.stop,
+                                       timeout_s=config.decision_timeout_s, stop=self.stop,
                                        agent_wait_s=self.cfg.run.agent_wait_s, frames=self.frames)
             runner = EpisodeRunner(scene, town, spec, run_id=self.run_id, worker_id=self.worker_id,
-                                   settings=settings,
+                                   settings=episode_settings(config),
                                    sink=BusSink(self.bus, self.run_id, spec.episode_id))
             record = runner.run(source)
             if self.stop.is_set():
                 log.info("episode %s interrupted; not submitted", spec.episode_id)
                 return
-        except (AssetMismatch, AssetError) as exc:
-            record = self._failed(spec, "invalid", str(exc), started)
+        except (AssetMismatch, AssetError, GrantError) as exc:
+            record = self._failed(spec, "invalid", str(exc), started, config)
         except MissingAgent as exc:
             log.error("episode %s: %s", spec.episode_id, exc)
-            record = self._failed(spec, "agent_crashed", str(exc), started)
+            record = self._failed(spec, "agent_crashed", str(exc), started, config)
         except Exception as exc:
             log.error("episode %s crashed:\n%s", spec.episode_id, traceback.format_exc())
-            record = self._failed(spec, "world_crashed", f"{type(exc).__name__}: {exc}", started)
+            record = self._failed(spec, "world_crashed", f"{type(exc).__name__}: {exc}", started, config)
         finally:
             if source is not None:
                 source.close()
@@ -273,9 +284,10 @@ class WorldWorker:
         log.info("episode %s: %s (%s) in %.1f s", spec.episode_id, record.termination,
                  "success" if record.success else "failure", time.monotonic() - started)
 
-    def _failed(self, spec: EpisodeSpec, status: str, error: str, started: float) -> EpisodeRecord:
+    def _failed(self, spec: EpisodeSpec, status: str, error: str, started: float,
+                config: EpisodeConfig) -> EpisodeRecord:
         return failure_record(self.run_id, spec, status=status, worker_id=self.worker_id, error=error,
-                              renderer=self.cfg.world.renderer, wall_time_s=time.monotonic() - started)
+                              config=config, wall_time_s=time.monotonic() - started)
 
     def submit(self, record: EpisodeRecord) -> bool:
         """Publish the record until the evaluator acknowledges it (it stores idempotently)."""

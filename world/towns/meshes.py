@@ -123,7 +123,9 @@ def vertex_normals(vertices: np.ndarray, indices: np.ndarray) -> np.ndarray:
 
 def chunks(parts: list[Mesh], max_vertices: int = 30_000) -> list[Mesh]:
     """Merge meshes into groups of at most ``max_vertices`` vertices."""
-    out, group, count = [], [], 0
+    out: list[Mesh] = []
+    group: list[Mesh] = []
+    count = 0
     for v, i in parts:
         if group and count + len(v) > max_vertices:
             out.append(merge(group))

@@ -96,7 +96,7 @@ def grid_plan(rng: np.random.Generator) -> StreetPlan:
 def irregular_plan(rng: np.random.Generator) -> StreetPlan:
     plan = _grid_plan(rng, n=6, spacing=(70.0, 110.0), jitter=14.0)
     n = 6
-    extra = []
+    extra: list[Street] = []
     for _ in range(4):  # a few diagonal avenues across blocks
         i, j = int(rng.integers(0, n - 1)), int(rng.integers(0, n - 1))
         a, b = (i * n + j, (i + 1) * n + j + 1) if rng.random() < 0.5 else (i * n + j + 1, (i + 1) * n + j)
@@ -238,7 +238,7 @@ def _plaza_slots(area: np.ndarray) -> list[ParkingSlot]:
     contour = area.astype(np.float32).reshape(-1, 1, 2)
     x0, y0 = area.min(axis=0)
     x1, y1 = area.max(axis=0)
-    out = []
+    out: list[ParkingSlot] = []
     for y in np.arange(y0 + 8, y1 - 8, 9.0):
         for x in np.arange(x0 + 6, x1 - 6, 3.0):
             if cv2.pointPolygonTest(contour, (float(x), float(y)), True) > 4.0:

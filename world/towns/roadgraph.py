@@ -165,9 +165,9 @@ def _structural_anchors(network: LaneNetwork, fine: nx.DiGraph, first: dict[str,
             anchors[last[lane_id]] = "junction_entry"
     for lane in lanes.values():
         if lane.in_junction:
-            for succ in lane.successors:
-                if not lanes[succ].in_junction:
-                    anchors.setdefault(first[succ], "junction_exit")
+            for succ_id in lane.successors:
+                if not lanes[succ_id].in_junction:
+                    anchors.setdefault(first[succ_id], "junction_exit")
     for n in fine.nodes():
         if n in anchors:
             continue

@@ -112,7 +112,7 @@ def region_map(layout: TownLayout, region: tuple[float, float, float, float], *,
     return region_map_.render(uav_xy=uav_xy, ugv_xy=ugv_xy, ugv_yaw_rad=ugv_yaw_rad), region_map_.metres_per_px
 
 
-def debug_map(layout: TownLayout, roads, uav_nodes: Sequence[tuple[float, float]] = (), *, size_px: int = 1600,
+def debug_map(layout: TownLayout, roads, uav_nodes: Sequence[Sequence[float]] = (), *, size_px: int = 1600,
               region: tuple[float, float, float, float] | None = None, graph: bool = True) -> np.ndarray:
     """The whole town (or a region) with the fine graph (thin), decision anchors and UAV grid."""
     x0, y0, x1, y1 = region or layout.bounds_world_m(pad_m=60.0)

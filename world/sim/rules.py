@@ -1,0 +1,240 @@
+"""The task rules: which actions a role may take now, and what each action does.
+
+Contract: :func:`refusal` and :func:`uav_legal` / :func:`ugv_legal` only read the state.
+:func:`apply_action` applies one checked action to the :class:`~agos.world.sim.state.EpisodeState`
+at its ``sim_time_s``: it moves the role, sets when it is ready again, creates candidates and
+changes their status, and ends the episode on CONFIRM. It raises :class:`IllegalAction` (the
+engine turns it into a logged WAIT) before changing anything when the action's arguments are
+not valid now. It renders only what the action itself sees (STOP_OBSERVE's six views, the
+CONFIRM checker's line-of-sight rays) and never sends through a link: syncs and messages are
+the engine's.
+
+The two tools the paper ablates live here: E2A (Ego-to-Allo projection, :func:`_project_cell`:
+an annotated grid cell becomes a polygon on the ground) and RGPP (road-graph path planning,
+:func:`_approach_anchor`: a candidate gets the road anchor GO_TO_CANDIDATE drives to).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import networkx as nx
+import numpy as np
+
+from agos.runtime.geometry import centroid
+from agos.runtime.schemas import Action, ActionName, Candidate, Observation, Role, Waypoint
+from agos.world.sim import sensors
+from agos.world.sim.confirm import ConfirmEvidence, check_confirm
+from agos.world.sim.evidence import line_of_sight, target_points
+from agos.world.sim.options import shortest_path
+from agos.world.sim.state import EpisodeState
+from agos.world.towns.roadgraph import RoadGraphs
+
+
+class IllegalAction(ValueError):
+    """The action is not legal now; the text says why (it becomes a WAIT)."""
+
+
+# ----- legality ---------------------------------------------------------------------------------
+def uav_legal(st: EpisodeState, options: list[Waypoint]) -> list[ActionName]:
+    legal: list[ActionName] = ["MOVE_TO_UAV_WAYPOINT"] if options else []
+    if (st.cfg.candidates and st.active_candidate("uav") is None
+            and len(st.candidates) < st.cfg.max_annotations):
+        legal.append("ANNOTATE_CANDIDATE")
+    return [*legal, "NO_RELIABLE_CANDIDATE", "WAIT"]
+
+
+def ugv_legal(st: EpisodeState, options: list[Waypoint]) -> list[ActionName]:
+    legal: list[ActionName] = ["MOVE_TO_ROAD_WAYPOINT"] if options else []
+    if st.active_candidate("ugv") is not None and st.cfg.rgpp:
+        legal.append("GO_TO_CANDIDATE")
+    legal += ["STOP_OBSERVE", "CONFIRM"]
+    if st.active_candidate("ugv") is not None or st.ugv.mode == "stop_6view":
+        legal.append("REJECT")
+    return [*legal, "WAIT"]
+
+
+def refusal(role: Role, obs: Observation, action: Action | None) -> str | None:
+    """Why ``action`` cannot answer ``obs`` at all (missing, another decision, not legal now);
+    ``None`` when it may be applied."""
+    if action is None:
+        return "no action before the deadline"
+    if action.decision_index != obs.decision_index or action.role != role:
+        return f"action answers decision {action.role}#{action.decision_index}, not {role}#{obs.decision_index}"
+    if action.action not in obs.legal_actions:
+        return f"{action.action} is not legal now (legal: {', '.join(obs.legal_actions)})"
+    return None
+
+
+# ----- effects ----------------------------------------------------------------------------------
+def apply_action(st: EpisodeState, role: Role, action: Action, obs: Observation) -> str | None:
+    """Apply a legal ``action`` of ``role``; returns the candidate it concerns, if any."""
+    return (_apply_uav if role == "uav" else _apply_ugv)(st, action, obs)
+
+
+def wait(st: EpisodeState, role: Role) -> None:
+    """WAIT (and every fallback): ready again after ``wait_max_s`` unless woken earlier."""
+    agent = st.uav if role == "uav" else st.ugv
+    agent.ready_at = st.sim_time_s + st.cfg.wait_max_s
+    agent.waiting = True
+
+
+def _apply_uav(st: EpisodeState, action: Action, obs: Observation) -> str | None:
+    uav, now = st.uav, st.sim_time_s
+    uav.waiting = False
+    if action.action == "MOVE_TO_UAV_WAYPOINT":
+        if action.waypoint_id not in {w.waypoint_id for w in obs.waypoint_options}:
+            raise IllegalAction(f"waypoint {action.waypoint_id!r} is not a UAV option now")
+        node = st.town.uav_grid.nodes[action.waypoint_id]
+        dist = math.dist(uav.position[:2], node.position_world_m[:2])
+        uav.node, uav.position = node.node_id, node.position_world_m
+        uav.ready_at = now + dist / st.cfg.uav_speed_mps
+        return None
+    if action.action == "ANNOTATE_CANDIDATE":
+        try:
+            cell = (action.cell or "").upper()
+            sensors.parse_cell(cell)
+        except ValueError as exc:
+            raise IllegalAction(str(exc)) from None
+        polygon, centre = _project_cell(st, cell)
+        approach = _approach_anchor(st, centre)
+        cand = Candidate(candidate_id=f"C{len(st.candidates) + 1:03d}", cell=cell,
+                         polygon_world_m=[(round(x, 3), round(y, 3)) for x, y in polygon],
+                         center_world_m=(round(centre[0], 3), round(centre[1], 3)), status="pending",
+                         created_sim_time_s=now,
+                         approach_waypoint_id=RoadGraphs.anchor_id(approach) if approach is not None else None)
+        st.candidates.append(cand)
+        st.channel.views["uav"].candidates[cand.candidate_id] = copy.copy(cand)
+        uav.frozen, uav.frozen_since = True, now
+        uav.ready_at = now + st.cfg.short_action_s
+        return cand.candidate_id
+    if action.action == "NO_RELIABLE_CANDIDATE":
+        uav.ready_at = now + st.cfg.short_action_s
+        return None
+    wait(st, "uav")
+    return None
+
+
+def _apply_ugv(st: EpisodeState, action: Action, obs: Observation) -> str | None:
+    ugv, now = st.ugv, st.sim_time_s
+    ugv.waiting = False
+    kind = action.action
+    if kind == "MOVE_TO_ROAD_WAYPOINT":
+        if action.waypoint_id not in {w.waypoint_id for w in obs.waypoint_options}:
+            raise IllegalAction(f"waypoint {action.waypoint_id!r} is not a road option now")
+        _drive_to(st, RoadGraphs.parse_anchor_id(action.waypoint_id))
+        return None
+    if kind == "GO_TO_CANDIDATE":
+        cand = _candidate(st, action.candidate_id)
+        if cand.approach_waypoint_id is None:
+            raise IllegalAction(f"candidate {cand.candidate_id} has no reachable road approach")
+        _drive_to(st, RoadGraphs.parse_anchor_id(cand.approach_waypoint_id))
+        _set_status(st, cand.candidate_id, "arrived")
+        return cand.candidate_id
+    if kind == "STOP_OBSERVE":
+        ugv.mode, ugv.fresh_stop = "stop_6view", True
+        ugv.six = sensors.six_views(st.scene, st.ugv_xy(), ugv.heading_rad, st.cfg.cameras)
+        st.ground_visible = not check_confirm(confirm_evidence(st), st.cfg.confirm)
+        st.ground_observed |= st.ground_visible
+        ugv.ready_at = now + st.cfg.stop_observe_s
+        return None
+    if kind == "CONFIRM":
+        st.n_confirm += 1
+        reasons = check_confirm(confirm_evidence(st), st.cfg.confirm)
+        active = st.active_candidate("ugv")
+        if active is not None:
+            _set_status(st, active.candidate_id, "false_confirm" if reasons else "confirmed")
+        st.termination = "false_confirm" if reasons else "confirmed"
+        st.confirm_failure = "; ".join(reasons) or None
+        return active.candidate_id if active else None
+    if kind == "REJECT":
+        rejected = st.active_candidate("ugv") if action.candidate_id is None else _candidate(st, action.candidate_id)
+        ugv.mode, ugv.fresh_stop = "driving", False
+        ugv.ready_at = now + st.cfg.short_action_s
+        if rejected is not None:
+            _set_status(st, rejected.candidate_id, "rejected")  # the UAV learns it through the link
+            return rejected.candidate_id
+        return None
+    wait(st, "ugv")
+    return None
+
+
+def _candidate(st: EpisodeState, candidate_id: str | None) -> Candidate:
+    """A candidate the UGV knows of (its own view) and can still act on."""
+    cand = st.channel.views["ugv"].candidates.get(candidate_id or "")
+    if cand is None:
+        raise IllegalAction(f"no candidate {candidate_id!r} known to the UGV")
+    if cand.status not in ("pending", "arrived"):
+        raise IllegalAction(f"candidate {candidate_id} is {cand.status}")
+    return cand
+
+
+def _set_status(st: EpisodeState, candidate_id: str, status: str) -> None:
+    """A UGV status change: in the truth and in the UGV's own view at once."""
+    for cand in st.candidates:
+        if cand.candidate_id == candidate_id:
+            cand.status = status
+    view = st.channel.views["ugv"].candidates.get(candidate_id)
+    if view is not None:
+        view.status = status
+
+
+def _drive_to(st: EpisodeState, target: int) -> None:
+    ugv, roads = st.ugv, st.roads
+    try:
+        path = shortest_path(roads, ugv.node, target)
+    except nx.NetworkXNoPath:
+        raise IllegalAction(f"no road path to {RoadGraphs.anchor_id(target)}") from None
+    length = roads.path_length_m(path)
+    ugv.route.extend(path[1:])
+    ugv.node = target
+    if len(path) > 1:
+        a, b = roads.positions_world_m[path[-2]], roads.positions_world_m[path[-1]]
+        ugv.heading_rad = math.atan2(b[1] - a[1], b[0] - a[0])
+    ugv.path_length_m += length
+    ugv.mode, ugv.fresh_stop, ugv.six = "driving", False, []
+    ugv.ready_at = st.sim_time_s + max(length / st.cfg.ugv_speed_mps, st.cfg.short_action_s)
+
+
+# ----- E2A and RGPP -----------------------------------------------------------------------------
+def _project_cell(st: EpisodeState, cell: str) -> tuple[list[tuple[float, float]], tuple[float, float]]:
+    """Ego-to-Allo projection: the annotated cell of the UAV's last nadir view as a polygon on the
+    ground and its centre. Without E2A the cell is kept as metadata only; the candidate is the
+    UAV's whole ground footprint, centred below it."""
+    uav = st.uav
+    assert uav.last_nadir is not None
+    if st.cfg.e2a:
+        polygon = sensors.cell_polygon_world(cell, uav.last_nadir.world_from_camera, uav.last_nadir.intrinsics)
+        return polygon, centroid(polygon)
+    polygon = sensors.footprint_world(uav.last_nadir.world_from_camera, uav.last_nadir.intrinsics)
+    return polygon, (float(uav.position[0]), float(uav.position[1]))
+
+
+def _approach_anchor(st: EpisodeState, centre: tuple[float, float], radius_m: float = 20.0) -> int | None:
+    """Road-graph path planning: the reachable decision anchor that best trades closeness to
+    the candidate centre against road distance from the UGV (1 m closer is worth 20 m of
+    driving); the nearest reachable anchor if none lies within ``radius_m``."""
+    lengths = nx.single_source_dijkstra_path_length(st.roads.fine, st.ugv.node, weight="length_m")
+    ids, xy = st.roads.anchor_array()
+    dist = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1])
+    near = [(float(d) + 0.05 * lengths[int(n)], int(n)) for n, d in zip(ids, dist, strict=True)
+            if d <= radius_m and int(n) in lengths]
+    if near:
+        return min(near)[1]
+    return next((int(ids[i]) for i in np.argsort(dist) if int(ids[i]) in lengths), None)
+
+
+# ----- CONFIRM evidence -------------------------------------------------------------------------
+def confirm_evidence(st: EpisodeState) -> ConfirmEvidence:
+    """Checker evidence for the UGV as it is now (its last six views)."""
+    xy = st.ugv_xy()
+    return ConfirmEvidence(
+        fresh_stop=st.ugv.fresh_stop,
+        max_target_pixels=max((sensors.target_pixels(s, st.target_uid) for s in st.ugv.six), default=0),
+        distance_m=math.dist(xy, st.target_xy), line_of_sight=_line_of_sight(st, xy))
+
+
+def _line_of_sight(st: EpisodeState, xy: tuple[float, float]) -> bool:
+    t = st.spec.target
+    return line_of_sight(st.scene, xy, st.target_uid, target_points(t.position_world_m, t.yaw_rad))

@@ -1,0 +1,173 @@
+"""The state of one episode in progress, and the settings that shape it.
+
+Contract: :class:`EpisodeState` is plain data plus read-only views of it (poses, link geometry,
+the candidate a role believes active). It never renders, draws a random number or sends through
+a link; the modules that change it are named on each field group. :class:`EpisodeSettings` holds
+every number and switch the engine, the rules and the observations read.
+
+Who changes what:
+
+* :mod:`agos.world.sim.engine` creates the state, sets it up in the scene, advances
+  ``sim_time_s`` and the budget, and counts fallbacks and traces;
+* :mod:`agos.world.sim.rules` applies actions: poses, readiness, candidates and their status,
+  CONFIRM outcome and termination;
+* :mod:`agos.world.sim.observations` counts each role's decisions and notes what its cameras saw
+  (the UAV's last nadir shot, target pixels, the oracle-visible step ``tau``, information age).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from agos.runtime.links import IDEAL, CommProfile
+from agos.runtime.schemas import (
+    Candidate,
+    EpisodeSpec,
+    ImageFrame,
+    MessageRecord,
+    Pose,
+    Role,
+    StoredTrace,
+    Termination,
+    Waypoint,
+)
+from agos.world.sim import sensors
+from agos.world.sim.comms import Channel
+from agos.world.sim.confirm import ConfirmSettings
+from agos.world.sim.scene import Scene
+from agos.world.towns.asset import Town
+from agos.world.towns.roadgraph import RoadGraphs
+from agos.world.towns.topdown import RegionMap
+
+
+@dataclass(frozen=True)
+class EpisodeSettings:
+    uav_speed_mps: float = 10.0
+    ugv_speed_mps: float = 8.0
+    wait_max_s: float = 20.0
+    stop_observe_s: float = 2.0
+    short_action_s: float = 1.0
+    uav_visible_min_px: int = 30
+    """Oracle threshold for "target visible from the air" at the default 512 x 512 nadir view."""
+    max_annotations: int = 5
+    sim_time_limit_s: float = 3600.0
+    recent_messages: int = 6
+    max_freeze_s: float = 120.0
+    """A UAV that has not heard its candidate resolved by then is asked again (lossy links)."""
+    comm: CommProfile = field(default_factory=lambda: IDEAL)
+    timing_mode: str = "lockstep"
+    candidates: bool = True
+    """Structured candidates: ANNOTATE_CANDIDATE and GO_TO_CANDIDATE exist. Off for the Baseline,
+    which coordinates through text messages only."""
+    e2a: bool = True
+    """Ego-to-Allo projection: a candidate is its grid cell on the ground. Off (no_e2a ablation):
+    the candidate centre is the UAV's ground footprint and its polygon the whole view."""
+    rgpp: bool = True
+    """Road-graph path planning: GO_TO_CANDIDATE exists. Off (no_rgpp): the UGV approaches through
+    road waypoints, each with its distance to the candidate as a hint."""
+    oracle: bool = False
+    """Give observations the ground-truth hints of the oracle policy."""
+    link_seed: int = 0
+    """Extra seed of the link streams, for repeating an episode under other link randomness."""
+    """``lockstep``: the sim clock waits for decisions; ``realtime``: a decision's wall-clock
+    latency delays its effect in sim time, while the teammate carries on."""
+    confirm: ConfirmSettings = field(default_factory=ConfirmSettings)
+    cameras: sensors.CameraSettings = field(default_factory=sensors.CameraSettings)
+
+
+@dataclass
+class UavState:
+    node: str
+    position: tuple[float, float, float]
+    ready_at: float = 0.0
+    frozen: bool = False
+    frozen_since: float = 0.0
+    waiting: bool = False
+    decisions: int = 0
+    last_nadir: sensors.Shot | None = None
+
+
+@dataclass
+class UgvState:
+    node: int
+    heading_rad: float
+    ready_at: float = 0.0
+    waiting: bool = False
+    decisions: int = 0
+    mode: str = "driving"
+    fresh_stop: bool = False
+    six: list[sensors.Shot] = field(default_factory=list)
+    path_length_m: float = 0.0
+    route: list[int] = field(default_factory=list)
+
+
+class EpisodeState:
+    """One :class:`EpisodeSpec` in a :class:`Scene` of its town, as far as it has run."""
+
+    # Set up by the engine when the episode starts (vehicles added, references rendered):
+    target_uid: int
+    target_xy: tuple[float, float]
+    region_map: RegionMap | None
+    references: list[ImageFrame]
+    uav: UavState
+    ugv: UgvState
+    start_node: int
+    shortest_path_m: float | None
+    channel: Channel
+    info_age: dict[str, float | None]
+    searchable_area: list[Waypoint]
+    """The UAV's searchable area as options: it never changes within an episode, so it is built
+    once and every UAV observation carries the same Waypoint objects."""
+
+    def __init__(self, scene: Scene, town: Town, spec: EpisodeSpec, *, run_id: str, worker_id: str,
+                 settings: EpisodeSettings) -> None:
+        self.scene, self.town, self.spec = scene, town, spec
+        self.roads: RoadGraphs = town.roads
+        self.run_id, self.worker_id = run_id, worker_id
+        self.cfg = settings
+        self.sim_time_s = 0.0
+        self.candidates: list[Candidate] = []
+        self.messages: list[MessageRecord] = []
+        self.decisions_used = 0
+        self.fallbacks = 0
+        self.traces: list[StoredTrace] = []
+        self.n_confirm = 0
+        self.tau: int | None = None
+        self.ground_observed = False
+        self.termination: Termination | None = None
+        self.active_uav = set(spec.active_uav_waypoints)
+        self.confirm_failure: str | None = None
+        self.uav_target_px = 0
+        self.ground_visible: bool | None = None
+        self.added: list[int] = []
+
+    # ----- views ----------------------------------------------------------------------------
+    def ugv_xy(self) -> tuple[float, float]:
+        p = self.roads.positions_world_m[self.ugv.node]
+        return (float(p[0]), float(p[1]))
+
+    def ugv_pose(self) -> Pose:
+        x, y = self.ugv_xy()
+        return Pose(position_world_m=(x, y, 0.0), yaw_rad=round(self.ugv.heading_rad, 6))
+
+    def uav_pose(self) -> Pose:
+        return Pose(position_world_m=self.uav.position, yaw_rad=math.pi / 2)
+
+    def pose(self, role: Role) -> Pose:
+        return self.uav_pose() if role == "uav" else self.ugv_pose()
+
+    def link_geometry(self) -> tuple[float, bool]:
+        """Distance between the two agents and, where the profile uses it, line of sight."""
+        ux, uy, uz = self.uav.position
+        gx, gy = self.ugv_xy()
+        distance = math.dist((ux, uy, uz), (gx, gy, 2.0))
+        if self.cfg.comm.range.nlos_loss == 0:
+            return distance, True
+        return distance, self.scene.clear_line(np.array([ux, uy, uz]), np.array([gx, gy, 2.0]))
+
+    def active_candidate(self, role: Role) -> Candidate | None:
+        """The candidate ``role`` believes is being handled (from its own view)."""
+        return self.channel.views[role].active_candidate()
