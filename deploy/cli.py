@@ -170,11 +170,14 @@ def _config(args: argparse.Namespace) -> AgosConfig:
     return load_config(getattr(args, "config", None), overrides=overrides)
 
 
+CONFIG_COMMANDS = ("demo", "eval", "sweep", "router", "world", "agent", "evaluator", "check")
+"""The commands that read the settings (``--config`` and the flags that override it)."""
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        cfg = _config(args) if args.command in ("demo", "eval", "sweep", "router", "world", "agent", "evaluator",
-                                                "check") else None
+        cfg = _config(args) if args.command in CONFIG_COMMANDS else None
         return _dispatch(args, cfg)
     except ConfigError as exc:
         print(str(exc), file=sys.stderr)
@@ -184,63 +187,74 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:
+    """Run the command; ``cfg`` is the loaded settings for a command of CONFIG_COMMANDS, else None."""
     from agos.world.episodes.sampling import EpisodeFileError
 
     try:
-        if args.command == "demo":
-            from agos.deploy import demo
-
-            return demo.main(cfg, config_path=args.config, port=args.port, attach=args.connect is not None)
-        if args.command == "eval":
-            return _eval(args, cfg)
-        if args.command == "sweep":
-            return _sweep(args, cfg)
-        if args.command == "watch":
-            from agos.runtime import observer
-
-            return observer.main(args.connect, args.key)
-        if args.command == "router":
-            from agos.runtime import router
-
-            return router.main(cfg.zenoh.listen, multicast_scouting=cfg.zenoh.multicast_scouting)
-        if args.command == "world":
-            from agos.world.sim import worker
-
-            return worker.main(cfg, worker_id=args.worker_id)
-        if args.command == "agent":
-            from agos.agents import service
-            from agos.agents.registry import make_policy
-
-            try:
-                make_policy(args.policy or (cfg.run.policy_uav if args.role == "uav" else cfg.run.policy_ugv), args.role,
-                            vlm=cfg.vlm)
-            except ValueError as exc:
-                print(f"agent error: {exc}", file=sys.stderr)
-                return 2
-            return service.main(cfg, role=args.role, policy_name=args.policy, concurrency=args.concurrency)
-        if args.command == "check":
-            from agos.deploy.check import run_check
-
-            return run_check(cfg, budget=args.budget, town_name=args.town, policy=args.policy)
-        if args.command == "evaluator":
-            from agos.evaluator import service as evaluator_service
-
-            return evaluator_service.main(cfg)
-        if args.command in ("episodes", "map"):
-            from agos.world import cli as world_cli
-
-            return world_cli.run(args)
-        if args.command in ("metrics", "compare", "report"):
-            from agos.evaluator import cli as evaluator_cli
-
-            return evaluator_cli.run(args)
-        if args.command == "vlm-standin":
-            from agos.agents.vlm import standin_server
-
-            return standin_server.run(args)
+        return _run_configured(args, cfg) if cfg is not None else _run_unconfigured(args)
     except EpisodeFileError as exc:
         print(f"episode file error: {exc}", file=sys.stderr)
         return 2
+
+
+def _run_configured(args: argparse.Namespace, cfg: AgosConfig) -> int:
+    """The commands of CONFIG_COMMANDS."""
+    if args.command == "demo":
+        from agos.deploy import demo
+
+        return demo.main(cfg, config_path=args.config, port=args.port, attach=args.connect is not None)
+    if args.command == "eval":
+        return _eval(args, cfg)
+    if args.command == "sweep":
+        return _sweep(args, cfg)
+    if args.command == "router":
+        from agos.runtime import router
+
+        return router.main(cfg.zenoh.listen, multicast_scouting=cfg.zenoh.multicast_scouting)
+    if args.command == "world":
+        from agos.world.sim import worker
+
+        return worker.main(cfg, worker_id=args.worker_id)
+    if args.command == "agent":
+        from agos.agents import service
+        from agos.agents.registry import make_policy
+
+        try:
+            make_policy(args.policy or (cfg.run.policy_uav if args.role == "uav" else cfg.run.policy_ugv), args.role,
+                        vlm=cfg.vlm)
+        except ValueError as exc:
+            print(f"agent error: {exc}", file=sys.stderr)
+            return 2
+        return service.main(cfg, role=args.role, policy_name=args.policy, concurrency=args.concurrency)
+    if args.command == "check":
+        from agos.deploy.check import run_check
+
+        return run_check(cfg, budget=args.budget, town_name=args.town, policy=args.policy)
+    if args.command == "evaluator":
+        from agos.evaluator import service as evaluator_service
+
+        return evaluator_service.main(cfg)
+    raise AssertionError(args.command)
+
+
+def _run_unconfigured(args: argparse.Namespace) -> int:
+    """The commands that do not read the settings."""
+    if args.command == "watch":
+        from agos.runtime import observer
+
+        return observer.main(args.connect, args.key)
+    if args.command in ("episodes", "map"):
+        from agos.world import cli as world_cli
+
+        return world_cli.run(args)
+    if args.command in ("metrics", "compare", "report"):
+        from agos.evaluator import cli as evaluator_cli
+
+        return evaluator_cli.run(args)
+    if args.command == "vlm-standin":
+        from agos.agents.vlm import standin_server
+
+        return standin_server.run(args)
     raise AssertionError(args.command)
 
 

@@ -24,28 +24,48 @@ METRIC_KEYS = ("SR", "OSR", "SPL", "NE", "ASE", "ACG", "GVA", "GVA_support", "DS
 
 
 class _Candidate(Protocol):
-    distance_to_polygon_m: float
-    center_error_m: float
+    # Read-only members (properties), so frozen dataclasses and structs fit too.
+    @property
+    def distance_to_polygon_m(self) -> float: ...
+    @property
+    def center_error_m(self) -> float: ...
 
 
 class Episode(Protocol):
-    """What the metrics read: :class:`EpisodeSummary` and :class:`EpisodeRecord` both fit."""
+    """What the metrics read: :class:`EpisodeSummary` and :class:`EpisodeRecord` both fit.
 
-    difficulty: str
-    status: str
-    success: bool
-    ground_observed: bool
-    n_confirm: int
-    ugv_path_length_m: float
-    shortest_path_length_m: float | None
-    final_distance_m: float | None
-    uav_budget: int
-    uav_first_visible_step: int | None
-    candidates: Sequence[_Candidate]
-    decisions_uav: int
-    decisions_ugv: int
-    candidate_tools: bool
-    """The policy could annotate candidates (ACG is undefined without)."""
+    Members are read-only (properties): the metrics never assign, and frozen summaries fit."""
+
+    @property
+    def difficulty(self) -> str: ...
+    @property
+    def status(self) -> str: ...
+    @property
+    def success(self) -> bool: ...
+    @property
+    def ground_observed(self) -> bool: ...
+    @property
+    def n_confirm(self) -> int: ...
+    @property
+    def ugv_path_length_m(self) -> float: ...
+    @property
+    def shortest_path_length_m(self) -> float | None: ...
+    @property
+    def final_distance_m(self) -> float | None: ...
+    @property
+    def uav_budget(self) -> int: ...
+    @property
+    def uav_first_visible_step(self) -> int | None: ...
+    @property
+    def candidates(self) -> Sequence[_Candidate]: ...
+    @property
+    def decisions_uav(self) -> int: ...
+    @property
+    def decisions_ugv(self) -> int: ...
+    @property
+    def candidate_tools(self) -> bool:
+        """The policy could annotate candidates (ACG is undefined without)."""
+        ...
 
 
 # ----- episode-level metrics -------------------------------------------------------------------

@@ -110,7 +110,8 @@ class EpisodeSummary:
     """That configuration (runtime/episode_config.py) as stored, to name what differs."""
 
     @classmethod
-    def from_valid(cls, d: dict[str, Any]) -> EpisodeSummary:
+    def from_valid(cls, d: _SummaryIn) -> EpisodeSummary:
+        """From a line already validated against the summary schema."""
         return cls(
             d["episode_id"], d["difficulty"], d["success"], d["ground_observed"], d["n_confirm"],
             d["ugv_path_length_m"], d.get("shortest_path_length_m"), d["final_distance_m"], d["uav_budget"],

@@ -119,9 +119,9 @@ def load_config(path: Path | None = None, *, overrides: dict[str, Any] | None = 
     for name, value in env.items():
         if not name.startswith(ENV_PREFIX) or "__" not in name:
             continue
-        path = name[len(ENV_PREFIX):].lower().split("__")  # AGOS_WORLD__CAMERAS__NADIR_PX
-        nested: dict[str, Any] = {path[-1]: value}
-        for part in reversed(path[:-1]):
+        dotted = name[len(ENV_PREFIX):].lower().split("__")  # AGOS_WORLD__CAMERAS__NADIR_PX
+        nested: dict[str, Any] = {dotted[-1]: value}
+        for part in reversed(dotted[:-1]):
             nested = {part: nested}
         env_layer = _merge(env_layer, nested)
         _validate(_merge(data, nested), f"environment {name}")

@@ -8,6 +8,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+
 import pytest
 
 from agos.deploy.configure import episode_config
@@ -29,7 +30,7 @@ def test_defaults_layered_file_env_flags(tmp_path: Path) -> None:
     assert cfg.world.ugv_speed_mps == 5.0  # environment over file
     assert (cfg.world.cameras.nadir_px, cfg.world.cameras.ground_px) == (256, 128)
     assert cfg.world.uav_speed_mps == EpisodeConfig().uav_speed_mps  # untouched: the default
-    with pytest.raises(ConfigError, match="AGOS_WORLD__CAMERAS__NADIR_PX.*world.cameras.nadir_px"):
+    with pytest.raises(ConfigError, match=r"AGOS_WORLD__CAMERAS__NADIR_PX.*world\.cameras\.nadir_px"):
         load_config(None, environ={"AGOS_WORLD__CAMERAS__NADIR_PX": "12"})
 
 

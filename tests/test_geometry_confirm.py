@@ -13,7 +13,7 @@ from agos.runtime.geometry import (
     distance_to_segment,
     point_in_polygon,
 )
-from agos.world.sim.confirm import ConfirmEvidence, ConfirmConfig, check_confirm
+from agos.world.sim.confirm import ConfirmConfig, ConfirmEvidence, check_confirm
 
 SQUARE = [(0.0, 0.0), (10.0, 0.0), (10.0, 10.0), (0.0, 10.0)]
 # An L shape: the square [0,10]^2 minus its top-right quarter [5,10]x[5,10].

@@ -89,8 +89,8 @@ def profile_from_references(references: list[ImageFrame]) -> TargetProfile:
         if len(spaint):
             side_values.append(float(np.median(spaint[:, 2])))
         if name == "ref_side" and frame.world_from_camera is not None and frame.intrinsics is not None:
-            paint_top = _painted_top_m(frame.intrinsics, frame.world_from_camera, smask & (hue_distance(shsv[:, :, 0], hue) <= HUE_TOLERANCE)
-                                       & (shsv[:, :, 1] >= SAT_MIN), width_m=width_px * scale)
+            side_paint = smask & (hue_distance(shsv[:, :, 0], hue) <= HUE_TOLERANCE) & (shsv[:, :, 1] >= SAT_MIN)
+            paint_top = _painted_top_m(frame.intrinsics, frame.world_from_camera, side_paint, width_m=width_px * scale)
     if not side_values:
         side_values = [value_top]
     return TargetProfile(hue, sat, value_top, (min(side_values), max(side_values)),

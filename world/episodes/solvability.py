@@ -54,12 +54,12 @@ def check(scene: Scene, town: Town, uid: int, position: tuple[float, float, floa
         if not check_confirm(ground_evidence(scene, town, node, uid, points, target_xy, cam), confirm):
             verifying.append(node)
             break  # one verifying anchor makes the episode solvable
-    seeing = []
+    seeing: list[str] = []
     for node_id in active_uav:
-        node = town.uav_grid.nodes[node_id]
-        if math.dist(node.position_world_m[:2], target_xy) > 50.0:
+        uav_node = town.uav_grid.nodes[node_id]
+        if math.dist(uav_node.position_world_m[:2], target_xy) > 50.0:
             continue
-        shot = sensors.nadir(scene, node.position_world_m[:2], node.position_world_m[2], cam)
+        shot = sensors.nadir(scene, uav_node.position_world_m[:2], uav_node.position_world_m[2], cam)
         if sensors.target_pixels(shot, uid) >= UAV_VISIBLE_MIN_PX * (cam.nadir_px / 512) ** 2:
             seeing.append(node_id)
             break

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 from agos.runtime.episode_config import ConfirmConfig
 
-
 ConfirmSettings = ConfirmConfig  # TODO(integration): drop once engine.py says ConfirmConfig
 
 

@@ -23,7 +23,7 @@ import networkx as nx
 import numpy as np
 
 from agos.runtime.geometry import centroid
-from agos.runtime.schemas import Action, ActionName, Candidate, Observation, Role, Waypoint
+from agos.runtime.schemas import Action, ActionName, Candidate, CandidateStatus, Observation, Role, Waypoint
 from agos.world.sim import sensors
 from agos.world.sim.confirm import ConfirmEvidence, check_confirm
 from agos.world.sim.evidence import line_of_sight, target_points
@@ -170,7 +170,7 @@ def _candidate(st: EpisodeState, candidate_id: str | None) -> Candidate:
     return cand
 
 
-def _set_status(st: EpisodeState, candidate_id: str, status: str) -> None:
+def _set_status(st: EpisodeState, candidate_id: str, status: CandidateStatus) -> None:
     """A UGV status change: in the truth and in the UGV's own view at once."""
     for cand in st.candidates:
         if cand.candidate_id == candidate_id:

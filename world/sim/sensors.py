@@ -15,7 +15,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from agos.runtime.episode_config import CameraConfig
 from agos.runtime.camera import (  # noqa: F401 - re-exported: sensors is where callers look for them
     GRID_COLS,
     GRID_ROWS,
@@ -29,6 +28,7 @@ from agos.runtime.camera import (  # noqa: F401 - re-exported: sensors is where 
     pixel_to_ground,
 )
 from agos.runtime.codec import encode_jpeg, encode_png
+from agos.runtime.episode_config import CameraConfig
 from agos.runtime.schemas import CameraIntrinsics, ImageFrame
 from agos.world.sim.scene import STUDIO_OFFSET_M, RenderResult, Scene
 
