@@ -397,6 +397,11 @@ class EpisodeRecord(Message, tag="episode_record", kw_only=True):
     """Per role, totals of its decision traces (empty for scripted policies)."""
     decision_traces: list[StoredTrace] = []
     """Every decision of model-backed policies, in the order the world applied them."""
+    config: dict[str, Any] = {}
+    """The episode configuration it ran with (``EpisodeConfig`` as a map; ``comm_profile``,
+    ``timing_mode``, ``tools`` and ``renderer`` above repeat parts of it for readers)."""
+    config_hash: str = ""
+    """``EpisodeConfig.config_hash()`` of ``config``: records pool only under one hash."""
 
     @property
     def candidate_tools(self) -> bool:
@@ -463,6 +468,8 @@ class RunManifest(Message, tag="run_manifest", kw_only=True):
     timing_mode: Literal["lockstep", "realtime"] = "lockstep"
     n_episodes: int
     created_utc: str
+    config_hash: str = ""
+    """Short hash of the run's episode configuration."""
     resumed: bool = False
 
 
@@ -476,13 +483,9 @@ class JobGrant(Message, tag="job_grant", kw_only=True):
     run_finished: bool = False
     attempt: int = 1
     """1 for the first lease; re-leases after a dead or stuck worker count up (at most 3)."""
-    comm_profile: dict[str, Any] | None = None
-    """The run's link model (a CommProfile as a map), so remote workers need no profile file."""
-    timing_mode: Literal["lockstep", "realtime"] = "lockstep"
-    tools: dict[str, bool] = msgspec.field(
-        default_factory=lambda: {"candidates": True, "e2a": True, "rgpp": True, "oracle": False})
-    """World-side tools of the run's policy: structured candidates (ANNOTATE_CANDIDATE; off for the
-    Baseline), Ego-to-Allo projection, road-graph path planning (GO_TO_CANDIDATE), oracle hints."""
+    config: dict[str, Any] = {}
+    """The run's whole episode configuration (``EpisodeConfig`` as a map, runtime/episode_config.py):
+    the worker runs with exactly this, whatever its own settings."""
 
 
 WireMessage = (

@@ -11,9 +11,11 @@ import msgpack
 import msgspec
 import pytest
 
+from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.links import IDEAL, Blackout, CommProfile, Delivery, LatencySpec, LossSpec, RangeSpec, load_profile
 from agos.runtime.schemas import Candidate, MessageRecord, Pose
 from agos.world.sim.comms import MESSAGE_OVERHEAD_BYTES, STATUS_RANK, Arrival, Channel, RoleView
+from agos.world.sim.configure import episode_settings
 
 NEAR = (10.0, True)  # (distance_m, line_of_sight) of the two roles
 
@@ -386,7 +388,7 @@ def lossy_records():
     from agos.agents.inprocess import InProcessAgents
     from agos.agents.registry import make_policy
     from agos.world.episodes.sampling import sample_episode
-    from agos.world.sim.engine import EpisodeRunner, EpisodeSettings
+    from agos.world.sim.engine import EpisodeRunner
     from agos.world.sim.scene import Scene
     from agos.world.towns.asset import open_town
 
@@ -398,7 +400,7 @@ def lossy_records():
         for _ in range(2):
             agents = InProcessAgents({role: make_policy("heuristic", role) for role in ("uav", "ugv")})
             runner = EpisodeRunner(scene, town, spec, run_id="links", worker_id="w",
-                                   settings=EpisodeSettings(comm=load_profile("lossy")))
+                                   settings=episode_settings(EpisodeConfig(comm=load_profile("lossy"))))
             records.append(runner.run(agents))
     finally:
         scene.close()

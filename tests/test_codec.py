@@ -294,7 +294,7 @@ def test_non_msgpack_payload(payload: bytes) -> None:
 
 def test_too_deep_payload_is_refused() -> None:
     head = msgpack.packb({"type": "job_grant", "v": 1, "episode": None})
-    deep = b"\x84" + head[1:] + b"\xaccomm_profile" + b"\x81\xa1a" * 3000 + b"\xc0"  # comm_profile: any map
+    deep = b"\x84" + head[1:] + b"\xa6config" + b"\x81\xa1a" * 3000 + b"\xc0"  # config: any map
     with pytest.raises(DecodeError, match="nested too deeply"):
         decode(deep)
 

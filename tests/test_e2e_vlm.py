@@ -24,9 +24,11 @@ from agos.agents.names import tools_for
 from agos.agents.registry import make_policy
 from agos.agents.vlm.standin_server import StandinServer
 from agos.deploy.launcher import free_port, wait_listening
+from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.runtime.settings import VlmOptions
 from agos.world.episodes.sampling import read_episodes
-from agos.world.sim.engine import EpisodeRunner, EpisodeSettings
+from agos.world.sim.configure import episode_settings
+from agos.world.sim.engine import EpisodeRunner
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import open_town
 
@@ -52,7 +54,8 @@ def reference(episode_file) -> dict[str, dict]:
         options = VlmOptions(base_url=server.url, model="agos-standin")
         for policy in POLICIES:
             tools = tools_for({"uav": policy, "ugv": policy})
-            settings = EpisodeSettings(candidates=tools["candidates"], e2a=tools["e2a"], rgpp=tools["rgpp"])
+            settings = episode_settings(EpisodeConfig(tools=ToolConfig(candidates=tools["candidates"], e2a=tools["e2a"],
+                                                                     rgpp=tools["rgpp"])))
             agents = InProcessAgents({r: make_policy(policy, r, vlm=options) for r in ("uav", "ugv")})
             record = EpisodeRunner(scene, town, spec, run_id="ref", worker_id="w", settings=settings).run(agents)
             out[policy] = msgspec.to_builtins(record)

@@ -8,8 +8,10 @@ import pytest
 from agos.agents.contract import action_for
 from agos.agents.inprocess import InProcessAgents
 from agos.agents.registry import make_policy
+from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.schemas import Action, EpisodeRecord, EpisodeSpec, Observation, Role, StepEvent
 from agos.world.episodes.sampling import generate_episodes
+from agos.world.sim.configure import episode_settings
 from agos.world.sim.engine import EpisodeRunner, NullSink
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import build_town
@@ -151,7 +153,7 @@ def test_every_message_is_written_with_its_declared_types(world) -> None:
     depend on how a value was computed."""
     from agos.runtime.codec import decode, encode
     from agos.runtime.links import load_profile
-    from agos.world.sim.engine import EpisodeSettings
+
 
     town, scene, episodes = world
     sink, seen = Everything(), []
@@ -163,7 +165,7 @@ def test_every_message_is_written_with_its_declared_types(world) -> None:
             return agents.decide(observations)
 
     record = EpisodeRunner(scene, town, episodes["mid000"], run_id="t", worker_id="w", sink=sink,
-                           settings=EpisodeSettings(comm=load_profile("lossy"))).run(Spy())
+                           settings=episode_settings(EpisodeConfig(comm=load_profile("lossy")))).run(Spy())
     assert record.ledger and sink.messages and seen
     for message in [*seen, *sink.messages, record]:
         payload = encode(message)

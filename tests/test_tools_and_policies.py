@@ -11,9 +11,11 @@ import pytest
 from agos.agents.inprocess import InProcessAgents
 from agos.agents.names import split_name, tools_for
 from agos.agents.registry import make_policy
+from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.world.episodes.sampling import generate_episodes
 from agos.world.sim import sensors
-from agos.world.sim.engine import EpisodeRunner, EpisodeSettings
+from agos.world.sim.configure import episode_settings
+from agos.world.sim.engine import EpisodeRunner
 from agos.world.sim.options import shortest_path
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import open_town
@@ -96,7 +98,7 @@ def world():
 def _run(world, policy: str, spec, sink=None):
     town, scene, _ = world
     tools = tools_for({"uav": policy, "ugv": policy})
-    settings = EpisodeSettings(e2a=tools["e2a"], rgpp=tools["rgpp"], oracle=tools["oracle"])
+    settings = episode_settings(EpisodeConfig(tools=ToolConfig(e2a=tools["e2a"], rgpp=tools["rgpp"], oracle=tools["oracle"])))
     agents = InProcessAgents({r: make_policy(policy, r) for r in ("uav", "ugv")})
     return EpisodeRunner(scene, town, spec, run_id="t", worker_id="w", settings=settings, sink=sink).run(agents)
 
@@ -120,7 +122,7 @@ def test_no_rgpp_removes_go_to_candidate_and_gives_distance_hints(world) -> None
             return self.inner.decide(observations)
 
     town, scene, episodes = world
-    settings = EpisodeSettings(rgpp=False)
+    settings = episode_settings(EpisodeConfig(tools=ToolConfig(rgpp=False)))
     agents = Spy(InProcessAgents({r: make_policy("heuristic:no_rgpp", r) for r in ("uav", "ugv")}))
     record = EpisodeRunner(scene, town, episodes[0], run_id="t", worker_id="w", settings=settings).run(agents)
     ugv = [o for o in seen if o.role == "ugv"]

@@ -11,19 +11,19 @@ import msgspec
 
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.schemas import EpisodeSpec
-from agos.world.sim.engine import EpisodeSettings
+from agos.world.sim.state import EpisodeSettings
 
 
 def episode_settings(config: EpisodeConfig) -> EpisodeSettings:
     """The engine's settings for ``config`` (thresholds scaled to the configured image sizes)."""
     return EpisodeSettings(
-        uav_speed_mps=config.uav_speed_mps, ugv_speed_mps=config.ugv_speed_mps, wait_max_s=config.wait_max_s,
+        config=config, uav_speed_mps=config.uav_speed_mps, ugv_speed_mps=config.ugv_speed_mps, wait_max_s=config.wait_max_s,
         stop_observe_s=config.stop_observe_s, short_action_s=config.short_action_s,
         uav_visible_min_px=config.uav_visible_min_px(), max_annotations=config.max_annotations,
         sim_time_limit_s=config.sim_time_limit_s, recent_messages=config.recent_messages,
         max_freeze_s=config.max_freeze_s, comm=config.comm, timing_mode=config.timing_mode,
         candidates=config.tools.candidates, e2a=config.tools.e2a, rgpp=config.tools.rgpp, oracle=config.tools.oracle,
-        link_seed=config.link_seed, confirm=config.confirm_at_view_size(), cameras=config.cameras, config=config)
+        link_seed=config.link_seed, confirm=config.confirm_at_view_size(), cameras=config.cameras)
 
 
 def with_budget(spec: EpisodeSpec, config: EpisodeConfig) -> EpisodeSpec:

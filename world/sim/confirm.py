@@ -16,8 +16,6 @@ from dataclasses import dataclass
 
 from agos.runtime.episode_config import ConfirmConfig
 
-ConfirmSettings = ConfirmConfig  # TODO(integration): drop once engine.py says ConfirmConfig
-
 
 @dataclass(frozen=True)
 class ConfirmEvidence:
@@ -28,7 +26,7 @@ class ConfirmEvidence:
     line_of_sight: bool
 
 
-def check_confirm(evidence: ConfirmEvidence, settings: ConfirmSettings) -> list[str]:
+def check_confirm(evidence: ConfirmEvidence, settings: ConfirmConfig) -> list[str]:
     """Return the reasons a CONFIRM fails; an empty list means it is accepted."""
     reasons = []
     if settings.require_fresh_stop and not evidence.fresh_stop:

@@ -34,6 +34,7 @@ from typing import Protocol
 
 import msgspec
 
+from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.schemas import (
     Action,
     ActionName,
@@ -48,6 +49,7 @@ from agos.runtime.schemas import (
 )
 from agos.world.sim import rules, sensors
 from agos.world.sim.comms import Channel
+from agos.world.sim.configure import episode_settings
 from agos.world.sim.observations import coordination, observe, uav_waypoint
 from agos.world.sim.record import episode_record, shortest_confirmable_path
 from agos.world.sim.rules import IllegalAction
@@ -97,7 +99,7 @@ class EpisodeRunner:
                  settings: EpisodeSettings | None = None, sink: EpisodeSink | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.state = EpisodeState(scene, town, spec, run_id=run_id, worker_id=worker_id,
-                                  settings=settings or EpisodeSettings())
+                                  settings=settings or episode_settings(EpisodeConfig()))
         self.state.searchable_area = [uav_waypoint(town, n) for n in sorted(self.state.active_uav)]
         self.sink = sink or NullSink()
         self._clock = clock

@@ -14,11 +14,11 @@ import math
 
 import networkx as nx
 
+from agos.runtime.episode_config import CameraConfig, ConfirmConfig
 from agos.runtime.geometry import distance_to_polygon
 from agos.runtime.schemas import CandidateOutcome, EpisodeRecord, VehicleSpec
 from agos.runtime.traces import trace_stats
-from agos.world.sim import sensors
-from agos.world.sim.confirm import ConfirmSettings, check_confirm
+from agos.world.sim.confirm import check_confirm
 from agos.world.sim.evidence import ground_evidence, line_of_sight, target_points
 from agos.world.sim.scene import Scene
 from agos.world.sim.state import EpisodeState
@@ -26,7 +26,7 @@ from agos.world.towns.asset import Town
 
 
 def shortest_confirmable_path(scene: Scene, town: Town, start_node: int, target: VehicleSpec, target_uid: int,
-                              confirm: ConfirmSettings, cameras: sensors.CameraSettings,
+                              confirm: ConfirmConfig, cameras: CameraConfig,
                               max_checks: int = 30) -> float | None:
     """SPL's shortest path: road distance from ``start_node`` to the nearest fine node from
     which a STOP_OBSERVE then CONFIRM would be accepted (nodes in Dijkstra order, ties by node id;
@@ -72,4 +72,5 @@ def episode_record(st: EpisodeState, wall_time_s: float) -> EpisodeRecord:
         renderer=st.scene.renderer_name(), comm_profile=cfg.comm.name, timing_mode=cfg.timing_mode,
         link=st.channel.stats(st.candidates), ledger=st.channel.ledger, confirm_rejection=st.confirm_failure,
         tools={"candidates": cfg.candidates, "e2a": cfg.e2a, "rgpp": cfg.rgpp, "oracle": cfg.oracle},
+        config=cfg.config.model_dump(mode="json"), config_hash=cfg.config.config_hash(),
         agent_stats=trace_stats(st.traces), decision_traces=st.traces)

@@ -41,8 +41,6 @@ DEPTH_SCALE_M = 0.005
 """Depth PNGs store uint16 units of 5 mm (0 to 327 m)."""
 
 
-CameraSettings = CameraConfig  # TODO(integration): drop once engine.py says CameraConfig
-
 
 @dataclass
 class Shot:
@@ -61,7 +59,7 @@ def shoot(scene: Scene, name: str, eye: np.ndarray, forward: np.ndarray, up: np.
     return Shot(name, render, intrinsics_for(size_px, size_px, fov_deg), _pose(eye, forward, up))
 
 
-def nadir(scene: Scene, xy: tuple[float, float], altitude_m: float, cam: CameraSettings) -> Shot:
+def nadir(scene: Scene, xy: tuple[float, float], altitude_m: float, cam: CameraConfig) -> Shot:
     # A hair above the nominal altitude: a camera level with mesh vertices can drop geometry.
     eye = np.array([xy[0], xy[1], altitude_m + 0.013])
     return shoot(scene, "nadir", eye, np.array([0.0, 0.0, -1.0]), np.array([0.0, 1.0, 0.0]),
@@ -69,13 +67,13 @@ def nadir(scene: Scene, xy: tuple[float, float], altitude_m: float, cam: CameraS
 
 
 def ground_view(scene: Scene, name: str, xy: tuple[float, float], yaw_rad: float,
-                cam: CameraSettings) -> Shot:
+                cam: CameraConfig) -> Shot:
     eye = np.array([xy[0], xy[1], UGV_CAMERA_HEIGHT_M])
     forward = np.array([math.cos(yaw_rad), math.sin(yaw_rad), -0.05])
     return shoot(scene, name, eye, forward, np.array([0.0, 0.0, 1.0]), cam.ground_fov_deg, cam.ground_px)
 
 
-def six_views(scene: Scene, xy: tuple[float, float], heading_rad: float, cam: CameraSettings) -> list[Shot]:
+def six_views(scene: Scene, xy: tuple[float, float], heading_rad: float, cam: CameraConfig) -> list[Shot]:
     return [ground_view(scene, name, xy, heading_rad + math.radians(offset), cam)
             for name, offset in SIX_VIEWS]
 
@@ -104,7 +102,7 @@ def grid_overlay(rgb: np.ndarray) -> np.ndarray:
 
 
 def reference_views(scene: Scene, uid: int, position_world_m: tuple[float, float, float], yaw_rad: float,
-                    cam: CameraSettings) -> list[ImageFrame]:
+                    cam: CameraConfig) -> list[ImageFrame]:
     """Render the target alone, in the studio far from the town, from above and from four
     ground-level sides; the background is removed (black RGB, alpha 0 in the PNG)."""
     scene.move(uid, np.asarray(STUDIO_OFFSET_M))
@@ -146,7 +144,7 @@ def _object_frame(centre: np.ndarray, yaw_rad: float) -> np.ndarray:
     return np.linalg.inv(world_from_object)
 
 
-def frames_of(shot: Shot, scene: Scene, cam: CameraSettings, *, with_grid: bool = False,
+def frames_of(shot: Shot, scene: Scene, cam: CameraConfig, *, with_grid: bool = False,
               semantic: bool = True) -> list[ImageFrame]:
     """Encode a shot as wire frames: RGB (and the grid-overlay RGB), depth PNG, semantic PNG."""
     pose = shot.world_from_camera.flatten().tolist()

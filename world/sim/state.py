@@ -22,7 +22,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agos.runtime.links import IDEAL, CommProfile
+from agos.runtime.episode_config import CameraConfig, ConfirmConfig, EpisodeConfig, TimingMode
+from agos.runtime.links import CommProfile
 from agos.runtime.schemas import (
     Candidate,
     EpisodeSpec,
@@ -36,7 +37,6 @@ from agos.runtime.schemas import (
 )
 from agos.world.sim import sensors
 from agos.world.sim.comms import Channel
-from agos.world.sim.confirm import ConfirmSettings
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import Town
 from agos.world.towns.roadgraph import RoadGraphs
@@ -45,37 +45,45 @@ from agos.world.towns.topdown import RegionMap
 
 @dataclass(frozen=True)
 class EpisodeSettings:
-    uav_speed_mps: float = 10.0
-    ugv_speed_mps: float = 8.0
-    wait_max_s: float = 20.0
-    stop_observe_s: float = 2.0
-    short_action_s: float = 1.0
-    uav_visible_min_px: int = 30
-    """Oracle threshold for "target visible from the air" at the default 512 x 512 nadir view."""
-    max_annotations: int = 5
-    sim_time_limit_s: float = 3600.0
-    recent_messages: int = 6
-    max_freeze_s: float = 120.0
+    """The engine's view of an :class:`~agos.runtime.episode_config.EpisodeConfig`, made only by
+    :func:`agos.world.sim.configure.episode_settings`: the same values with pixel thresholds scaled
+    to the configured image sizes and the tools as flags. No defaults here: those live in the
+    configuration, once."""
+
+    config: EpisodeConfig
+    """What these settings were made from (stored in the record with its hash)."""
+    uav_speed_mps: float
+    ugv_speed_mps: float
+    wait_max_s: float
+    stop_observe_s: float
+    short_action_s: float
+    uav_visible_min_px: int
+    """Oracle threshold for "target visible from the air", at the configured nadir view size."""
+    max_annotations: int
+    sim_time_limit_s: float
+    recent_messages: int
+    max_freeze_s: float
     """A UAV that has not heard its candidate resolved by then is asked again (lossy links)."""
-    comm: CommProfile = field(default_factory=lambda: IDEAL)
-    timing_mode: str = "lockstep"
-    candidates: bool = True
-    """Structured candidates: ANNOTATE_CANDIDATE and GO_TO_CANDIDATE exist. Off for the Baseline,
-    which coordinates through text messages only."""
-    e2a: bool = True
-    """Ego-to-Allo projection: a candidate is its grid cell on the ground. Off (no_e2a ablation):
-    the candidate centre is the UAV's ground footprint and its polygon the whole view."""
-    rgpp: bool = True
-    """Road-graph path planning: GO_TO_CANDIDATE exists. Off (no_rgpp): the UGV approaches through
-    road waypoints, each with its distance to the candidate as a hint."""
-    oracle: bool = False
-    """Give observations the ground-truth hints of the oracle policy."""
-    link_seed: int = 0
-    """Extra seed of the link streams, for repeating an episode under other link randomness."""
+    comm: CommProfile
+    timing_mode: TimingMode
     """``lockstep``: the sim clock waits for decisions; ``realtime``: a decision's wall-clock
     latency delays its effect in sim time, while the teammate carries on."""
-    confirm: ConfirmSettings = field(default_factory=ConfirmSettings)
-    cameras: sensors.CameraSettings = field(default_factory=sensors.CameraSettings)
+    candidates: bool
+    """Structured candidates: ANNOTATE_CANDIDATE and GO_TO_CANDIDATE exist. Off for the Baseline,
+    which coordinates through text messages only."""
+    e2a: bool
+    """Ego-to-Allo projection: a candidate is its grid cell on the ground. Off (no_e2a ablation):
+    the candidate centre is the UAV's ground footprint and its polygon the whole view."""
+    rgpp: bool
+    """Road-graph path planning: GO_TO_CANDIDATE exists. Off (no_rgpp): the UGV approaches through
+    road waypoints, each with its distance to the candidate as a hint."""
+    oracle: bool
+    """Give observations the ground-truth hints of the oracle policy."""
+    link_seed: int
+    """Extra seed of the link streams, for repeating an episode under other link randomness."""
+    confirm: ConfirmConfig
+    """The checker's thresholds at the configured ground view size."""
+    cameras: CameraConfig
 
 
 @dataclass
