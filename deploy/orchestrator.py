@@ -20,6 +20,7 @@ import time
 from collections import deque
 from dataclasses import dataclass
 from datetime import UTC, datetime
+from typing import Literal
 
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, ZenohBus
@@ -83,7 +84,7 @@ class Orchestrator:
     def finished(self) -> bool:
         return len(self.stored) >= self.total
 
-    def publish_manifest(self, status: str) -> None:
+    def publish_manifest(self, status: Literal["running", "finished", "interrupted"]) -> None:
         self.bus.publish(keys.manifest(self.run_id), RunManifest(
             run_id=self.run_id, status=status, policies=self.policies, n_episodes=self.total,
             comm_profile=self.config.comm.name, timing_mode=self.config.timing_mode, config_hash=self.config.config_hash(),

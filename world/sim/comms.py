@@ -18,10 +18,14 @@ from __future__ import annotations
 import copy
 import heapq
 from dataclasses import dataclass, field
+from typing import Any, Literal
 
 from agos.runtime.codec import encode
 from agos.runtime.links import CommProfile, Delivery, links_for
 from agos.runtime.schemas import Candidate, LedgerEntry, LinkStats, MessageRecord, Pose, Role
+
+TransmissionKind = Literal["sync", "beacon", "message"]
+"""What a transmission carries (the ledger's ``kind``)."""
 
 STATUS_RANK = {"pending": 0, "arrived": 1, "rejected": 2, "confirmed": 2, "false_confirm": 2}
 MESSAGE_OVERHEAD_BYTES = 64
@@ -53,15 +57,15 @@ class RoleView:
 class _Pending:
     arrive_s: float
     seq: int
-    receiver: str = field(compare=False)
-    kind: str = field(compare=False)
-    payload: dict = field(compare=False)
+    receiver: Role = field(compare=False)
+    kind: TransmissionKind = field(compare=False)
+    payload: dict[str, Any] = field(compare=False)
 
 
 @dataclass
 class Arrival:
     receiver: Role
-    kind: str
+    kind: TransmissionKind
     changed: bool
     """The receiver's knowledge changed (new candidate, status, or a message)."""
     message: MessageRecord | None = None
@@ -73,7 +77,8 @@ class Channel:
         self.links = links_for(profile, seed)
         self.views: dict[Role, RoleView] = {"uav": RoleView(), "ugv": RoleView()}
         # The paper's initial communication: both start knowing where the other is.
-        for role, other in (("uav", "ugv"), ("ugv", "uav")):
+        pairs: tuple[tuple[Role, Role], ...] = (("uav", "ugv"), ("ugv", "uav"))
+        for role, other in pairs:
             self.views[role].teammate_pose = start_poses[other]
             self.views[role].teammate_info_s = 0.0
         self.ledger: list[LedgerEntry] = []
@@ -84,7 +89,8 @@ class Channel:
         self._ages: dict[Role, list[float]] = {"uav": [], "ugv": []}
 
     # ----- sending ------------------------------------------------------------------------------
-    def _send(self, sender: Role, kind: str, t: float, payload: dict, size: int, geometry: tuple[float, bool]) -> Delivery:
+    def _send(self, sender: Role, kind: TransmissionKind, t: float, payload: dict[str, Any], size: int,
+              geometry: tuple[float, bool]) -> Delivery:
         receiver: Role = "ugv" if sender == "uav" else "uav"
         distance, los = geometry
         d = self.links[(sender, receiver)].transmit(t, size, distance_m=distance, line_of_sight=los)
@@ -93,11 +99,12 @@ class Channel:
             seq=self._seq, kind=kind, sender=sender, receiver=receiver, sent_s=round(t, 4), size_bytes=size,
             delivered=d.delivered, arrive_s=None if d.arrive_s is None else round(d.arrive_s, 4),
             delay_s=None if d.arrive_s is None else round(d.arrive_s - t, 4), drop_reason=d.reason))
-        if d.delivered:
+        if d.delivered and d.arrive_s is not None:  # a delivered transmission always has its arrival time
             heapq.heappush(self._pending, _Pending(d.arrive_s, self._seq, receiver, kind, payload))
         return d
 
-    def sync(self, sender: Role, t: float, pose: Pose, geometry: tuple[float, bool], *, kind: str = "sync") -> None:
+    def sync(self, sender: Role, t: float, pose: Pose, geometry: tuple[float, bool], *,
+             kind: TransmissionKind = "sync") -> None:
         """Send the sender's knowledge (its candidates and its pose) to the teammate."""
         cands = [copy.copy(c) for _, c in sorted(self.views[sender].candidates.items())]
         payload = {"candidates": cands, "pose": pose, "t": t}

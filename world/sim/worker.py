@@ -30,6 +30,7 @@ from agos.runtime.schemas import (
     EpisodeRecord,
     EpisodeSpec,
     EpisodeStarted,
+    EpisodeStatus,
     JobGrant,
     JobRequest,
     Observation,
@@ -123,8 +124,8 @@ class BusDecisionSource:
         if not first:  # every later decision: nothing to wait for
             return
         deadline = time.monotonic() + self.agent_wait_s
-        for change in self._ready_changes.drain():
-            self._note_ready(change)
+        for queued in self._ready_changes.drain():
+            self._note_ready(queued)
         while missing := [role for role in first if not self._ready[role]]:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
@@ -284,7 +285,7 @@ class WorldWorker:
         log.info("episode %s: %s (%s) in %.1f s", spec.episode_id, record.termination,
                  "success" if record.success else "failure", time.monotonic() - started)
 
-    def _failed(self, spec: EpisodeSpec, status: str, error: str, started: float,
+    def _failed(self, spec: EpisodeSpec, status: EpisodeStatus, error: str, started: float,
                 config: EpisodeConfig) -> EpisodeRecord:
         return failure_record(self.run_id, spec, status=status, worker_id=self.worker_id, error=error,
                               config=config, wall_time_s=time.monotonic() - started)
