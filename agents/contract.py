@@ -12,9 +12,9 @@ and reads it back as the world will, and answers WAIT for one that fails, as for
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import Any, Protocol, cast
 
-from agos.runtime.schemas import Action, Observation, Role
+from agos.runtime.schemas import Action, ActionName, Observation, Role
 
 
 class Policy(Protocol):
@@ -35,8 +35,9 @@ class Policy(Protocol):
         ...
 
 
-def action_for(obs: Observation, name: str, **fields: object) -> Action:
+def action_for(obs: Observation, name: str, **fields: Any) -> Action:
     """An action answering ``obs`` (run, episode, role and decision index filled in). Built
-    without checks, like any struct: the agent service checks it before sending it."""
+    without checks, like any struct (``name`` is not checked against ``ActionName`` here): the
+    agent service checks it before sending it, and the world refuses an action that is not legal."""
     return Action(run_id=obs.run_id, episode_id=obs.episode_id, role=obs.role,
-                  decision_index=obs.decision_index, action=name, **fields)
+                  decision_index=obs.decision_index, action=cast(ActionName, name), **fields)

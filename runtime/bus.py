@@ -287,7 +287,8 @@ class MemoryBus:
         self._watchers: list[tuple[str, Inbox]] = []
 
     def publish(self, key: str, message: Any) -> None:
-        payload = message if isinstance(message, (bytes, bytearray)) else encode(message)
+        # bytes of their own, as zenoh copies on put (a sender may reuse its buffer: world/sim/worker.py)
+        payload = bytes(message) if isinstance(message, (bytes, bytearray)) else encode(message)
         self.published.append((key, message))
         for expr, inbox in list(self._subs):  # a copy: another thread may (un)subscribe meanwhile
             if _matches(expr, key):

@@ -11,7 +11,6 @@ payloads into the same maps (tests/test_codec.py).
 
 from __future__ import annotations
 
-import functools
 import re
 from typing import Any, TypeVar
 
@@ -52,26 +51,38 @@ def encode_into(message: Any, buffer: bytearray) -> None:
     _ENCODER.encode_into(message, buffer)
 
 
-@functools.cache
-def _decoder(kind: Any) -> msgspec.msgpack.Decoder:
-    return msgspec.msgpack.Decoder(kind)
+_DECODERS: dict[Any, msgspec.msgpack.Decoder[Any]] = {}
+_JSON_DECODERS: dict[Any, msgspec.json.Decoder[Any]] = {}
 
 
-@functools.cache
-def _json_decoder(kind: Any) -> msgspec.json.Decoder:
-    return msgspec.json.Decoder(kind)
+def _decoder(kind: Any) -> msgspec.msgpack.Decoder[Any]:
+    """The msgpack decoder of ``kind``, made once."""
+    found = _DECODERS.get(kind)
+    if found is None:
+        found = _DECODERS[kind] = msgspec.msgpack.Decoder(kind)
+    return found
+
+
+def _json_decoder(kind: Any) -> msgspec.json.Decoder[Any]:
+    found = _JSON_DECODERS.get(kind)
+    if found is None:
+        found = _JSON_DECODERS[kind] = msgspec.json.Decoder(kind)
+    return found
 
 
 def decode(payload: bytes | bytearray | memoryview) -> WireMessage:
     """Any agos payload as the message its ``type`` names."""
-    return decode_as(payload, WireMessage)  # type: ignore[arg-type]  # a union, not a class
+    try:
+        return _decoder(WireMessage).decode(payload)  # the union of the tagged structs: one C pass
+    except (ValueError, RecursionError) as exc:  # msgspec's errors, a bad UTF-8 string, nesting too deep
+        raise _error(exc, "msgpack") from None
 
 
 def decode_as(payload: bytes | bytearray | memoryview, kind: type[T]) -> T:
     """A payload of a known message type (or any type msgspec reads) as that type."""
     try:
         return _decoder(kind).decode(payload)
-    except (ValueError, RecursionError) as exc:  # msgspec's errors, a bad UTF-8 string, nesting too deep
+    except (ValueError, RecursionError) as exc:
         raise _error(exc, "msgpack") from None
 
 
