@@ -119,7 +119,9 @@ class _MatchingFlag:
 
     def __init__(self, publisher: zenoh.Publisher) -> None:
         self._listener = publisher.declare_matching_listener(self._update)
-        self.matching = publisher.matching_status.matching  # after declaring: no change is missed
+        # After declaring: no change is missed. zenoh's stub types matching_status as bool; at run
+        # time (zenoh-python 1.x) it is a MatchingStatus.
+        self.matching = publisher.matching_status.matching  # type: ignore[attr-defined]
 
     def _update(self, status: zenoh.MatchingStatus) -> None:
         self.matching = status.matching
@@ -237,7 +239,7 @@ class ZenohBus:
         """Start-up race guard: wait until someone subscribes to ``key`` (ZENOH_NOTES.md)."""
         pub = self._publisher(key)
         deadline = time.monotonic() + timeout_s
-        while not pub.matching_status.matching:
+        while not pub.matching_status.matching:  # type: ignore[attr-defined]  # stub says bool: see _MatchingFlag
             if time.monotonic() > deadline:
                 return False
             time.sleep(0.01)
