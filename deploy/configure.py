@@ -13,7 +13,7 @@ from pydantic import ValidationError
 from agos.agents.names import tools_for
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.links import load_profile
-from agos.runtime.settings import AgosConfig, ConfigError
+from agos.runtime.settings import AgosConfig, config_error
 
 
 def episode_config(cfg: AgosConfig, *, policies: dict[str, str], comm: str | None = None,
@@ -31,6 +31,4 @@ def episode_config(cfg: AgosConfig, *, policies: dict[str, str], comm: str | Non
     try:
         return EpisodeConfig.model_validate(data)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        field = ".".join(str(p) for p in err["loc"])
-        raise ConfigError(f"config error: command line: world.{field}: {err['msg']}") from None
+        raise config_error(exc, "command line", section="world.") from None

@@ -93,13 +93,18 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def config_error(exc: ValidationError, source: str, *, section: str = "") -> ConfigError:
+    """The one line for a settings value pydantic refused: the source, the dotted field, the reason."""
+    err = exc.errors()[0]
+    field = section + ".".join(str(p) for p in err["loc"])
+    return ConfigError(f"config error: {source}: {field}: {err['msg']}")
+
+
 def _validate(data: dict[str, Any], source: str) -> AgosConfig:
     try:
         return AgosConfig.model_validate(data)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        field = ".".join(str(p) for p in err["loc"])
-        raise ConfigError(f"config error: {source}: {field}: {err['msg']}") from None
+        raise config_error(exc, source) from None
 
 
 def load_config(path: Path | None = None, *, overrides: dict[str, Any] | None = None,
