@@ -106,8 +106,8 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "he
               console: Console | None = None) -> int:
     from agos.deploy.configure import episode_config
     from agos.world.episodes.sampling import generate_episodes
-    from agos.world.sim.configure import episode_settings, with_budget
     from agos.world.sim.engine import EpisodeRunner
+    from agos.world.sim.engine_settings import episode_settings, with_budget
     from agos.world.sim.scene import Scene
     from agos.world.sim.worker import BusDecisionSource, BusSink, MissingAgent
     from agos.world.towns.asset import open_town

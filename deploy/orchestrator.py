@@ -26,7 +26,7 @@ from agos.runtime import keys
 from agos.runtime.bus import Inbox, ZenohBus
 from agos.runtime.codec import DecodeError, decode, encode
 from agos.runtime.episode_config import EpisodeConfig
-from agos.runtime.records import failure_record
+from agos.runtime.failure_records import failure_record
 from agos.runtime.schemas import EpisodeRecord, EpisodeSpec, JobGrant, JobRequest, ResultAck, RunManifest
 
 log = logging.getLogger("agos.orchestrator")

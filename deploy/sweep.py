@@ -56,8 +56,8 @@ def _run_point_episode(args: tuple[str, str, list[str], str]) -> str:
     from agos.agents.registry import make_policy
     from agos.runtime.episode_config import EpisodeConfig
     from agos.runtime.schemas import EpisodeSpec
-    from agos.world.sim.configure import episode_settings, with_budget
     from agos.world.sim.engine import EpisodeRunner
+    from agos.world.sim.engine_settings import episode_settings, with_budget
     from agos.world.sim.scene import Scene
     from agos.world.towns.asset import town_for
 

@@ -15,7 +15,7 @@ from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.links import IDEAL, Blackout, CommProfile, Delivery, LatencySpec, LossSpec, RangeSpec, load_profile
 from agos.runtime.schemas import Candidate, MessageRecord, Pose
 from agos.world.sim.comms import MESSAGE_OVERHEAD_BYTES, STATUS_RANK, Arrival, Channel, RoleView
-from agos.world.sim.configure import episode_settings
+from agos.world.sim.engine_settings import episode_settings
 
 NEAR = (10.0, True)  # (distance_m, line_of_sight) of the two roles
 

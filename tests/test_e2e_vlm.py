@@ -27,8 +27,8 @@ from agos.deploy.launcher import free_port, wait_listening
 from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.runtime.settings import VlmOptions
 from agos.world.episodes.sampling import read_episodes
-from agos.world.sim.configure import episode_settings
 from agos.world.sim.engine import EpisodeRunner
+from agos.world.sim.engine_settings import episode_settings
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import open_town
 

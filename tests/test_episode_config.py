@@ -16,7 +16,7 @@ from agos.evaluator.pooling import mixed_configurations
 from agos.evaluator.store import ResultStore
 from agos.evaluator.summary import read_run
 from agos.runtime.episode_config import EpisodeConfig, differing_fields
-from agos.runtime.records import failure_record
+from agos.runtime.failure_records import failure_record
 from agos.runtime.schemas import EpisodeSpec, JobGrant, TownRef, VehicleSpec
 from agos.runtime.settings import ConfigError, load_config
 

@@ -11,8 +11,8 @@ from agos.agents.registry import make_policy
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.schemas import Action, EpisodeRecord, EpisodeSpec, Observation, Role, StepEvent
 from agos.world.episodes.sampling import generate_episodes
-from agos.world.sim.configure import episode_settings
 from agos.world.sim.engine import EpisodeRunner, NullSink
+from agos.world.sim.engine_settings import episode_settings
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import build_town
 

@@ -14,8 +14,8 @@ from agos.agents.registry import make_policy
 from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.world.episodes.sampling import generate_episodes
 from agos.world.sim import sensors
-from agos.world.sim.configure import episode_settings
 from agos.world.sim.engine import EpisodeRunner
+from agos.world.sim.engine_settings import episode_settings
 from agos.world.sim.options import shortest_path
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import open_town

@@ -49,12 +49,12 @@ from agos.runtime.schemas import (
 )
 from agos.world.sim import rules, sensors
 from agos.world.sim.comms import Channel
-from agos.world.sim.configure import episode_settings
+from agos.world.sim.engine_settings import EpisodeSettings, episode_settings
 from agos.world.sim.observations import coordination, observe, uav_waypoint
 from agos.world.sim.record import episode_record, shortest_confirmable_path
 from agos.world.sim.rules import IllegalAction
 from agos.world.sim.scene import Scene
-from agos.world.sim.state import EpisodeSettings, EpisodeState, UavState, UgvState
+from agos.world.sim.state import EpisodeState, UavState, UgvState
 from agos.world.towns.asset import Town
 from agos.world.towns.roadgraph import RoadGraphs
 from agos.world.towns.topdown import RegionMap

@@ -2,8 +2,7 @@
 
 Contract: :class:`EpisodeState` is plain data plus read-only views of it (poses, link geometry,
 the candidate a role believes active). It never renders, draws a random number or sends through
-a link; the modules that change it are named on each field group. :class:`EpisodeSettings` holds
-every number and switch the engine, the rules and the observations read.
+a link; the modules that change it are named on each field group.
 
 Who changes what:
 
@@ -22,8 +21,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agos.runtime.episode_config import CameraConfig, ConfirmConfig, EpisodeConfig, TimingMode
-from agos.runtime.links import CommProfile
 from agos.runtime.schemas import (
     Candidate,
     EpisodeSpec,
@@ -37,53 +34,11 @@ from agos.runtime.schemas import (
 )
 from agos.world.sim import sensors
 from agos.world.sim.comms import Channel
+from agos.world.sim.engine_settings import EpisodeSettings
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import Town
 from agos.world.towns.roadgraph import RoadGraphs
 from agos.world.towns.topdown import RegionMap
-
-
-@dataclass(frozen=True)
-class EpisodeSettings:
-    """The engine's view of an :class:`~agos.runtime.episode_config.EpisodeConfig`, made only by
-    :func:`agos.world.sim.configure.episode_settings`: the same values with pixel thresholds scaled
-    to the configured image sizes and the tools as flags. No defaults here: those live in the
-    configuration, once."""
-
-    config: EpisodeConfig
-    """What these settings were made from (stored in the record with its hash)."""
-    uav_speed_mps: float
-    ugv_speed_mps: float
-    wait_max_s: float
-    stop_observe_s: float
-    short_action_s: float
-    uav_visible_min_px: int
-    """Oracle threshold for "target visible from the air", at the configured nadir view size."""
-    max_annotations: int
-    sim_time_limit_s: float
-    recent_messages: int
-    max_freeze_s: float
-    """A UAV that has not heard its candidate resolved by then is asked again (lossy links)."""
-    comm: CommProfile
-    timing_mode: TimingMode
-    """``lockstep``: the sim clock waits for decisions; ``realtime``: a decision's wall-clock
-    latency delays its effect in sim time, while the teammate carries on."""
-    candidates: bool
-    """Structured candidates: ANNOTATE_CANDIDATE and GO_TO_CANDIDATE exist. Off for the Baseline,
-    which coordinates through text messages only."""
-    e2a: bool
-    """Ego-to-Allo projection: a candidate is its grid cell on the ground. Off (no_e2a ablation):
-    the candidate centre is the UAV's ground footprint and its polygon the whole view."""
-    rgpp: bool
-    """Road-graph path planning: GO_TO_CANDIDATE exists. Off (no_rgpp): the UGV approaches through
-    road waypoints, each with its distance to the candidate as a hint."""
-    oracle: bool
-    """Give observations the ground-truth hints of the oracle policy."""
-    link_seed: int
-    """Extra seed of the link streams, for repeating an episode under other link randomness."""
-    confirm: ConfirmConfig
-    """The checker's thresholds at the configured ground view size."""
-    cameras: CameraConfig
 
 
 @dataclass

@@ -21,8 +21,8 @@ from agos.runtime import keys
 from agos.runtime.bus import Inbox, Sample, ZenohBus, zenoh_config
 from agos.runtime.codec import DecodeError, decode, decode_as, encode, encode_into
 from agos.runtime.episode_config import EpisodeConfig
+from agos.runtime.failure_records import failure_record
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
-from agos.runtime.records import failure_record
 from agos.runtime.schemas import (
     Action,
     AgentMessage,
@@ -40,8 +40,8 @@ from agos.runtime.schemas import (
 )
 from agos.runtime.settings import AgosConfig
 from agos.runtime.viz import FrameStream
-from agos.world.sim.configure import episode_settings, with_budget
 from agos.world.sim.engine import EpisodeRunner
+from agos.world.sim.engine_settings import episode_settings, with_budget
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import AssetError, AssetMismatch, Town, town_for
 
