@@ -107,7 +107,6 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "he
     from agos.deploy.configure import episode_config
     from agos.world.episodes.sampling import generate_episodes
     from agos.world.sim.engine import EpisodeRunner
-    from agos.world.sim.engine_settings import episode_settings, with_budget
     from agos.world.sim.scene import Scene
     from agos.world.sim.worker import BusDecisionSource, BusSink, MissingAgent
     from agos.world.towns.asset import open_town
@@ -123,7 +122,7 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "he
     record: EpisodeRecord | None = None
     try:
         spec = generate_episodes(town, scene, per_difficulty=1, seed=cfg.run.episode_seed)[0]
-        spec = with_budget(msgspec.structs.replace(spec, episode_id=f"check-{spec.episode_id}"), config)
+        spec = msgspec.structs.replace(spec, episode_id=f"check-{spec.episode_id}")
         console.print(f"checking the agents of run {run_id!r} on {cfg.zenoh.connect}: episode {spec.episode_id}, "
                       f"{budget} decisions")
         source = BusDecisionSource(bus, run_id, spec.episode_id, worker_id=f"check-{os.getpid()}",
@@ -131,7 +130,7 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "he
         sink = StepChecks(BusSink(bus, run_id, spec.episode_id), v)
         try:
             record = EpisodeRunner(scene, town, spec, run_id=run_id, worker_id="check", sink=sink,
-                                   settings=episode_settings(config)).run(CheckingSource(source, v))
+                                   config=config).run(CheckingSource(source, v))
             v.check("subscribed", True)
         except MissingAgent as exc:
             v.check("subscribed", False, str(exc))

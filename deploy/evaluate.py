@@ -28,7 +28,7 @@ from agos.evaluator.metrics import by_difficulty
 from agos.evaluator.store import ResultStore, results_path
 from agos.evaluator.table import results_table
 from agos.runtime.bus import ZenohBus
-from agos.runtime.episode_config import EpisodeConfig
+from agos.runtime.episode_config import EpisodeConfig, StoredConfigError, read_config
 from agos.runtime.process import install_stop_handlers
 from agos.runtime.schemas import EpisodeSpec
 from agos.runtime.settings import AgosConfig
@@ -122,9 +122,9 @@ def resume_plan(run_dir: Path) -> RunPlan:
     if "episode_config" not in meta:
         raise RunDirError(f"{path}: made by an agos without episode configurations; start a new run")
     try:
-        config = EpisodeConfig.model_validate(meta["episode_config"])
-    except ValueError as exc:
-        raise RunDirError(f"{path}: episode_config is not valid here ({str(exc).splitlines()[0]})") from None
+        config = read_config(meta["episode_config"], where=str(path))
+    except StoredConfigError as exc:
+        raise RunDirError(str(exc)) from None
     return RunPlan(run_dir, read_episodes(run_dir / "episodes.jsonl"), meta["policies"], config, resumed=True,
                    vlm=meta.get("vlm", {}))
 

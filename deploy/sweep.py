@@ -57,7 +57,6 @@ def _run_point_episode(args: tuple[str, str, list[str], str]) -> str:
     from agos.runtime.episode_config import EpisodeConfig
     from agos.runtime.schemas import EpisodeSpec
     from agos.world.sim.engine import EpisodeRunner
-    from agos.world.sim.engine_settings import episode_settings, with_budget
     from agos.world.sim.scene import Scene
     from agos.world.towns.asset import town_for
 
@@ -68,10 +67,9 @@ def _run_point_episode(args: tuple[str, str, list[str], str]) -> str:
         _CACHE[key] = (town, Scene(town.layout))
     town, scene = _CACHE[key]
     config = EpisodeConfig.model_validate_json(config_json)
-    spec = with_budget(spec, config)
     agents = InProcessAgents({"uav": make_policy(policies[0], "uav"), "ugv": make_policy(policies[1], "ugv")})
     record = EpisodeRunner(scene, town, spec, run_id="sweep", worker_id="sweep",
-                           settings=episode_settings(config)).run(agents)
+                           config=config).run(agents)
     return to_json(record).decode()
 
 

@@ -51,22 +51,14 @@ def encode_into(message: Any, buffer: bytearray) -> None:
     _ENCODER.encode_into(message, buffer)
 
 
-_DECODERS: dict[Any, msgspec.msgpack.Decoder[Any]] = {}
-_JSON_DECODERS: dict[Any, msgspec.json.Decoder[Any]] = {}
+_DECODERS: dict[tuple[str, Any], Any] = {}
 
 
-def _decoder(kind: Any) -> msgspec.msgpack.Decoder[Any]:
-    """The msgpack decoder of ``kind``, made once."""
-    found = _DECODERS.get(kind)
+def _decoder(kind: Any, syntax: str = "msgpack") -> Any:
+    """The msgspec decoder of ``kind`` for ``syntax`` (``msgpack`` or ``json``), made once."""
+    found = _DECODERS.get((syntax, kind))
     if found is None:
-        found = _DECODERS[kind] = msgspec.msgpack.Decoder(kind)
-    return found
-
-
-def _json_decoder(kind: Any) -> msgspec.json.Decoder[Any]:
-    found = _JSON_DECODERS.get(kind)
-    if found is None:
-        found = _JSON_DECODERS[kind] = msgspec.json.Decoder(kind)
+        found = _DECODERS[(syntax, kind)] = (msgspec.msgpack if syntax == "msgpack" else msgspec.json).Decoder(kind)
     return found
 
 
@@ -94,7 +86,7 @@ def to_json(message: Any) -> bytes:
 def from_json(data: bytes | str, kind: type[T]) -> T:
     """JSON of a known message type as that type; :class:`DecodeError` names the field."""
     try:
-        return _json_decoder(kind).decode(data)
+        return _decoder(kind, "json").decode(data)
     except (ValueError, RecursionError) as exc:
         raise _error(exc, "JSON") from None
 

@@ -18,7 +18,7 @@ import hashlib
 import json
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from agos.runtime.links import IDEAL, CommProfile
 
@@ -125,6 +125,22 @@ class EpisodeConfig(_Part):
         view size (what :func:`agos.world.sim.confirm.check_confirm` compares against)."""
         scale = (self.cameras.ground_px / CONFIRM_REFERENCE_PX) ** 2
         return self.confirm.model_copy(update={"min_target_pixels": max(1, round(self.confirm.min_target_pixels * scale))})
+
+
+class StoredConfigError(ValueError):
+    """A stored or sent configuration this agos cannot read; the text names where and the field."""
+
+
+def read_config(data: Any, *, where: str) -> EpisodeConfig:
+    """The configuration in ``data`` (a stored or sent map: a job grant, ``run.json``), checked;
+    :class:`StoredConfigError` names ``where`` and the first field that fails."""
+    try:
+        return EpisodeConfig.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        field = ".".join(str(p) for p in err["loc"]) or "<config>"
+        raise StoredConfigError(f"{where}: episode configuration field {field}: {err['msg']} "
+                                "(written by another agos version?)") from None
 
 
 def config_hash(data: dict[str, Any]) -> str:

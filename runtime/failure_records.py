@@ -14,7 +14,7 @@ def failure_record(run_id: str, spec: EpisodeSpec, *, status: EpisodeStatus, wor
     return EpisodeRecord(
         run_id=run_id, episode_id=spec.episode_id, difficulty=spec.difficulty, status=status, termination="error",
         success=False, ground_observed=False, n_confirm=0, ugv_path_length_m=0.0, shortest_path_length_m=None,
-        final_distance_m=0.0, uav_budget=spec.decision_budget, uav_first_visible_step=None, candidates=[],
+        final_distance_m=0.0, uav_budget=config.decision_budget or spec.decision_budget, uav_first_visible_step=None, candidates=[],
         decisions_uav=0, decisions_ugv=0, sim_time_s=0.0, wall_time_s=round(wall_time_s, 3), worker_id=worker_id,
         town_id=spec.town.town_id, asset_sha256=spec.asset_sha256, seed=spec.seed, renderer=config.renderer,
         comm_profile=config.comm.name, timing_mode=config.timing_mode, tools=config.tools.model_dump(),

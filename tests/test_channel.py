@@ -15,7 +15,6 @@ from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.links import IDEAL, Blackout, CommProfile, Delivery, LatencySpec, LossSpec, RangeSpec, load_profile
 from agos.runtime.schemas import Candidate, MessageRecord, Pose
 from agos.world.sim.comms import MESSAGE_OVERHEAD_BYTES, STATUS_RANK, Arrival, Channel, RoleView
-from agos.world.sim.engine_settings import episode_settings
 
 NEAR = (10.0, True)  # (distance_m, line_of_sight) of the two roles
 
@@ -400,7 +399,7 @@ def lossy_records():
         for _ in range(2):
             agents = InProcessAgents({role: make_policy("heuristic", role) for role in ("uav", "ugv")})
             runner = EpisodeRunner(scene, town, spec, run_id="links", worker_id="w",
-                                   settings=episode_settings(EpisodeConfig(comm=load_profile("lossy"))))
+                                   config=EpisodeConfig(comm=load_profile("lossy")))
             records.append(runner.run(agents))
     finally:
         scene.close()

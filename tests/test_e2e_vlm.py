@@ -28,7 +28,6 @@ from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.runtime.settings import VlmOptions
 from agos.world.episodes.sampling import read_episodes
 from agos.world.sim.engine import EpisodeRunner
-from agos.world.sim.engine_settings import episode_settings
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import open_town
 
@@ -54,10 +53,9 @@ def reference(episode_file) -> dict[str, dict]:
         options = VlmOptions(base_url=server.url, model="agos-standin")
         for policy in POLICIES:
             tools = tools_for({"uav": policy, "ugv": policy})
-            settings = episode_settings(EpisodeConfig(tools=ToolConfig(candidates=tools["candidates"], e2a=tools["e2a"],
-                                                                     rgpp=tools["rgpp"])))
+            config = EpisodeConfig(tools=ToolConfig(candidates=tools["candidates"], e2a=tools["e2a"], rgpp=tools["rgpp"]))
             agents = InProcessAgents({r: make_policy(policy, r, vlm=options) for r in ("uav", "ugv")})
-            record = EpisodeRunner(scene, town, spec, run_id="ref", worker_id="w", settings=settings).run(agents)
+            record = EpisodeRunner(scene, town, spec, run_id="ref", worker_id="w", config=config).run(agents)
             out[policy] = msgspec.to_builtins(record)
     scene.close()
     return out

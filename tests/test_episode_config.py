@@ -15,7 +15,7 @@ from agos.deploy.configure import episode_config
 from agos.evaluator.pooling import mixed_configurations
 from agos.evaluator.store import ResultStore
 from agos.evaluator.summary import read_run
-from agos.runtime.episode_config import EpisodeConfig, differing_fields
+from agos.runtime.episode_config import EpisodeConfig, differing_fields, read_config
 from agos.runtime.failure_records import failure_record
 from agos.runtime.schemas import EpisodeSpec, JobGrant, TownRef, VehicleSpec
 from agos.runtime.settings import ConfigError, load_config
@@ -68,11 +68,9 @@ def _spec(episode_id: str) -> EpisodeSpec:
 
 def test_grant_and_record_carry_the_whole_configuration() -> None:
     from agos.runtime.codec import decode, encode
-    from agos.world.sim.worker import episode_config_of
-
     config = EpisodeConfig.model_validate({"ugv_speed_mps": 6.0, "comm": {"name": "x"}})
     grant = decode(encode(JobGrant(episode=_spec("e1"), config=config.model_dump(mode="json"))))
-    assert episode_config_of(grant) == config
+    assert read_config(grant.config, where="job grant") == config
     record = failure_record("r", _spec("e1"), status="world_crashed", worker_id="w", error="x", config=config)
     assert record.config_hash == config.config_hash() and record.config["ugv_speed_mps"] == 6.0
 

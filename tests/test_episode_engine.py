@@ -12,7 +12,6 @@ from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.schemas import Action, EpisodeRecord, EpisodeSpec, Observation, Role, StepEvent
 from agos.world.episodes.sampling import generate_episodes
 from agos.world.sim.engine import EpisodeRunner, NullSink
-from agos.world.sim.engine_settings import episode_settings
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import build_town
 
@@ -165,7 +164,7 @@ def test_every_message_is_written_with_its_declared_types(world) -> None:
             return agents.decide(observations)
 
     record = EpisodeRunner(scene, town, episodes["mid000"], run_id="t", worker_id="w", sink=sink,
-                           settings=episode_settings(EpisodeConfig(comm=load_profile("lossy")))).run(Spy())
+                           config=EpisodeConfig(comm=load_profile("lossy"))).run(Spy())
     assert record.ledger and sink.messages and seen
     for message in [*seen, *sink.messages, record]:
         payload = encode(message)

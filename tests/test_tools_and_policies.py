@@ -15,7 +15,6 @@ from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.world.episodes.sampling import generate_episodes
 from agos.world.sim import sensors
 from agos.world.sim.engine import EpisodeRunner
-from agos.world.sim.engine_settings import episode_settings
 from agos.world.sim.options import shortest_path
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import open_town
@@ -98,9 +97,9 @@ def world():
 def _run(world, policy: str, spec, sink=None):
     town, scene, _ = world
     tools = tools_for({"uav": policy, "ugv": policy})
-    settings = episode_settings(EpisodeConfig(tools=ToolConfig(e2a=tools["e2a"], rgpp=tools["rgpp"], oracle=tools["oracle"])))
+    config = EpisodeConfig(tools=ToolConfig(e2a=tools["e2a"], rgpp=tools["rgpp"], oracle=tools["oracle"]))
     agents = InProcessAgents({r: make_policy(policy, r) for r in ("uav", "ugv")})
-    return EpisodeRunner(scene, town, spec, run_id="t", worker_id="w", settings=settings, sink=sink).run(agents)
+    return EpisodeRunner(scene, town, spec, run_id="t", worker_id="w", config=config, sink=sink).run(agents)
 
 
 def test_oracle_solves_every_episode_and_random_is_legal(world) -> None:
@@ -122,9 +121,9 @@ def test_no_rgpp_removes_go_to_candidate_and_gives_distance_hints(world) -> None
             return self.inner.decide(observations)
 
     town, scene, episodes = world
-    settings = episode_settings(EpisodeConfig(tools=ToolConfig(rgpp=False)))
+    config = EpisodeConfig(tools=ToolConfig(rgpp=False))
     agents = Spy(InProcessAgents({r: make_policy("heuristic:no_rgpp", r) for r in ("uav", "ugv")}))
-    record = EpisodeRunner(scene, town, episodes[0], run_id="t", worker_id="w", settings=settings).run(agents)
+    record = EpisodeRunner(scene, town, episodes[0], run_id="t", worker_id="w", config=config).run(agents)
     ugv = [o for o in seen if o.role == "ugv"]
     assert all("GO_TO_CANDIDATE" not in o.legal_actions for o in ugv)
     with_candidate = [o for o in ugv if any(c.status == "pending" for c in o.coordination.candidates)]

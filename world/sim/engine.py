@@ -49,7 +49,6 @@ from agos.runtime.schemas import (
 )
 from agos.world.sim import rules, sensors
 from agos.world.sim.comms import Channel
-from agos.world.sim.engine_settings import EpisodeSettings, episode_settings
 from agos.world.sim.observations import coordination, observe, uav_waypoint
 from agos.world.sim.record import episode_record, shortest_confirmable_path
 from agos.world.sim.rules import IllegalAction
@@ -59,7 +58,7 @@ from agos.world.towns.asset import Town
 from agos.world.towns.roadgraph import RoadGraphs
 from agos.world.towns.topdown import RegionMap
 
-__all__ = ["ROLE_ORDER", "DecisionSource", "EpisodeRunner", "EpisodeSettings", "EpisodeSink", "IllegalAction",
+__all__ = ["ROLE_ORDER", "DecisionSource", "EpisodeRunner", "EpisodeSink", "IllegalAction",
            "NullSink"]
 
 ROLE_ORDER: tuple[Role, Role] = ("uav", "ugv")
@@ -96,10 +95,12 @@ class EpisodeRunner:
     """Runs one :class:`EpisodeSpec` in a :class:`Scene` of its town."""
 
     def __init__(self, scene: Scene, town: Town, spec: EpisodeSpec, *, run_id: str, worker_id: str,
-                 settings: EpisodeSettings | None = None, sink: EpisodeSink | None = None,
+                 config: EpisodeConfig | None = None, sink: EpisodeSink | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        self.state = EpisodeState(scene, town, spec, run_id=run_id, worker_id=worker_id,
-                                  settings=settings or episode_settings(EpisodeConfig()))
+        config = config or EpisodeConfig()
+        if config.decision_budget is not None:  # a configured budget replaces the episode's own
+            spec = msgspec.structs.replace(spec, decision_budget=config.decision_budget)
+        self.state = EpisodeState(scene, town, spec, run_id=run_id, worker_id=worker_id, config=config)
         self.state.searchable_area = [uav_waypoint(town, n) for n in sorted(self.state.active_uav)]
         self.sink = sink or NullSink()
         self._clock = clock
@@ -123,7 +124,7 @@ class EpisodeRunner:
         st.ugv = UgvState(start, st.roads.heading_at(start), route=[start])
         st.start_node = start
         st.shortest_path_m = shortest_confirmable_path(scene, st.town, start, spec.target, st.target_uid,
-                                                       cfg.confirm, cfg.cameras)
+                                                       cfg.confirm_at_view_size(), cfg.cameras)
         st.channel = Channel(cfg.comm, spec.seed + 7919 * cfg.link_seed, {"uav": st.uav_pose(), "ugv": st.ugv_pose()})
         st.info_age = {"uav": None, "ugv": None}
 
@@ -242,7 +243,7 @@ class EpisodeRunner:
             run_id=st.run_id, episode_id=st.spec.episode_id, role=role, decision_index=obs.decision_index,
             episode_step=st.decisions_used, sim_time_s=st.sim_time_s, requested=action, applied=applied,
             fallback_reason=fallback, pose_after=st.uav_pose() if role == "uav" else st.ugv_pose(),
-            target_visible_uav=st.uav_target_px >= st.cfg.uav_visible_min_px if role == "uav" else None,
+            target_visible_uav=st.uav_target_px >= st.cfg.uav_visible_min_px() if role == "uav" else None,
             target_visible_ugv=st.ground_visible if role == "ugv" and applied == "STOP_OBSERVE" else None,
             candidate_id=candidate_id, info_age_s=st.info_age[role]))
 

@@ -34,7 +34,7 @@ def observe(st: EpisodeState, role: Role) -> Observation:
         shot = sensors.nadir(st.scene, st.uav.position[:2], st.uav.position[2], cam)
         st.uav.last_nadir = shot
         st.uav_target_px = sensors.target_pixels(shot, st.target_uid)
-        if st.tau is None and st.uav_target_px >= st.cfg.uav_visible_min_px:
+        if st.tau is None and st.uav_target_px >= st.cfg.uav_visible_min_px():
             st.tau = st.uav.decisions
         images = sensors.frames_of(shot, st.scene, cam, with_grid=True) + _map_frame(st)
         options = [uav_waypoint(st.town, n) for n in uav_options(st.town.uav_grid, st.uav.position[:2], st.active_uav)]
@@ -46,7 +46,7 @@ def observe(st: EpisodeState, role: Role) -> Observation:
             region_world_m=st.spec.region_world_m,
             active_uav_waypoints=st.searchable_area,
             coordination=coordination(st, "uav"), grid_rows=sensors.GRID_ROWS, grid_cols=sensors.GRID_COLS,
-            oracle=_oracle(st, "uav", st.uav_target_px >= st.cfg.uav_visible_min_px))
+            oracle=_oracle(st, "uav", st.uav_target_px >= st.cfg.uav_visible_min_px()))
     st.ugv.decisions += 1
     if st.ugv.mode == "stop_6view":
         images = [f for shot in st.ugv.six for f in sensors.frames_of(shot, st.scene, cam)] + _map_frame(st)
@@ -102,7 +102,7 @@ def _map_frame(st: EpisodeState) -> list[ImageFrame]:
 def _ugv_options(st: EpisodeState) -> list[Waypoint]:
     """The UGV's road options; without RGPP each carries its distance to the active candidate."""
     pos = st.roads.positions_world_m
-    cand = None if st.cfg.rgpp else st.active_candidate("ugv")
+    cand = None if st.cfg.tools.rgpp else st.active_candidate("ugv")
     return [Waypoint(waypoint_id=RoadGraphs.anchor_id(o.anchor),
                      position_world_m=(float(pos[o.anchor][0]), float(pos[o.anchor][1]), 0.0),
                      kind=st.roads.anchors[o.anchor], path_length_m=o.path_length_m, option=o.option,
@@ -111,7 +111,8 @@ def _ugv_options(st: EpisodeState) -> list[Waypoint]:
 
 
 def _oracle(st: EpisodeState, role: Role, target_in_view: bool) -> OracleHints | None:
-    if not st.cfg.oracle:
+    if not st.cfg.tools.oracle:
         return None
-    would = role == "ugv" and st.ugv.mode == "stop_6view" and not check_confirm(rules.confirm_evidence(st), st.cfg.confirm)
+    would = role == "ugv" and st.ugv.mode == "stop_6view" and not check_confirm(
+        rules.confirm_evidence(st), st.cfg.confirm_at_view_size())
     return OracleHints(target_world_m=st.target_xy, target_in_view=target_in_view, confirm_would_succeed=would)

@@ -71,6 +71,6 @@ def episode_record(st: EpisodeState, wall_time_s: float) -> EpisodeRecord:
         town_id=st.town.town_id, asset_sha256=st.town.sha256, seed=st.spec.seed,
         renderer=st.scene.renderer_name(), comm_profile=cfg.comm.name, timing_mode=cfg.timing_mode,
         link=st.channel.stats(st.candidates), ledger=st.channel.ledger, confirm_rejection=st.confirm_failure,
-        tools={"candidates": cfg.candidates, "e2a": cfg.e2a, "rgpp": cfg.rgpp, "oracle": cfg.oracle},
-        config=cfg.config.model_dump(mode="json"), config_hash=cfg.config.config_hash(),
+        tools=cfg.tools.model_dump(),
+        config=cfg.model_dump(mode="json"), config_hash=cfg.config_hash(),
         agent_stats=trace_stats(st.traces), decision_traces=st.traces)

@@ -39,7 +39,7 @@ class IllegalAction(ValueError):
 # ----- legality ---------------------------------------------------------------------------------
 def uav_legal(st: EpisodeState, options: list[Waypoint]) -> list[ActionName]:
     legal: list[ActionName] = ["MOVE_TO_UAV_WAYPOINT"] if options else []
-    if (st.cfg.candidates and st.active_candidate("uav") is None
+    if (st.cfg.tools.candidates and st.active_candidate("uav") is None
             and len(st.candidates) < st.cfg.max_annotations):
         legal.append("ANNOTATE_CANDIDATE")
     return [*legal, "NO_RELIABLE_CANDIDATE", "WAIT"]
@@ -47,7 +47,7 @@ def uav_legal(st: EpisodeState, options: list[Waypoint]) -> list[ActionName]:
 
 def ugv_legal(st: EpisodeState, options: list[Waypoint]) -> list[ActionName]:
     legal: list[ActionName] = ["MOVE_TO_ROAD_WAYPOINT"] if options else []
-    if st.active_candidate("ugv") is not None and st.cfg.rgpp:
+    if st.active_candidate("ugv") is not None and st.cfg.tools.rgpp:
         legal.append("GO_TO_CANDIDATE")
     legal += ["STOP_OBSERVE", "CONFIRM"]
     if st.active_candidate("ugv") is not None or st.ugv.mode == "stop_6view":
@@ -135,13 +135,13 @@ def _apply_ugv(st: EpisodeState, action: Action, obs: Observation) -> str | None
     if kind == "STOP_OBSERVE":
         ugv.mode, ugv.fresh_stop = "stop_6view", True
         ugv.six = sensors.six_views(st.scene, st.ugv_xy(), ugv.heading_rad, st.cfg.cameras)
-        st.ground_visible = not check_confirm(confirm_evidence(st), st.cfg.confirm)
+        st.ground_visible = not check_confirm(confirm_evidence(st), st.cfg.confirm_at_view_size())
         st.ground_observed |= st.ground_visible
         ugv.ready_at = now + st.cfg.stop_observe_s
         return None
     if kind == "CONFIRM":
         st.n_confirm += 1
-        reasons = check_confirm(confirm_evidence(st), st.cfg.confirm)
+        reasons = check_confirm(confirm_evidence(st), st.cfg.confirm_at_view_size())
         active = st.active_candidate("ugv")
         if active is not None:
             _set_status(st, active.candidate_id, "false_confirm" if reasons else "confirmed")
@@ -204,7 +204,7 @@ def _project_cell(st: EpisodeState, cell: str) -> tuple[list[tuple[float, float]
     UAV's whole ground footprint, centred below it."""
     uav = st.uav
     assert uav.last_nadir is not None
-    if st.cfg.e2a:
+    if st.cfg.tools.e2a:
         polygon = sensors.cell_polygon_world(cell, uav.last_nadir.world_from_camera, uav.last_nadir.intrinsics)
         return polygon, centroid(polygon)
     polygon = sensors.footprint_world(uav.last_nadir.world_from_camera, uav.last_nadir.intrinsics)

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.schemas import (
     Candidate,
     EpisodeSpec,
@@ -34,7 +35,6 @@ from agos.runtime.schemas import (
 )
 from agos.world.sim import sensors
 from agos.world.sim.comms import Channel
-from agos.world.sim.engine_settings import EpisodeSettings
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import Town
 from agos.world.towns.roadgraph import RoadGraphs
@@ -86,11 +86,11 @@ class EpisodeState:
     once and every UAV observation carries the same Waypoint objects."""
 
     def __init__(self, scene: Scene, town: Town, spec: EpisodeSpec, *, run_id: str, worker_id: str,
-                 settings: EpisodeSettings) -> None:
+                 config: EpisodeConfig) -> None:
         self.scene, self.town, self.spec = scene, town, spec
         self.roads: RoadGraphs = town.roads
         self.run_id, self.worker_id = run_id, worker_id
-        self.cfg = settings
+        self.cfg = config
         self.sim_time_s = 0.0
         self.candidates: list[Candidate] = []
         self.messages: list[MessageRecord] = []

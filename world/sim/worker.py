@@ -15,12 +15,10 @@ import socket
 import time
 import traceback
 
-from pydantic import ValidationError
-
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, Sample, ZenohBus, zenoh_config
 from agos.runtime.codec import DecodeError, decode, decode_as, encode, encode_into
-from agos.runtime.episode_config import EpisodeConfig
+from agos.runtime.episode_config import EpisodeConfig, StoredConfigError, read_config
 from agos.runtime.failure_records import failure_record
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.schemas import (
@@ -41,7 +39,6 @@ from agos.runtime.schemas import (
 from agos.runtime.settings import AgosConfig
 from agos.runtime.viz import FrameStream
 from agos.world.sim.engine import EpisodeRunner
-from agos.world.sim.engine_settings import episode_settings, with_budget
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import AssetError, AssetMismatch, Town, town_for
 
@@ -178,22 +175,6 @@ class BusDecisionSource:
         return actions
 
 
-class GrantError(ValueError):
-    """A job grant this worker cannot run (its episode configuration does not validate here)."""
-
-
-def episode_config_of(grant: JobGrant) -> EpisodeConfig:
-    """The run's episode configuration sent in ``grant``; :class:`GrantError` names the field when
-    this version of agos cannot read it (an orchestrator of another version)."""
-    try:
-        return EpisodeConfig.model_validate(grant.config)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        where = ".".join(str(p) for p in err["loc"]) or "<config>"
-        raise GrantError(f"job grant: episode configuration field {where}: {err['msg']} "
-                         "(orchestrator and world worker run different agos versions?)") from None
-
-
 class WorldWorker:
     def __init__(self, cfg: AgosConfig, bus: ZenohBus, stop: StopFlag, worker_id: str) -> None:
         self.cfg, self.bus, self.stop, self.worker_id = cfg, bus, stop, worker_id
@@ -242,15 +223,13 @@ class WorldWorker:
             raise AssetError(f"asset {sha256[:12]} is not served on this zenoh network")
         return replies[0]
 
-    def run_episode(self, spec: EpisodeSpec, grant: JobGrant | None = None) -> None:
+    def run_episode(self, spec: EpisodeSpec, grant: JobGrant) -> None:
         started = time.monotonic()
-        log.info("episode %s (%s) starts, attempt %d", spec.episode_id, spec.difficulty, grant.attempt if grant else 1)
+        log.info("episode %s (%s) starts, attempt %d", spec.episode_id, spec.difficulty, grant.attempt)
         source = None
-        config = self.cfg.world  # run_episode without a grant: this process's own settings
+        config = self.cfg.world  # only for the failure record of a grant whose configuration is unreadable
         try:
-            if grant is not None:
-                config = episode_config_of(grant)  # the run's configuration, whatever this host's settings
-            spec = with_budget(spec, config)
+            config = read_config(grant.config, where="job grant")  # the run's, whatever this host's settings
             town, scene = self._scene(spec, config.renderer)
             started_msg = encode(EpisodeStarted(
                 run_id=self.run_id, episode_id=spec.episode_id, difficulty=spec.difficulty,
@@ -261,13 +240,13 @@ class WorldWorker:
                                        timeout_s=config.decision_timeout_s, stop=self.stop,
                                        agent_wait_s=self.cfg.run.agent_wait_s, frames=self.frames)
             runner = EpisodeRunner(scene, town, spec, run_id=self.run_id, worker_id=self.worker_id,
-                                   settings=episode_settings(config),
+                                   config=config,
                                    sink=BusSink(self.bus, self.run_id, spec.episode_id))
             record = runner.run(source)
             if self.stop.is_set():
                 log.info("episode %s interrupted; not submitted", spec.episode_id)
                 return
-        except (AssetMismatch, AssetError, GrantError) as exc:
+        except (AssetMismatch, AssetError, StoredConfigError) as exc:
             record = self._failed(spec, "invalid", str(exc), started, config)
         except MissingAgent as exc:
             log.error("episode %s: %s", spec.episode_id, exc)
