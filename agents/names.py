@@ -13,6 +13,28 @@ NO_CANDIDATES = ("baseline",)
 """Policies that coordinate through text messages only: no ANNOTATE_CANDIDATE / GO_TO_CANDIDATE."""
 
 
+SCRIPTED = ("heuristic", "oracle", "random")
+"""Policies that answer from the observation alone, in milliseconds of the agent's CPU."""
+
+
+def parse_standin(name: str) -> float:
+    """``standin-200ms`` -> 0.2 s."""
+    suffix = name.removeprefix("standin-")
+    if not suffix.endswith("ms") or not suffix[:-2].isdigit():
+        raise ValueError(f"stand-in policy {name!r}: use standin-<milliseconds>ms, e.g. standin-200ms")
+    return int(suffix[:-2]) / 1000.0
+
+
+def known_latency_s(name: str) -> float | None:
+    """Wall seconds the policy takes per decision, when its name says: ``standin-<N>ms`` N/1000,
+    the scripted policies 0; None for the VLM policies, whose latency is the model's (give it with
+    ``agos eval --model-latency``)."""
+    base, _ = split_name(name)
+    if base.startswith("standin-"):
+        return parse_standin(base)
+    return 0.0 if base in SCRIPTED else None
+
+
 def needs_vlm(name: str) -> bool:
     return split_name(name)[0] in VLM_POLICIES
 

@@ -5,7 +5,7 @@ Implementations are imported only when asked for, so a process loads just the po
 from __future__ import annotations
 
 from agos.agents.contract import Policy
-from agos.agents.names import KNOWN, VLM_POLICIES, split_name
+from agos.agents.names import KNOWN, VLM_POLICIES, parse_standin, split_name
 from agos.runtime.schemas import Role
 from agos.runtime.settings import VlmOptions
 
@@ -36,7 +36,7 @@ def make_policy(name: str, role: Role, *, vlm: VlmOptions | None = None) -> Poli
 
         return RandomPolicy(role)
     if base.startswith("standin-"):
-        from agos.agents.standin import FixedLatencyPolicy, parse_standin
+        from agos.agents.standin import FixedLatencyPolicy
 
         return FixedLatencyPolicy(role, parse_standin(base))
     raise ValueError(f"unknown policy {name!r}; known: {KNOWN}")

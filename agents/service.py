@@ -21,7 +21,6 @@ import asyncio
 import contextlib
 import functools
 import logging
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -31,8 +30,9 @@ from typing import Any
 from agos.agents.contract import Policy, action_for
 from agos.agents.registry import make_policy
 from agos.runtime import keys
-from agos.runtime.bus import Bus, Sample, ZenohBus, zenoh_config
+from agos.runtime.bus import Bus, Sample, ZenohBus
 from agos.runtime.codec import DecodeError, decode, decode_as, encode
+from agos.runtime.health import announce, unique_id
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role
 from agos.runtime.settings import AgosConfig
@@ -206,12 +206,13 @@ async def serve_async(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag
             tasks.add(task)
             task.add_done_callback(tasks.discard)
 
-    agent_id = f"{policy.role}-{os.getpid()}"
+    agent_id = unique_id(policy.role)
     dispatch = _Dispatch(bus, policy, run_id, loop, on_loop)
     episodes = _EpisodeSubscriptions(bus, run_id, policy.role, agent_id, dispatch, loop)
     bus.watch_liveliness(keys.episode_live(run_id, "*", "*"), episodes)  # type: ignore[arg-type]
     bus.subscribe(keys.result(run_id, "*"), dispatch)  # type: ignore[arg-type]
     bus.declare_token(keys.live(run_id, "agent", agent_id))
+    announce("agent", agent_id, run_id)
     log.info("%s agent (%s) serving run %s, up to %d decisions at once%s", policy.role, policy.name, run_id,
              concurrency, " (answered inline)" if dispatch.inline else "")
     try:
@@ -240,8 +241,7 @@ def main(cfg: AgosConfig, *, role: Role, policy_name: str | None = None, concurr
             return 3
         log.info("VLM endpoint %s serves %s (checked: model listed, %s-sized requests accepted)",
                  cfg.vlm.base_url, cfg.vlm.model, role)
-    bus = ZenohBus(zenoh_config(connect=[cfg.zenoh.connect], multicast_scouting=cfg.zenoh.multicast_scouting,
-                                connect_timeout_s=cfg.zenoh.connect_timeout_s))
+    bus = ZenohBus.from_settings(cfg.zenoh)
     try:
         return asyncio.run(serve_async(bus, policy, cfg.run.run_id, stop, concurrency=concurrency))
     finally:

@@ -38,11 +38,3 @@ class FixedLatencyPolicy:
 
     def end_episode(self, episode_id: str) -> None:
         pass
-
-
-def parse_standin(name: str) -> float:
-    """``standin-200ms`` -> 0.2 s."""
-    suffix = name.removeprefix("standin-")
-    if not suffix.endswith("ms") or not suffix[:-2].isdigit():
-        raise ValueError(f"stand-in policy {name!r}: use standin-<milliseconds>ms, e.g. standin-200ms")
-    return int(suffix[:-2]) / 1000.0

@@ -115,7 +115,7 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "he
     stop = install_stop_handlers()
     v = Verdicts()
     run_id = cfg.run.run_id
-    bus = ZenohBus.connect(cfg.zenoh.connect, connect_timeout_s=cfg.zenoh.connect_timeout_s)
+    bus = ZenohBus.from_settings(cfg.zenoh)
     town = open_town(town_name)
     config = episode_config(cfg, policies={"uav": policy, "ugv": policy}, decision_budget=budget)
     scene = Scene(town.layout, renderer=config.renderer)

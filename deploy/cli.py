@@ -11,6 +11,8 @@
     agos compare RUN_A RUN_B        paired differences with bootstrap intervals and tests
     agos report RUN... --out DIR    paper-style tables and the stage-wise plot
     agos vlm-standin [--port 8000]  OpenAI-compatible stand-in VLM server (latency, injected faults)
+    agos health KIND                is that process's liveliness token on the bus? (healthchecks)
+    agos certs --out DIR            a CA and one certificate per identity of a secured bus
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--runs-dir", type=Path)
     demo.add_argument("--connect", help="attach to this router and only orchestrate: processes were started by hand")
     demo.add_argument("--run", dest="run_id", help="run id of the hand-started processes (with --connect)")
+    demo.add_argument("--secure", action="store_true",
+                      help="mutual TLS and default-deny access control on the bus, with a CA made for this run")
 
     ev = sub.add_parser("eval", help="evaluate policies on an episode file: leases, fault tolerance, resume")
     ev.add_argument("--config", type=Path)
@@ -50,13 +54,20 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--policy-ugv")
     ev.add_argument("--comm", default="ideal", help="comm profile name (deploy/comm) or TOML file")
     ev.add_argument("--timing", choices=["lockstep", "realtime"], default="lockstep")
-    ev.add_argument("--workers", type=int, help="local world worker processes (default 1)")
+    ev.add_argument("--workers", type=_workers, help="local world worker processes (default 1), or auto: as many "
+                    "episodes at once as keep the cores busy while the model thinks (deploy/concurrency.py)")
+    ev.add_argument("--model-latency", type=float, metavar="S",
+                    help="seconds per decision of the run's model, for --workers auto (VLM policies; "
+                         "standin-<N>ms and scripted policies say theirs)")
     ev.add_argument("--run-dir", type=Path, help="run directory (default <runs-dir>/<run>-<UTC time>)")
     ev.add_argument("--runs-dir", type=Path, help="parent of run directories (default runs)")
     ev.add_argument("--resume", type=Path, metavar="DIR", help="continue a run directory, skipping stored episodes")
     ev.add_argument("--connect", help="attach to a router and processes started by hand instead of starting them")
     ev.add_argument("--run", dest="run_id", help="run id (with --connect; default: the run directory's name)")
     ev.add_argument("--port", type=int)
+    ev.add_argument("--secure", action="store_true",
+                    help="mutual TLS and default-deny access control on the bus, with a CA made for this run "
+                         "(with --connect: use your AGOS_ZENOH__* credentials and a tls/ endpoint instead)")
     ev.add_argument("--stuck-after", type=float, default=180.0, help="re-lease an episode without progress for this long (s)")
     _vlm_flags(ev)
     ev.add_argument("--vlm-standin", nargs="?", const="", metavar="FAULTS",
@@ -75,7 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--out", type=Path, required=True)
 
     watch = sub.add_parser("watch", help="print every message under agos/** (a read-only observer)")
-    watch.add_argument("--connect", default="tcp/127.0.0.1:7447")
+    watch.add_argument("--connect", help="zenoh router endpoint (default tcp/127.0.0.1:7447, or from settings)")
+    watch.add_argument("--config", type=Path)
     watch.add_argument("--key", help="key expression to watch instead of the visualisation stream, e.g. 'agos/**'")
 
     router = sub.add_parser("router", help="zenoh router")
@@ -136,6 +148,21 @@ def build_parser() -> argparse.ArgumentParser:
                              help="policy the agents run, for the world's tools (baseline: no candidates; ablations)")
     check_agent.add_argument("--agent-wait", type=float, help="seconds to wait for each role's service (default 30)")
 
+    health = sub.add_parser("health", help="exit 0 if a process's liveliness token is on the bus (compose healthchecks)")
+    health.add_argument("kind", choices=["router", "world", "agent", "evaluator", "orchestrator"])
+    health.add_argument("--id", dest="ident", help="the process id (default: what the process of that kind here announced)")
+    health.add_argument("--config", type=Path)
+    health.add_argument("--connect", help="zenoh router endpoint (default from settings)")
+    health.add_argument("--run", dest="run_id", help="run id (default: the one the process announced, else settings)")
+    health.add_argument("--timeout", type=float, default=3.0, help="seconds to wait for the answer (default 3)")
+
+    certs = sub.add_parser("certs", help="make a CA and per-identity certificates for a secured bus (mutual TLS)")
+    certs.add_argument("--out", type=Path, required=True, help="directory to write (created, mode 0700)")
+    certs.add_argument("--router-host", action="append", dest="router_hosts", metavar="HOST",
+                       help="a name or address clients reach the router by (repeat; default localhost, 127.0.0.1)")
+    certs.add_argument("--days", type=int, default=365, help="validity (default 365)")
+    certs.add_argument("--force", action="store_true", help="replace an existing CA and every certificate")
+
     from agos.agents.vlm.standin_server import add_parser as add_standin_parser
 
     add_standin_parser(sub)
@@ -152,6 +179,20 @@ def _vlm_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vlm-trace", type=Path, help="also append every decision trace to this JSONL file")
 
 
+def _workers(value: str) -> int | str:
+    """``--workers``: a number, or ``auto``."""
+    if value == "auto":
+        return value
+    try:
+        return int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{value!r}: give a number of workers or auto") from None
+
+
+def _int_or_none(value: object) -> int | None:
+    return value if isinstance(value, int) else None
+
+
 def _config(args: argparse.Namespace) -> AgosConfig:
     overrides = {
         "vlm": {"base_url": getattr(args, "vlm_base_url", None), "model": getattr(args, "model", None),
@@ -161,7 +202,7 @@ def _config(args: argparse.Namespace) -> AgosConfig:
                 "trace_file": getattr(args, "vlm_trace", None)},
         "zenoh": {"connect": getattr(args, "connect", None), "listen": getattr(args, "listen", None)},
         "run": {"run_id": getattr(args, "run_id", None), "runs_dir": getattr(args, "runs_dir", None),
-                "workers": getattr(args, "workers", None), "agent_wait_s": getattr(args, "agent_wait", None),
+                "workers": _int_or_none(getattr(args, "workers", None)), "agent_wait_s": getattr(args, "agent_wait", None),
                 "episodes_file": getattr(args, "episodes", None) or getattr(args, "split", None),
                 "per_difficulty": getattr(args, "per_difficulty", None),
                 "policy_uav": getattr(args, "policy_uav", None) or getattr(args, "policy", None),
@@ -170,7 +211,7 @@ def _config(args: argparse.Namespace) -> AgosConfig:
     return load_config(getattr(args, "config", None), overrides=overrides)
 
 
-CONFIG_COMMANDS = ("demo", "eval", "sweep", "router", "world", "agent", "evaluator", "check")
+CONFIG_COMMANDS = ("demo", "eval", "sweep", "router", "world", "agent", "evaluator", "check", "health", "watch")
 """The commands that read the settings (``--config`` and the flags that override it)."""
 
 
@@ -202,7 +243,8 @@ def _run_configured(args: argparse.Namespace, cfg: AgosConfig) -> int:
     if args.command == "demo":
         from agos.deploy import demo
 
-        return demo.main(cfg, config_path=args.config, port=args.port, attach=args.connect is not None)
+        return demo.main(cfg, config_path=args.config, port=args.port, attach=args.connect is not None,
+                         secure=args.secure)
     if args.command == "eval":
         return _eval(args, cfg)
     if args.command == "sweep":
@@ -210,7 +252,7 @@ def _run_configured(args: argparse.Namespace, cfg: AgosConfig) -> int:
     if args.command == "router":
         from agos.runtime import router
 
-        return router.main(cfg.zenoh.listen, multicast_scouting=cfg.zenoh.multicast_scouting)
+        return router.main(cfg.zenoh)
     if args.command == "world":
         from agos.world.sim import worker
 
@@ -234,15 +276,19 @@ def _run_configured(args: argparse.Namespace, cfg: AgosConfig) -> int:
         from agos.evaluator import service as evaluator_service
 
         return evaluator_service.main(cfg)
+    if args.command == "watch":
+        from agos.runtime import observer
+
+        return observer.main(cfg.zenoh, args.key)
+    if args.command == "health":
+        from agos.deploy.health import main as health_main
+
+        return health_main(cfg, args.kind, ident=args.ident, run=args.run_id, timeout_s=args.timeout)
     raise AssertionError(args.command)
 
 
 def _run_unconfigured(args: argparse.Namespace) -> int:
     """The commands that do not read the settings."""
-    if args.command == "watch":
-        from agos.runtime import observer
-
-        return observer.main(args.connect, args.key)
     if args.command in ("episodes", "map"):
         from agos.world import cli as world_cli
 
@@ -255,6 +301,10 @@ def _run_unconfigured(args: argparse.Namespace) -> int:
         from agos.agents.vlm import standin_server
 
         return standin_server.run(args)
+    if args.command == "certs":
+        from agos.deploy.certs import main as certs_main
+
+        return certs_main(args.out, router_hosts=args.router_hosts, days=args.days, force=args.force)
     raise AssertionError(args.command)
 
 
@@ -300,8 +350,16 @@ def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
     except (evaluate.RunDirError, ProfileError, ValueError) as exc:
         print(f"eval error: {exc}", file=sys.stderr)
         return 2
-    return evaluate.run(cfg, plan, workers=cfg.run.workers, attach=args.connect is not None, port=args.port,
-                        config_path=args.config, stuck_after_s=args.stuck_after)
+    workers = cfg.run.workers
+    if args.workers == "auto" and not args.connect:
+        from agos.deploy.concurrency import choose_workers
+
+        to_run = len(plan.episodes) - len(evaluate.stored_episodes(plan.run_dir))
+        choice = choose_workers(plan.policies, to_run, model_latency_s=args.model_latency)
+        workers = choice.workers
+        print(f"world workers: {workers} ({choice.why})")
+    return evaluate.run(cfg, plan, workers=workers, attach=args.connect is not None, port=args.port,
+                        config_path=args.config, stuck_after_s=args.stuck_after, secure=args.secure)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ from agos.runtime.settings import AgosConfig
 
 
 def main(cfg: AgosConfig, *, config_path: Path | None = None, port: int | None = None, attach: bool = False,
-         console: Console | None = None, comm: str = "ideal", timing_mode: str = "lockstep") -> int:
+         console: Console | None = None, comm: str = "ideal", timing_mode: str = "lockstep", secure: bool = False) -> int:
     plan = evaluate.new_plan(cfg, run_dir=None, comm=comm, timing_mode=timing_mode, stamp=not attach)
     return evaluate.run(cfg, plan, workers=cfg.run.workers, attach=attach, port=port, config_path=config_path,
-                        console=console)
+                        console=console, secure=secure)

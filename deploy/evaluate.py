@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -21,6 +22,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from agos.agents.names import needs_vlm
+from agos.deploy.certs import RunCredentials
 from agos.deploy.configure import episode_config
 from agos.deploy.launcher import Launcher, free_port, wait_listening
 from agos.deploy.orchestrator import Orchestrator
@@ -143,22 +145,27 @@ def stored_episodes(run_dir: Path) -> set[str]:
 
 
 def _launch_all(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, endpoint: str, port: int, workers: int,
-                config_path: Path | None, console: Console) -> bool:
+                config_path: Path | None, console: Console, creds: RunCredentials | None = None) -> bool:
+    def env(identity: str) -> dict[str, str] | None:
+        return creds.env(identity) if creds is not None else None
+
     common = ["--connect", endpoint, "--run", plan.run_id] + (["--config", str(config_path)] if config_path else [])
-    launcher.start("router", ["router", "--listen", endpoint])
+    launcher.start("router", ["router", "--listen", endpoint], env=env("router"))
     if not wait_listening("127.0.0.1", port, 15.0):
         console.print(f"[red]router did not listen on {endpoint}; see {launcher.log_dir / 'router.log'}")
         return False
-    console.print(f"zenoh endpoint: {endpoint}", highlight=False)
+    console.print(f"zenoh endpoint: {endpoint}" + (" (mutual TLS, access control)" if creds else ""), highlight=False)
     launcher.start("evaluator", ["evaluator", "--connect", endpoint, "--runs-dir", str(plan.run_dir.parent)]
-                   + (["--config", str(config_path)] if config_path else []))
+                   + (["--config", str(config_path)] if config_path else []), env=env("evaluator"))
     vlm_args = _start_vlm(cfg, plan, launcher, console)
     if vlm_args is None:
         return False
-    launcher.start("agent-uav", ["agent", "--role", "uav", "--policy", plan.policies["uav"], *common, *vlm_args])
-    launcher.start("agent-ugv", ["agent", "--role", "ugv", "--policy", plan.policies["ugv"], *common, *vlm_args])
+    launcher.start("agent-uav", ["agent", "--role", "uav", "--policy", plan.policies["uav"], *common, *vlm_args],
+                   env=env("agent-uav"))
+    launcher.start("agent-ugv", ["agent", "--role", "ugv", "--policy", plan.policies["ugv"], *common, *vlm_args],
+                   env=env("agent-ugv"))
     for k in range(workers):
-        launcher.start(f"world-{k}", ["world", *common, "--worker-id", f"w{k}"])
+        launcher.start(f"world-{k}", ["world", *common, "--worker-id", f"w{k}"], env=env("world"))
     return True
 
 
@@ -196,7 +203,10 @@ def _start_vlm(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, console: Cons
 
 
 def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, port: int | None = None,
-        config_path: Path | None = None, console: Console | None = None, stuck_after_s: float = 180.0) -> int:
+        config_path: Path | None = None, console: Console | None = None, stuck_after_s: float = 180.0,
+        secure: bool = False) -> int:
+    """Run ``plan`` to the end. ``secure``: the processes it starts talk mutual TLS through a router
+    enforcing access control, with a throwaway CA made for this run (deploy/certs.py)."""
     console = console or Console()
     stop = install_stop_handlers()
     done_before = stored_episodes(plan.run_dir)
@@ -205,16 +215,19 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
     bus = None
     orch = None
     interrupted = False
+    creds = RunCredentials() if secure and not attach else None
     try:
         if attach:
-            endpoint = cfg.zenoh.connect
-            console.print(f"zenoh endpoint: {endpoint} (attached; run {plan.run_id})", highlight=False)
+            own = cfg.zenoh
+            console.print(f"zenoh endpoint: {own.connect} (attached; run {plan.run_id})", highlight=False)
         else:
             port = port or free_port(7447)
-            endpoint = f"tcp/127.0.0.1:{port}"
-            if not _launch_all(cfg, plan, launcher, endpoint, port, workers, config_path, console):
+            endpoint = f"{'tls' if creds else 'tcp'}/127.0.0.1:{port}"
+            own = creds.settings(cfg.zenoh, "orchestrator", endpoint) if creds else cfg.zenoh.model_copy(
+                update={"connect": endpoint})
+            if not _launch_all(cfg, plan, launcher, endpoint, port, workers, config_path, console, creds):
                 return 1
-        bus = ZenohBus.connect(endpoint, connect_timeout_s=cfg.zenoh.connect_timeout_s)
+        bus = ZenohBus.from_settings(own)
         orch = Orchestrator(bus, plan.run_id, plan.episodes, policies=plan.policies,
                             config=plan.config,
                             already_stored=done_before, resumed=plan.resumed, stuck_after_s=stuck_after_s,
@@ -225,15 +238,23 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
                           "the others (infrastructure failures included) run now")
         successes = 0
         columns = (TextColumn("[bold]episodes"), BarColumn(), MofNCompleteColumn(),
-                   TextColumn("SR so far {task.fields[sr]}"), TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn())
+                   TextColumn("SR so far {task.fields[sr]}"), TextColumn("{task.fields[dps]} decisions/s"),
+                   TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn())
         with Progress(*columns, console=console, transient=False) as progress:
-            task = progress.add_task("episodes", total=orch.total, completed=len(orch.stored), sr="-")
+            task = progress.add_task("episodes", total=orch.total, completed=len(orch.stored), sr="-", dps="-")
             fresh = 0
+            window: deque[tuple[float, int]] = deque()  # (time, decisions seen): the rate over the last 10 s
             while not orch.finished and not stop.is_set():
                 for record in orch.pump(0.25):
                     fresh += 1
                     successes += record.success
                     progress.update(task, completed=len(orch.stored), sr=f"{100 * successes / fresh:.0f}%")
+                window.append((time.monotonic(), orch.decisions))
+                while window[-1][0] - window[0][0] > 10.0:
+                    window.popleft()
+                if window[-1][0] > window[0][0]:
+                    rate = (window[-1][1] - window[0][1]) / (window[-1][0] - window[0][0])
+                    progress.update(task, dps=f"{rate:.1f}")
                 dead = {n: c for n, c in launcher.dead().items() if not n.startswith("world")}
                 if dead:
                     names = ", ".join(f"{n} (exit {c})" for n, c in dead.items())
@@ -252,6 +273,8 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
                               + ["agent-uav", "agent-ugv", "vlm-standin", "evaluator", "router"])
         if bus is not None:
             bus.close()
+        if creds is not None:
+            creds.close()
     _summary(console, plan, orch, attach, len(launcher.children) + 1, time.monotonic() - started)
     if interrupted:
         console.print(f"[yellow]interrupted: every process stopped; resume with: agos eval --resume {plan.run_dir}")

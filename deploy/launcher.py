@@ -8,6 +8,7 @@ reaches only the launcher, which then stops the children in order) with its outp
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import socket
 import subprocess
@@ -28,11 +29,13 @@ class Launcher:
             log_dir.mkdir(parents=True, exist_ok=True)
         self.children: dict[str, subprocess.Popen] = {}
 
-    def start(self, name: str, args: list[str]) -> subprocess.Popen:
+    def start(self, name: str, args: list[str], env: dict[str, str] | None = None) -> subprocess.Popen:
+        """Start ``agos ARGS`` as ``name``; ``env``: variables added to this process's environment
+        (credentials travel there, never in ``args``, which any user can read in a process listing)."""
         out = (self.log_dir / f"{name}.log").open("wb")
         proc = subprocess.Popen([sys.executable, "-m", "agos.deploy.cli", *args], stdout=out,
                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
-                                preexec_fn=die_with_parent)
+                                preexec_fn=die_with_parent, env={**os.environ, **env} if env else None)
         out.close()
         self.children[name] = proc
         return proc

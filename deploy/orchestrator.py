@@ -15,6 +15,7 @@ tracks which episodes are stored.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from collections import deque
@@ -27,7 +28,8 @@ from agos.runtime.bus import Inbox, ZenohBus
 from agos.runtime.codec import DecodeError, decode, encode
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.failure_records import failure_record
-from agos.runtime.schemas import EpisodeRecord, EpisodeSpec, JobGrant, JobRequest, ResultAck, RunManifest
+from agos.runtime.health import announce
+from agos.runtime.schemas import EpisodeRecord, EpisodeSpec, JobGrant, JobRequest, ResultAck, RunManifest, StepEvent
 
 log = logging.getLogger("agos.orchestrator")
 
@@ -60,6 +62,8 @@ class Orchestrator:
         self.leases: dict[str, Lease] = {}
         self.records: dict[str, EpisodeRecord] = {}
         self.releases = 0
+        self.decisions = 0
+        """Step events seen (decisions applied, both roles), for the progress bar."""
         self.first_lease_s: float | None = None
         self.last_stored_s: float | None = None
         self.created_utc = datetime.now(UTC).isoformat(timespec="seconds")
@@ -73,6 +77,7 @@ class Orchestrator:
         self._live = Inbox()
         bus.watch_liveliness(keys.live(run_id, "world", "*"), self._live)
         bus.declare_token(keys.live(run_id, "orchestrator", "main"))
+        announce("orchestrator", "main", run_id)
 
     def episodes_per_minute(self, fresh: int) -> float | None:
         """Throughput from the first lease to the last stored episode (process start-up excluded)."""
@@ -102,6 +107,8 @@ class Orchestrator:
                 lease = self.leases.get(keys.episode_of(s.key))
                 if lease is not None:
                     lease.last_progress = now
+                with contextlib.suppress(DecodeError):
+                    self.decisions += isinstance(decode(s.payload), StepEvent)
                 continue
             try:
                 message = decode(s.payload)

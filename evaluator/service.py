@@ -18,8 +18,9 @@ from agos.evaluator.metrics import by_difficulty
 from agos.evaluator.store import ResultStore, results_path
 from agos.evaluator.table import results_table
 from agos.runtime import keys
-from agos.runtime.bus import Inbox, ZenohBus, zenoh_config
+from agos.runtime.bus import Inbox, ZenohBus
 from agos.runtime.codec import DecodeError, decode
+from agos.runtime.health import announce
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.schemas import EpisodeRecord, ResultAck, RunManifest
 from agos.runtime.settings import AgosConfig
@@ -31,12 +32,19 @@ class Evaluator:
     def __init__(self, bus: ZenohBus, runs_dir: Path) -> None:
         self.bus, self.runs_dir = bus, runs_dir
         self._stores: dict[str, ResultStore] = {}
+        self._serving: set[str] = set()
+
+    def serve_run(self, run_id: str) -> None:
+        """Declare the evaluator's liveliness token under ``run_id`` (once)."""
+        if run_id not in self._serving:
+            self._serving.add(run_id)
+            self.bus.declare_token(keys.live(run_id, "evaluator", "main"))
 
     def store(self, run_id: str) -> ResultStore:
         """The run's store, opened (and the run's evaluator liveliness token declared) on first use."""
         if run_id not in self._stores:
             self._stores[run_id] = ResultStore(results_path(self.runs_dir, run_id))
-            self.bus.declare_token(keys.live(run_id, "evaluator", "main"))
+            self.serve_run(run_id)
         return self._stores[run_id]
 
     def handle(self, key: str, payload: bytes) -> None:
@@ -66,11 +74,16 @@ class Evaluator:
             store.close()
 
 
-def serve(bus: ZenohBus, runs_dir: Path, stop: StopFlag) -> int:
+def serve(bus: ZenohBus, runs_dir: Path, stop: StopFlag, *, announce_run: str | None = None) -> int:
+    """Store every run's records until stopped. ``announce_run``: declare the token under this run at
+    once (its healthcheck, before the run's first message) and say so for ``agos health evaluator``."""
     evaluator = Evaluator(bus, runs_dir)
     inbox = Inbox()
     bus.subscribe(keys.result("*", "*"), inbox)
     bus.subscribe(keys.manifest("*"), inbox)
+    if announce_run is not None:
+        evaluator.serve_run(announce_run)
+        announce("evaluator", "main", announce_run)
     log.info("evaluator storing under %s", runs_dir)
     try:
         while not stop.is_set():
@@ -85,9 +98,8 @@ def serve(bus: ZenohBus, runs_dir: Path, stop: StopFlag) -> int:
 def main(cfg: AgosConfig) -> int:
     setup_logging("evaluator")
     stop = install_stop_handlers()
-    bus = ZenohBus(zenoh_config(connect=[cfg.zenoh.connect], multicast_scouting=cfg.zenoh.multicast_scouting,
-                                connect_timeout_s=cfg.zenoh.connect_timeout_s))
+    bus = ZenohBus.from_settings(cfg.zenoh)
     try:
-        return serve(bus, cfg.run.runs_dir, stop)
+        return serve(bus, cfg.run.runs_dir, stop, announce_run=cfg.run.run_id)
     finally:
         bus.close()

@@ -30,6 +30,7 @@ from typing import Any, Protocol
 import zenoh
 
 from agos.runtime.codec import encode
+from agos.runtime.settings import ZenohSettings
 
 log = logging.getLogger(__name__)
 
@@ -88,8 +89,11 @@ class Bus(Protocol):
 
 
 def zenoh_config(*, mode: str = "client", connect: list[str] | None = None, listen: list[str] | None = None,
-                 multicast_scouting: bool = False, connect_timeout_s: float = 10.0) -> zenoh.Config:
-    """A zenoh config for agos processes (JSON5 inserts; no file needed)."""
+                 multicast_scouting: bool = False, connect_timeout_s: float = 10.0,
+                 tls: dict[str, Any] | None = None, access_control: dict[str, Any] | None = None) -> zenoh.Config:
+    """A zenoh config for agos processes (JSON5 inserts; no file needed). ``tls``: zenoh's
+    ``transport/link/tls`` section (runtime/tls.py); ``access_control``: the router's rules
+    (runtime/access_control.py)."""
     import json
 
     conf = zenoh.Config()
@@ -101,7 +105,23 @@ def zenoh_config(*, mode: str = "client", connect: list[str] | None = None, list
         conf.insert_json5("connect/timeout_ms", json.dumps({"client": int(connect_timeout_s * 1000), "peer": -1}))
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(listen))
+    if tls is not None:
+        conf.insert_json5("transport/link/tls", json.dumps(tls))
+    if access_control is not None:
+        conf.insert_json5("access_control", json.dumps(access_control))
     return conf
+
+
+def session_config(z: ZenohSettings, *, mode: str = "client", access_control: dict[str, Any] | None = None) -> zenoh.Config:
+    """The zenoh config of a process from its ``[zenoh]`` settings: a client of ``z.connect``, or the
+    router on ``z.listen``; TLS (mutual, with this process's credentials) when the endpoint says ``tls/``."""
+    from agos.runtime.tls import tls_section
+
+    router = mode == "router"
+    tls = tls_section(z, listening=router) if (z.listen if router else z.connect).startswith("tls/") else None
+    return zenoh_config(mode=mode, connect=None if router else [z.connect], listen=[z.listen] if router else None,
+                        multicast_scouting=z.multicast_scouting, connect_timeout_s=z.connect_timeout_s, tls=tls,
+                        access_control=access_control)
 
 
 class _ZenohQuery:
@@ -143,6 +163,11 @@ class ZenohBus:
     @classmethod
     def connect(cls, endpoint: str, *, connect_timeout_s: float = 10.0) -> ZenohBus:
         return cls(zenoh_config(connect=[endpoint], connect_timeout_s=connect_timeout_s))
+
+    @classmethod
+    def from_settings(cls, z: ZenohSettings) -> ZenohBus:
+        """A client session as the process's ``[zenoh]`` settings say (TLS included)."""
+        return cls(session_config(z))
 
     def _publisher(self, key: str, *, viz: bool = False) -> zenoh.Publisher:
         pub = self._publishers.get(key)  # the common case, without the lock

@@ -22,6 +22,7 @@ Layout::
     agos/<run>/viz/<ep>/coord                visualisation (lossy): coordination truth
     agos/<run>/viz/<ep>/frame/<role>         visualisation (lossy): a small JPEG of the role's view
     agos/assets/<sha256>                     queryable: frozen town assets
+    agos/routers/<zid>                       liveliness: a router agos started is up (``agos health router``)
 
 Everything under ``viz/`` is published with congestion control DROP (runtime/bus.py): observers
 subscribe there, so a slow one loses frames instead of slowing the world.
@@ -122,6 +123,17 @@ def episode_ready(run: str, episode: str, role: str, agent: str) -> str:
 
 def live(run: str, kind: LiveKind, ident: str) -> str:
     return f"{_run(run)}/live/{kind}/{ident if ident == '*' else check_chunk(ident, what='id')}"
+
+
+def live_all(run: str = "*") -> str:
+    """Every liveliness token of a run's processes (of all runs by default)."""
+    return f"{_run(run)}/live/**"
+
+
+def router_live(ident: str) -> str:
+    """The liveliness token ``agos router`` declares in its own session (not under a run: one router
+    serves every run)."""
+    return f"{ROOT}/routers/{ident if ident == '*' else check_chunk(ident, what='router id')}"
 
 
 def _viz(run: str, episode: str) -> str:

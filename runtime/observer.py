@@ -19,14 +19,17 @@ import msgspec
 import zenoh
 
 from agos.runtime import keys
-from agos.runtime.bus import zenoh_config
+from agos.runtime.bus import session_config
+from agos.runtime.settings import ZenohSettings
 
 
 class Observer:
-    def __init__(self, endpoint: str, handle: Callable[[str, bytes], None], *, key_expr: str | None = None,
+    def __init__(self, endpoint: str | ZenohSettings, handle: Callable[[str, bytes], None], *, key_expr: str | None = None,
                  capacity: int = 256) -> None:
+        """``endpoint``: a router endpoint, or whole ``[zenoh]`` settings (a secured bus's credentials)."""
         key_expr = key_expr or keys.viz_all()
-        self.session = zenoh.open(zenoh_config(connect=[endpoint]))
+        z = endpoint if isinstance(endpoint, ZenohSettings) else ZenohSettings(connect=endpoint)
+        self.session = zenoh.open(session_config(z))
         self.subscriber = self.session.declare_subscriber(key_expr, zenoh.handlers.RingChannel(capacity))
         self.handle = handle
         self.seen = 0
@@ -72,7 +75,7 @@ def describe(key: str, payload: bytes) -> str:
     return f"{key}  v{data.get('v')} {data.get('type')}{extra}  ({len(payload)} B)"
 
 
-def main(endpoint: str, key_expr: str | None = None) -> int:
+def main(endpoint: str | ZenohSettings, key_expr: str | None = None) -> int:
     """``agos watch``: print every sample of the visualisation stream (or of ``key_expr``)."""
     import signal
 

@@ -12,7 +12,7 @@ import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError
 
 from agos.runtime.episode_config import EpisodeConfig
 
@@ -34,6 +34,25 @@ class ZenohSettings(_Section):
     """Where ``agos router`` listens."""
     multicast_scouting: bool = False
     connect_timeout_s: float = Field(10.0, gt=0)
+    # Mutual TLS (docs/DEPLOY.md, "A secured bus"): used when the endpoint is ``tls/HOST:PORT``.
+    # Each credential comes from a file (``*_file``) or, in the environment, as PEM text (``*_pem``).
+    ca_file: Path | None = None
+    """CA certificate (PEM) that signed the router's and every process's certificate (``agos certs``)."""
+    cert_file: Path | None = None
+    """This process's certificate (PEM); its common name is the identity the router's access control knows."""
+    key_file: Path | None = None
+    """This process's private key (PEM)."""
+    ca_pem: str | None = None
+    cert_pem: str | None = None
+    key_pem: SecretStr | None = None
+    """The private key as PEM text (e.g. ``AGOS_ZENOH__KEY_PEM`` from a secret store); never logged."""
+    verify_name: bool = True
+    """Clients check that the router's certificate names the host they connect to."""
+
+    @property
+    def secure(self) -> bool:
+        """Whether this process talks TLS (its endpoints say ``tls/``)."""
+        return self.connect.startswith("tls/") or self.listen.startswith("tls/")
 
 
 class RunSettings(_Section):

@@ -10,16 +10,16 @@ wall-clock deadline turns a missing action into a logged WAIT). The record is pu
 from __future__ import annotations
 
 import logging
-import os
-import socket
+import resource
 import time
 import traceback
 
 from agos.runtime import keys
-from agos.runtime.bus import Inbox, Sample, ZenohBus, zenoh_config
+from agos.runtime.bus import Inbox, Sample, ZenohBus
 from agos.runtime.codec import DecodeError, decode, decode_as, encode, encode_into
 from agos.runtime.episode_config import EpisodeConfig, StoredConfigError, read_config
 from agos.runtime.failure_records import failure_record
+from agos.runtime.health import announce, host_prefix, unique_id
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.schemas import (
     Action,
@@ -184,6 +184,7 @@ class WorldWorker:
 
     def serve(self) -> int:
         self.bus.declare_token(keys.live(self.run_id, "world", self.worker_id))
+        announce("world", self.worker_id, self.run_id)
         manifests = Inbox()
         self.bus.subscribe(keys.manifest(self.run_id), manifests)
         log.info("world worker %s serving run %s", self.worker_id, self.run_id)
@@ -206,14 +207,20 @@ class WorldWorker:
         for _, scene in self._scenes.values():
             scene.close()
         self.frames.close()
+        usage = resource.getrusage(resource.RUSAGE_SELF)  # read by bench/bench_eval.py
+        log.info("world worker %s exits: CPU %.1f s, peak RSS %.0f MB", self.worker_id,
+                 usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024)
         return 0
 
     def _scene(self, spec: EpisodeSpec, renderer: str) -> tuple[Town, Scene]:
         key = (spec.town.generator, spec.town.seed, renderer)
         if key not in self._scenes:
+            cpu = time.process_time()
             town = town_for(spec.town.generator, spec.town.seed, spec.asset_sha256, town_id=spec.town.town_id,
                             fetch=self._fetch_asset)
             self._scenes[key] = (town, Scene(town.layout, renderer=renderer))
+            log.info("town %s ready: %.1f s CPU for town and scene, %.1f s CPU since the process started",
+                     town.town_id, time.process_time() - cpu, time.process_time())
         return self._scenes[key]
 
     def _fetch_asset(self, sha256: str) -> bytes:
@@ -291,9 +298,8 @@ class WorldWorker:
 def main(cfg: AgosConfig, *, worker_id: str | None = None) -> int:
     setup_logging("world")
     stop = install_stop_handlers()
-    ident = worker_id or f"{socket.gethostname()}-{os.getpid()}".replace(".", "-")
-    bus = ZenohBus(zenoh_config(connect=[cfg.zenoh.connect], multicast_scouting=cfg.zenoh.multicast_scouting,
-                                connect_timeout_s=cfg.zenoh.connect_timeout_s))
+    ident = worker_id or unique_id(host_prefix())
+    bus = ZenohBus.from_settings(cfg.zenoh)
     try:
         return WorldWorker(cfg, bus, stop, keys.check_chunk(ident, what="worker id")).serve()
     finally:
