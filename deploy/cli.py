@@ -110,6 +110,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluator.add_argument("--config", type=Path)
     evaluator.add_argument("--connect", help="zenoh router endpoint, e.g. tcp/127.0.0.1:7447")
     evaluator.add_argument("--runs-dir", type=Path)
+    evaluator.add_argument("--run", dest="run_id",
+                           help="declare the evaluator's liveliness token under this run at start (its healthcheck); "
+                                "it stores every run either way")
 
     from agos.world.cli import add_parsers as add_world_parsers
 

@@ -26,7 +26,8 @@ def main(cfg: AgosConfig, kind: HealthKind, *, ident: str | None, run: str | Non
     assert ident is not None
     key = token_key(kind, ident, None if kind == "router" else run)
     try:
-        alive = token_alive(cfg.zenoh, key, timeout_s)
+        # A healthcheck must answer within its own timeout, also when the router is down.
+        alive = token_alive(cfg.zenoh.model_copy(update={"connect_timeout_s": timeout_s}), key, timeout_s)
     except zenoh.ZError as exc:
         print(f"health: cannot reach the router at {cfg.zenoh.connect}: {exc}", file=sys.stderr)
         return 1
