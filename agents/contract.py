@@ -36,8 +36,8 @@ class Policy(Protocol):
 
 
 def action_for(obs: Observation, name: str, **fields: Any) -> Action:
-    """An action answering ``obs`` (run, episode, role and decision index filled in). Built
+    """An action answering ``obs`` (run, episode, role, decision index and attempt filled in). Built
     without checks, like any struct (``name`` is not checked against ``ActionName`` here): the
     agent service checks it before sending it, and the world refuses an action that is not legal."""
     return Action(run_id=obs.run_id, episode_id=obs.episode_id, role=obs.role,
-                  decision_index=obs.decision_index, action=cast(ActionName, name), **fields)
+                  decision_index=obs.decision_index, attempt=obs.attempt, action=cast(ActionName, name), **fields)

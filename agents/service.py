@@ -54,6 +54,25 @@ class _Dispatch:
         self.bus, self.policy, self.run_id, self.loop, self.on_loop = bus, policy, run_id, loop, on_loop
         self.inline = bool(getattr(policy, "inline", False))
         self.lock = threading.Lock()
+        self.attempts: dict[str, int] = {}  # episode -> the latest attempt observed
+
+    def _current(self, obs: Observation) -> bool:
+        """Whether ``obs`` belongs to the episode's latest attempt. A newer attempt (the episode was
+        re-leased) starts afresh: the policy forgets what it kept of the earlier one, before this
+        observation is answered. A late observation of an older attempt is ignored."""
+        latest = self.attempts.get(obs.episode_id, obs.attempt)
+        if obs.attempt < latest:
+            log.info("ignoring %s decision %d of attempt %d: attempt %d is running", obs.episode_id,
+                     obs.decision_index, obs.attempt, latest)
+            return False
+        self.attempts[obs.episode_id] = obs.attempt
+        if obs.attempt > latest:
+            log.info("%s re-leased (attempt %d): its earlier attempt is forgotten", obs.episode_id, obs.attempt)
+            if self.inline:
+                self.policy.end_episode(obs.episode_id)
+            else:  # on the loop, like every other call of a non-inline policy, before this observation
+                self.loop.call_soon_threadsafe(self.policy.end_episode, obs.episode_id)
+        return True
 
     def put(self, sample: Sample) -> None:
         """An ``Inbox`` for the result subscription."""
@@ -68,11 +87,14 @@ class _Dispatch:
                 log.warning("ignoring undecodable payload on %s: %s", key, exc)
                 return
             if type(message) is Observation:
+                if not self._current(message):
+                    return
                 if self.inline:
                     started = time.monotonic()
                     publish_action(self.bus, self.run_id, message, decide(self.policy, message), started)
                     return
             elif type(message) is EpisodeRecord:
+                self.attempts.pop(message.episode_id, None)
                 if self.inline:
                     end_episode(self.bus, self.policy, self.run_id, message.episode_id)
                     return

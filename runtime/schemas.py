@@ -168,6 +168,9 @@ class Observation(Message, tag="observation", kw_only=True):
     role: Role
     decision_index: int
     """1-based index of this role's decision in the episode."""
+    attempt: int = 1
+    """Which lease of the episode this is (re-leased after a dead or stuck world: 2, 3): every attempt is
+    a fresh episode, so an agent forgets earlier attempts and answers with this number."""
     sim_time_s: float
     pose: Pose
     mode: Literal["aerial", "driving", "stop_6view"]
@@ -227,6 +230,8 @@ class Action(Message, tag="action", kw_only=True):
     episode_id: str
     role: Role
     decision_index: int
+    attempt: int = 1
+    """The observation's attempt: the world ignores answers to another attempt of the episode."""
     action: ActionName
     waypoint_id: str | None = None
     cell: str | None = None

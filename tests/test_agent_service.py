@@ -180,7 +180,8 @@ def test_observations_are_subscribed_exactly_while_a_world_holds_the_episode() -
         assert [expr for expr, _ in svc.bus._subs if "/obs/" in expr] == [exact]  # no ep/*/obs wildcard
         ready = Inbox()
         svc.bus.watch_liveliness(keys.episode_ready(RUN, "*", "*", "*"), ready)
-        assert [(s.key, s.payload) for s in ready.drain()] == [(keys.episode_ready(RUN, "e1", "uav", f"uav-{os.getpid()}"), b"+")]
+        [(key, payload)] = [(s.key, s.payload) for s in ready.drain()]
+        assert payload == b"+" and key.startswith(keys.episode_ready(RUN, "e1", "uav", f"uav-{os.getpid()}-"))
         assert not svc.bus.wait_for_subscriber(keys.obs(RUN, "e2", "uav"), 0)  # nobody runs e2
         second = svc.bus.declare_token(keys.episode_live(RUN, "e1", "w2"))  # e1 re-leased to w2 meanwhile
         svc.bus.undeclare_token(svc.token)
@@ -211,3 +212,41 @@ def test_a_service_started_after_the_world_serves_the_episodes_in_flight() -> No
     finally:
         stop.set()
         thread.join(5)
+
+
+class _Remembering:
+    """A policy whose answer depends on its memory of the episode: the number of decisions it has
+    seen, as the waypoint id it names."""
+
+    name = "remembering"
+    role = "uav"
+
+    def __init__(self, inline: bool) -> None:
+        self.inline = inline
+        self.memory: dict[str, int] = {}
+
+    def end_episode(self, episode_id: str) -> None:
+        self.memory.pop(episode_id, None)
+
+    def act(self, obs: Observation) -> Action:
+        self.memory[obs.episode_id] = self.memory.get(obs.episode_id, 0) + 1
+        return action_for(obs, "MOVE_TO_UAV_WAYPOINT", waypoint_id=f"U{self.memory[obs.episode_id]}")
+
+
+@pytest.mark.parametrize("inline", [True, False], ids=["inline", "on-the-loop"])
+def test_a_new_attempt_starts_afresh_and_late_observations_of_the_old_one_are_ignored(inline: bool) -> None:
+    """A re-leased episode (attempt 2) is a fresh episode for the policy; an observation of attempt 1
+    arriving after it (a world that was thought dead) is not answered; answers carry the attempt."""
+    with Serving(_Remembering(inline)) as svc:
+        def ask(index: int, attempt: int) -> Action | None:
+            obs = _obs(index=index)
+            obs.attempt = attempt
+            svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(obs))
+            sample = svc.actions.get(2.0)
+            return None if sample is None else decode(sample.payload)
+
+        assert [(a.waypoint_id, a.attempt) for a in (ask(1, 1), ask(2, 1), ask(3, 1))] == [("U1", 1), ("U2", 1), ("U3", 1)]
+        first = ask(1, 2)
+        assert (first.waypoint_id, first.attempt, first.decision_index) == ("U1", 2, 1)  # memory of attempt 1 gone
+        assert ask(4, 1) is None  # late, of the old attempt
+        assert ask(2, 2).waypoint_id == "U2"

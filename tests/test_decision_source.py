@@ -41,3 +41,34 @@ def test_first_decision_waits_for_the_agents_ready_token_not_for_any_subscriber(
     with pytest.raises(MissingAgent, match="UGV"):  # the UAV's token does not stand for the UGV
         source._check_agents({"uav": _Due(), "ugv": _Due()})  # type: ignore[dict-item]
     source.close()
+
+
+def test_answers_to_another_attempt_are_ignored() -> None:
+    """A re-leased episode's world (attempt 2) takes only answers to attempt 2: a late action meant for
+    the world that ran attempt 1 never steers it."""
+    from agos.runtime.codec import decode, encode
+    from agos.runtime.schemas import Action, CoordinationState, Observation, Pose
+
+    bus = MemoryBus()
+    source = BusDecisionSource(bus, "r", "e1", worker_id="w2", timeout_s=1.0, stop=StopFlag(), agent_wait_s=0.2,
+                               attempt=2)
+    bus.declare_token(keys.episode_ready("r", "e1", "uav", "uav-1"))
+
+    class Agent(Inbox):
+        def put(self, sample: Sample) -> None:
+            obs = decode(sample.payload)
+            assert obs.attempt == 2  # the world stamps its attempt on every observation
+            for attempt, action in ((1, "CONFIRM"), (2, "WAIT")):
+                bus.publish(keys.act("r", "e1", "uav"), encode(Action(
+                    run_id="r", episode_id="e1", role="uav", decision_index=obs.decision_index, attempt=attempt,
+                    action=action)))
+
+    bus.subscribe(keys.obs("r", "e1", "uav"), Agent())
+    obs = Observation(run_id="r", episode_id="e1", role="uav", decision_index=1, sim_time_s=0.0,
+                      pose=Pose(position_world_m=(0.0, 0.0, 80.0), yaw_rad=0.0), mode="aerial", images=[],
+                      references=[], legal_actions=["WAIT", "CONFIRM"], waypoint_options=[],
+                      region_world_m=(0.0, 0.0, 1.0, 1.0), coordination=CoordinationState(run_id="r", episode_id="e1",
+                                                                                        sim_time_s=0.0))
+    answered = source.decide({"uav": obs})["uav"]
+    assert answered is not None and (answered.action, answered.attempt) == ("WAIT", 2)
+    source.close()

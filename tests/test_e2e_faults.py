@@ -88,6 +88,9 @@ class Watcher:
     def __init__(self, endpoint: str, *, delay_s: float = 0.0) -> None:
         self.started: dict[str, str] = {}
         self.steps = 0
+        self.steps_of: dict[str, int] = {}  # episode -> step events seen
+        self.uav_moves_of: dict[str, int] = {}  # episode -> UAV moves applied (what the heuristic UAV remembers)
+        self.results: set[str] = set()  # episodes whose record was published
         self.delay_s = delay_s
         self.lock = threading.Lock()
         self.session = zenoh.open(zenoh_config(connect=[endpoint]))
@@ -99,9 +102,15 @@ class Watcher:
         data = msgpack.unpackb(sample.payload.to_bytes(), raw=False)
         with self.lock:
             if data.get("type") == "episode_started":
+                self.started.pop(data["episode_id"], None)  # insertion order = start order
                 self.started[data["episode_id"]] = data["worker_id"]
+            elif data.get("type") == "episode_record":
+                self.results.add(data["episode_id"])
             elif data.get("type") == "step":
                 self.steps += 1
+                self.steps_of[data["episode_id"]] = self.steps_of.get(data["episode_id"], 0) + 1
+                if data.get("role") == "uav" and data.get("applied") == "MOVE_TO_UAV_WAYPOINT":
+                    self.uav_moves_of[data["episode_id"]] = self.uav_moves_of.get(data["episode_id"], 0) + 1
 
     def wait(self, predicate, timeout_s: float = 60.0) -> None:
         deadline = time.monotonic() + timeout_s
@@ -128,19 +137,39 @@ def _one_finished_record_each(records: list[dict], n: int) -> None:
     assert all(r["status"] == "finished" for r in records), [r.get("error") for r in records]
 
 
-def test_killed_world_worker_episode_completes_on_another(tmp_path: Path, episodes: Path) -> None:
-    cluster = Cluster(tmp_path, "kill-worker")
+def test_killed_world_worker_episode_completes_on_another_with_the_same_record(tmp_path: Path, episodes: Path) -> None:
+    """A world killed mid-episode, after its agents have built up memory of it: the episode is
+    re-leased as attempt 2, the agents start it afresh, and its record equals a clean run's
+    (wall-clock fields and worker ids aside)."""
+    clean_dir, killed_dir = tmp_path / "clean", tmp_path / "killed"
+    clean_dir.mkdir()
+    killed_dir.mkdir()
+    clean = Cluster(clean_dir, "clean", workers=1)
+    try:
+        _finish(clean.eval(episodes, "--comm", "lossy"))
+        expected = _summaries(clean.records())
+    finally:
+        clean.close()
+    cluster = Cluster(killed_dir, "kill-worker")
     watcher = Watcher(cluster.endpoint)
     try:
-        proc = cluster.eval(episodes)
-        watcher.wait(lambda w: "w0" in w.started.values())
-        victim = next(e for e, w in watcher.started.items() if w == "w0")
+        proc = cluster.eval(episodes, "--comm", "lossy")
+        # Killed once its UAV has moved twice: the heuristic UAV remembers the waypoints it has seen.
+        def running_on_w0(w: Watcher) -> str | None:
+            """The episode w0 started last, unless its record is already in (w0 may have run several)."""
+            mine = [e for e, wid in w.started.items() if wid == "w0"]
+            return mine[-1] if mine and mine[-1] not in w.results else None
+
+        watcher.wait(lambda w: (e := running_on_w0(w)) is not None and w.uav_moves_of.get(e, 0) >= 2)
+        victim = running_on_w0(watcher)
         cluster.kill("w0")
         out = _finish(proc)
         records = cluster.records()
         _one_finished_record_each(records, 4)
         assert next(r for r in records if r["episode_id"] == victim)["worker_id"] == "w1"
         assert "re-leased episodes: 1" in out
+        assert _summaries(records)[victim] == expected[victim]
+        assert _summaries(records) == expected
     finally:
         watcher.close()
         cluster.close()

@@ -88,8 +88,10 @@ class BusDecisionSource:
     """Asks the agent services for decisions over zenoh (lockstep: the sim clock waits)."""
 
     def __init__(self, bus: ZenohBus, run_id: str, episode_id: str, *, worker_id: str, timeout_s: float,
-                 stop: StopFlag, agent_wait_s: float = 30.0, frames: FrameStream | None = None) -> None:
-        self.bus, self.run_id, self.episode_id = bus, run_id, episode_id
+                 stop: StopFlag, agent_wait_s: float = 30.0, frames: FrameStream | None = None, attempt: int = 1) -> None:
+        """``attempt``: the lease's attempt number, stamped on every observation; answers to another
+        attempt (a late action meant for a world that died) are ignored."""
+        self.bus, self.run_id, self.episode_id, self.attempt = bus, run_id, episode_id, attempt
         self.timeout_s, self.stop, self.agent_wait_s = timeout_s, stop, agent_wait_s
         self.frames = frames  # thumbnails for observers (runtime/viz.py)
         self.inbox = Inbox()
@@ -142,6 +144,7 @@ class BusDecisionSource:
         ``None`` for a role that did not answer in time."""
         self._check_agents(observations)
         for role, obs in observations.items():
+            obs.attempt = self.attempt
             encode_into(obs, self.buffers[role])  # zenoh copies it on put; kept for a resend
             self.bus.publish(self.obs_keys[role], self.buffers[role])
             if self.frames is not None:
@@ -166,7 +169,10 @@ class BusDecisionSource:
             except DecodeError as exc:
                 log.warning("%s: undecodable action on %s: %s", self.episode_id, sample.key, exc)
                 continue
-            if pending.get(action.role) == action.decision_index:
+            if action.attempt != self.attempt:
+                log.info("%s: ignoring a %s action for attempt %d (this is attempt %d)", self.episode_id, action.role,
+                         action.attempt, self.attempt)
+            elif pending.get(action.role) == action.decision_index:
                 actions[action.role] = action
                 del pending[action.role]
         for role in pending:
@@ -245,7 +251,8 @@ class WorldWorker:
             self.bus.publish_viz(keys.viz_events(self.run_id, spec.episode_id), started_msg)
             source = BusDecisionSource(self.bus, self.run_id, spec.episode_id, worker_id=self.worker_id,
                                        timeout_s=config.decision_timeout_s, stop=self.stop,
-                                       agent_wait_s=self.cfg.run.agent_wait_s, frames=self.frames)
+                                       agent_wait_s=self.cfg.run.agent_wait_s, frames=self.frames,
+                                       attempt=grant.attempt)
             runner = EpisodeRunner(scene, town, spec, run_id=self.run_id, worker_id=self.worker_id,
                                    config=config,
                                    sink=BusSink(self.bus, self.run_id, spec.episode_id))
