@@ -21,6 +21,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from agos.runtime.bus import RouterUnreachable
 from agos.runtime.settings import AgosConfig, ConfigError, load_config
 
 
@@ -226,6 +227,9 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(str(exc), file=sys.stderr)
         return 2
+    except RouterUnreachable as exc:
+        print(f"agos {args.command}: {exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         return 130
 
@@ -355,10 +359,13 @@ def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
         return 2
     workers = cfg.run.workers
     if args.workers == "auto" and not args.connect:
+        from agos.agents.names import needs_vlm
         from agos.deploy.concurrency import choose_workers
 
         to_run = len(plan.episodes) - len(evaluate.stored_episodes(plan.run_dir))
-        choice = choose_workers(plan.policies, to_run, model_latency_s=args.model_latency)
+        asks_model = any(needs_vlm(p) for p in plan.policies.values())  # at most [vlm] concurrency requests at once
+        choice = choose_workers(plan.policies, to_run, model_latency_s=args.model_latency,
+                                model_concurrency=cfg.vlm.concurrency if asks_model else None)
         workers = choice.workers
         print(f"world workers: {workers} ({choice.why})")
     return evaluate.run(cfg, plan, workers=workers, attach=args.connect is not None, port=args.port,

@@ -9,8 +9,7 @@ from __future__ import annotations
 
 import sys
 
-import zenoh
-
+from agos.runtime.bus import RouterUnreachable
 from agos.runtime.health import HealthKind, announced, token_alive, token_key
 from agos.runtime.settings import AgosConfig
 
@@ -28,8 +27,8 @@ def main(cfg: AgosConfig, kind: HealthKind, *, ident: str | None, run: str | Non
     try:
         # A healthcheck must answer within its own timeout, also when the router is down.
         alive = token_alive(cfg.zenoh.model_copy(update={"connect_timeout_s": timeout_s}), key, timeout_s)
-    except zenoh.ZError as exc:
-        print(f"health: cannot reach the router at {cfg.zenoh.connect}: {exc}", file=sys.stderr)
+    except RouterUnreachable as exc:
+        print(f"health: {exc}", file=sys.stderr)
         return 1
     if not alive:
         print(f"health: {kind} {ident} is not on the bus ({key} not alive at {cfg.zenoh.connect})", file=sys.stderr)

@@ -18,6 +18,7 @@ thread (a slow callback stalls every other key of the session).
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import queue
 import re
@@ -94,8 +95,6 @@ def zenoh_config(*, mode: str = "client", connect: list[str] | None = None, list
     """A zenoh config for agos processes (JSON5 inserts; no file needed). ``tls``: zenoh's
     ``transport/link/tls`` section (runtime/tls.py); ``access_control``: the router's rules
     (runtime/access_control.py)."""
-    import json
-
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(multicast_scouting))
@@ -150,11 +149,30 @@ class _MatchingFlag:
         self._listener.undeclare()
 
 
+class RouterUnreachable(RuntimeError):
+    """No session: the router is not there, the port is wrong, or (TLS) the credentials were refused."""
+
+
+def open_session(config: zenoh.Config) -> zenoh.Session:
+    """``zenoh.open``, failing with one line that names the endpoint and what to check."""
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        try:
+            endpoints = ", ".join(json.loads(config.get_json("connect/endpoints"))) or "?"
+        except Exception:  # the config has no connect endpoints (a router): say what zenoh said
+            endpoints = "?"
+        tls = " (TLS: are the CA, certificate and key the router's CA signed?)" if "tls/" in endpoints else ""
+        raise RouterUnreachable(
+            f"cannot reach the zenoh router at {endpoints}: is `agos router` running there and is the port "
+            f"right? (--connect or AGOS_ZENOH__CONNECT){tls} [{str(exc).split(' at ')[0]}]") from None
+
+
 class ZenohBus:
     """A real zenoh session (client of a router by default)."""
 
     def __init__(self, config: zenoh.Config) -> None:
-        self.session = zenoh.open(config)
+        self.session = open_session(config)
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._watched: dict[str, _MatchingFlag] = {}
         self._keep: list[Any] = []

@@ -21,10 +21,8 @@ import time
 from pathlib import Path
 from typing import Literal
 
-import zenoh
-
 from agos.runtime import keys
-from agos.runtime.bus import session_config
+from agos.runtime.bus import open_session, session_config
 from agos.runtime.settings import ZenohSettings
 
 HealthKind = Literal["router", "world", "agent", "evaluator", "orchestrator"]
@@ -74,7 +72,7 @@ def announced(kind: HealthKind) -> dict[str, str | None] | None:
 
 def token_alive(z: ZenohSettings, key: str, timeout_s: float) -> bool:
     """Whether a liveliness token matching ``key`` is up, asked of the router."""
-    with zenoh.open(session_config(z)) as session:
+    with open_session(session_config(z)) as session:
         deadline = time.monotonic() + timeout_s
         while True:
             replies = session.liveliness().get(key, timeout=max(0.1, min(1.0, deadline - time.monotonic())))

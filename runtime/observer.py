@@ -19,7 +19,7 @@ import msgspec
 import zenoh
 
 from agos.runtime import keys
-from agos.runtime.bus import session_config
+from agos.runtime.bus import open_session, session_config
 from agos.runtime.settings import ZenohSettings
 
 
@@ -29,7 +29,7 @@ class Observer:
         """``endpoint``: a router endpoint, or whole ``[zenoh]`` settings (a secured bus's credentials)."""
         key_expr = key_expr or keys.viz_all()
         z = endpoint if isinstance(endpoint, ZenohSettings) else ZenohSettings(connect=endpoint)
-        self.session = zenoh.open(session_config(z))
+        self.session = open_session(session_config(z))
         self.subscriber = self.session.declare_subscriber(key_expr, zenoh.handlers.RingChannel(capacity))
         self.handle = handle
         self.seen = 0
