@@ -18,6 +18,8 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 from pathlib import Path
 
@@ -223,7 +225,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         cfg = _config(args) if args.command in CONFIG_COMMANDS else None
-        return _dispatch(args, cfg)
+        code = _dispatch(args, cfg)
+        sys.stdout.flush()  # here, where a reader that left (BrokenPipeError) is caught, not at exit
+        return code
     except ConfigError as exc:
         print(str(exc), file=sys.stderr)
         return 2
@@ -232,6 +236,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:  # `agos metrics --json | head`: the reader left; not an error worth a traceback
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # so the exit flush does not fail too
+        return 141
 
 
 def _dispatch(args: argparse.Namespace, cfg: AgosConfig | None) -> int:

@@ -38,8 +38,8 @@ def test_interrupted_eval_resumes_and_stores_each_episode_once(tmp_path, sample_
         time.sleep(0.2)
     first.send_signal(signal.SIGINT)
     out, _ = first.communicate(timeout=60)
-    assert first.returncode == 0, out
     done_first = len(_rows(db))
+    assert first.returncode == (0 if done_first == 4 else 130), out  # interrupted: 130, like a shell
     if done_first < 4:  # Ctrl-C landed before the end: the run says how to resume
         assert f"agos eval --resume {run_dir}" in " ".join(out.split())
     second = subprocess.run([*AGOS, "eval", "--resume", str(run_dir), "--port", port], cwd=tmp_path,

@@ -154,3 +154,18 @@ def test_cli_metrics_bad_file(tmp_path: Path) -> None:
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr
     assert f"{path}:2" in lines[0] and "success" in lines[0]
+
+
+def test_metrics_piped_into_head_prints_no_traceback(tmp_path) -> None:
+    """`agos metrics --json | head`: the reader leaves early (here `true`, which reads nothing and exits
+    before agos writes); agos says nothing about it."""
+    import subprocess
+    import sys
+
+    from agos.evaluator.synthetic import synthetic_summaries, write_jsonl
+
+    path = tmp_path / "s.jsonl"
+    write_jsonl(path, synthetic_summaries(3000, seed=1))
+    out = subprocess.run(f"{sys.executable} -m agos.deploy.cli metrics {path} --json | true", shell=True,
+                         capture_output=True, text=True, timeout=120)
+    assert "Traceback" not in out.stderr and "BrokenPipe" not in out.stderr, out.stderr
