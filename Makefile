@@ -6,7 +6,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test lint typecheck contracts unit e2e clean
+.PHONY: demo test lint typecheck contracts unit e2e deploy-test clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -37,8 +37,13 @@ unit: $(STAMP)
 e2e: $(STAMP)
 	$(BIN)/python -m pytest -q -m e2e
 
+# The compose deployment for real (docs/DEPLOY.md): needs root or a running Docker engine; installs
+# docker.io, docker-compose and debootstrap when missing. Not part of `make test`.
+deploy-test: $(STAMP)
+	$(BIN)/python tests/deploy/compose_e2e.py
+
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache .ruff_cache .mypy_cache .typecheck *.egg-info
+	rm -rf $(VENV) runs .wheels .pytest_cache .ruff_cache .mypy_cache .typecheck *.egg-info

@@ -5,13 +5,16 @@ decision round of an episode (the world asks the roles due at one sim instant an
 answers) costs about ``c`` CPU seconds on the host, all processes together (the world renders the
 observations and applies the actions; the agents decode them; the router forwards them), and then
 ``L`` seconds of model time during which that episode needs no CPU. One worker therefore keeps the
-cores busy a fraction c / (c + L) of the time, and about ``cores × (c + L) / c`` workers keep every
-core busy. Capped by memory (each worker holds a PyBullet scene of the town), by the agent
-services' concurrency, and by the episodes; then spread evenly over the waves the episodes need,
-so the last wave is not a handful of episodes while the other workers idle.
+cores busy a fraction c / (c + L) of the time, and ``cores × (c + L) / c`` workers would fill them
+if their CPU bursts never collided; they do (at that count the cores were measured 25 % idle), so
+the rule asks ``HEADROOM`` times as many. Capped by memory (each worker holds a PyBullet scene of
+the town), by how many requests the model endpoint may get at once (VLM policies: ``[vlm]
+concurrency``), and by the episodes; then spread evenly over the waves the episodes need, so the
+last wave is not a handful of episodes beside idle workers.
 
 ``L`` comes from the policy names where they say it (``standin-<N>ms``; scripted policies: 0), else
-from ``--model-latency`` (VLM policies: the model's, which agos cannot know before it runs).
+from ``--model-latency`` (VLM policies: the model's, which agos cannot know before it runs; unknown,
+it counts as 0: one worker per core).
 """
 
 from __future__ import annotations
@@ -26,15 +29,15 @@ from agos.agents.names import known_latency_s
 CPU_PER_ROUND_S = 0.09
 """``c``: CPU seconds of all of a run's processes per decision round, measured with
 bench/bench_eval.py on the 2-core VM (parks-s23, tiny renderer, 512 px nadir and six 256 px ground
-views, standin-1000ms: 30 CPU s for 3 episodes of 79 rounds, 9 of them start-up). Rendering
-dominates it, so a host with another renderer or image sizes has another ``c``; the rule is not
-sensitive to it within a factor of about 1.5 (more workers than needed only cost memory)."""
+views, standin-1000ms: 0.087-0.093 s per round over runs of 3 to 48 episodes, start-up excluded).
+Rendering dominates it, so another renderer or other image sizes give another ``c``."""
+HEADROOM = 1.5
+"""Workers per "just enough" worker. With 24 workers (the balance point for L = 1 s on 2 cores) the
+cores were 25 % idle and the wall 1.30x the CPU floor; with twice that, 1.04x (bench/README.md)."""
 WORKER_RSS_MB = 300.0
 """A world worker's resident memory with one procedural town (262 MB peak measured), rounded up."""
 MEMORY_SHARE = 0.5
 """At most this share of the available memory goes to world workers."""
-MAX_WORKERS = 32
-"""An agent service answers 32 decisions at once by default (``agos agent --concurrency``)."""
 
 
 @dataclass(frozen=True)
@@ -44,24 +47,27 @@ class Choice:
 
 
 def auto_workers(*, latency_s: float | None, cores: int, episodes: int, available_mb: float | None = None,
-                 cpu_per_round_s: float = CPU_PER_ROUND_S, worker_rss_mb: float = WORKER_RSS_MB,
-                 max_workers: int = MAX_WORKERS) -> Choice:
+                 model_concurrency: int | None = None, cpu_per_round_s: float = CPU_PER_ROUND_S,
+                 headroom: float = HEADROOM, worker_rss_mb: float = WORKER_RSS_MB) -> Choice:
     """World workers for ``episodes`` episodes of a model taking ``latency_s`` per decision on
-    ``cores`` cores: ``ceil(cores × (c + L) / c)``, capped by ``MEMORY_SHARE`` of ``available_mb``
-    (None: no cap), by ``max_workers`` and by ``episodes``, then evened out over the waves. An unknown
-    latency (None) counts as 0: as many workers as cores. Always at least 1."""
+    ``cores`` cores: ``ceil(headroom × cores × (c + L) / c)``, capped by ``MEMORY_SHARE`` of
+    ``available_mb`` (None: no cap), by ``model_concurrency`` (None: no cap) and by ``episodes``,
+    then evened out over the waves. An unknown latency (None) counts as 0, and no latency needs no
+    headroom: one worker per core. Always at least 1."""
     c = max(cpu_per_round_s, 1e-6)
     latency = max(0.0, latency_s or 0.0)
-    ideal = math.ceil(max(1, cores) * (c + latency) / c - 1e-9)
-    caps = {"agent concurrency": max_workers, "episodes": max(1, episodes)}
+    ideal = math.ceil((headroom if latency > 0 else 1.0) * max(1, cores) * (c + latency) / c - 1e-9)
+    caps = {"episodes": max(1, episodes)}
+    if model_concurrency is not None:
+        caps["model concurrency"] = max(1, model_concurrency)
     if available_mb is not None:
         caps["memory"] = max(1, int(MEMORY_SHARE * available_mb // worker_rss_mb))
     capped = max(1, min([ideal, *caps.values()]))
     waves = math.ceil(max(1, episodes) / capped)
     workers = math.ceil(max(1, episodes) / waves)
     limit = min(caps, key=lambda k: caps[k])
-    why = (f"auto: {cores} cores x (c + L) / c with c = {c:g} s, L = "
-           + ("unknown (give --model-latency)" if latency_s is None else f"{latency:g} s")
+    why = (f"auto: {headroom:g} x {cores} cores x (c + L) / c with c = {c:g} s, L = "
+           + ("unknown, give --model-latency" if latency_s is None else f"{latency:g} s")
            + f" -> {ideal}" + (f"; capped by {limit} -> {capped}" if capped < ideal else "")
            + (f"; {waves} waves of {episodes} episodes -> {workers}" if workers < capped else ""))
     return Choice(workers, why)
@@ -88,8 +94,9 @@ def host_resources() -> tuple[int, float | None]:
     return cores, None
 
 
-def choose_workers(policies: dict[str, str], episodes: int, *, model_latency_s: float | None = None) -> Choice:
+def choose_workers(policies: dict[str, str], episodes: int, *, model_latency_s: float | None = None,
+                   model_concurrency: int | None = None) -> Choice:
     """``--workers auto`` on this host."""
     cores, available = host_resources()
     return auto_workers(latency_s=run_latency_s(policies, model_latency_s), cores=cores, episodes=episodes,
-                        available_mb=available)
+                        available_mb=available, model_concurrency=model_concurrency)

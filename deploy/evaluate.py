@@ -160,10 +160,12 @@ def _launch_all(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, endpoint: st
     vlm_args = _start_vlm(cfg, plan, launcher, console)
     if vlm_args is None:
         return False
-    launcher.start("agent-uav", ["agent", "--role", "uav", "--policy", plan.policies["uav"], *common, *vlm_args],
-                   env=env("agent-uav"))
-    launcher.start("agent-ugv", ["agent", "--role", "ugv", "--policy", plan.policies["ugv"], *common, *vlm_args],
-                   env=env("agent-ugv"))
+    # Every episode in flight may wait on an agent at once: decisions answered at once >= workers.
+    at_once = ["--concurrency", str(max(32, workers))]
+    launcher.start("agent-uav", ["agent", "--role", "uav", "--policy", plan.policies["uav"], *common, *vlm_args,
+                                 *at_once], env=env("agent-uav"))
+    launcher.start("agent-ugv", ["agent", "--role", "ugv", "--policy", plan.policies["ugv"], *common, *vlm_args,
+                                 *at_once], env=env("agent-ugv"))
     for k in range(workers):
         launcher.start(f"world-{k}", ["world", *common, "--worker-id", f"w{k}"], env=env("world"))
     return True
@@ -278,6 +280,7 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
     _summary(console, plan, orch, attach, len(launcher.children) + 1, time.monotonic() - started)
     if interrupted:
         console.print(f"[yellow]interrupted: every process stopped; resume with: agos eval --resume {plan.run_dir}")
+        return 130  # as a shell reports a command stopped by Ctrl-C: scripts must not take it for a finished run
     return 0
 
 

@@ -1,0 +1,50 @@
+# The agos image: every process of docs/DEPLOY.md (router, evaluator, world worker, agents, eval job,
+# vlm-standin) is `agos <command>` in this image.
+#
+#   docker build -t agos:local .                      # the ordinary way: python:3.11-slim + PyPI
+#
+# Without a reachable package index, build a wheelhouse on a host that has one and install from it:
+#
+#   pip wheel -w .wheels . "setuptools>=77" wheel     # every dependency and the build backend
+#   docker build --build-arg WHEELHOUSE=.wheels -t agos:local .
+#   docker build --build-arg WHEELHOUSE=.wheels --build-arg BASE_IMAGE=agos-base:bookworm -t agos:local .
+#
+# BASE_IMAGE must have python3 (3.11 or newer, matching the wheels) with venv, pip and useradd
+# (`make deploy-test` makes agos-base:bookworm by debootstrap). agos itself is always built from
+# the context's source (so the wheelhouse needs the build backend too, and may be older than the
+# source). It is used only in the build stage: the final image holds the virtual environment
+# /opt/agos and no wheels.
+
+ARG BASE_IMAGE=python:3.11-slim
+
+FROM ${BASE_IMAGE} AS build
+ARG WHEELHOUSE=
+ENV PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_CACHE_DIR=1 PYTHONDONTWRITEBYTECODE=1
+COPY . /src
+RUN python3 -m venv /opt/agos \
+ && if [ -n "$WHEELHOUSE" ]; then \
+        /opt/agos/bin/pip install --no-index --find-links "/src/$WHEELHOUSE" /src; \
+    else \
+        /opt/agos/bin/pip install /src; \
+    fi \
+ && /opt/agos/bin/agos --help > /dev/null
+
+FROM ${BASE_IMAGE}
+COPY --from=build /opt/agos /opt/agos
+# A fixed non-root user; compose may run as another uid (AGOS_UID, for bind-mounted run folders), so
+# everything a process writes goes to /runs, /tmp or $HOME, all writable by any uid.
+RUN useradd --uid 10001 --user-group --create-home --home-dir /home/agos --shell /usr/sbin/nologin agos \
+ && mkdir -p /runs /assets /data \
+ && chown agos:agos /runs /assets /data \
+ && chmod 1777 /home/agos
+ENV PATH=/opt/agos/bin:$PATH \
+    HOME=/home/agos \
+    PYTHONUNBUFFERED=1 \
+    PYTHONDONTWRITEBYTECODE=1 \
+    MPLCONFIGDIR=/tmp/matplotlib \
+    AGOS_ASSET_CACHE=/tmp/agos-assets \
+    AGOS_RUN__RUNS_DIR=/runs
+USER agos
+WORKDIR /home/agos
+ENTRYPOINT ["agos"]
+CMD ["--help"]
