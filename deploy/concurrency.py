@@ -6,8 +6,8 @@ answers) costs about ``c`` CPU seconds on the host, all processes together (the 
 observations and applies the actions; the agents decode them; the router forwards them), and then
 ``L`` seconds of model time during which that episode needs no CPU. One worker therefore keeps the
 cores busy a fraction c / (c + L) of the time, and ``cores × (c + L) / c`` workers would fill them
-if their CPU bursts never collided; they do (at that count the cores were measured 25 % idle), so
-the rule asks ``HEADROOM`` times as many. Capped by memory (each worker holds a PyBullet scene of
+if their CPU bursts never collided; they do (at that count the cores were about a quarter idle),
+so the rule asks ``HEADROOM`` times as many. Capped by memory (each worker holds a PyBullet scene of
 the town), by how many requests the model endpoint may get at once (VLM policies: ``[vlm]
 concurrency``), and by the episodes; then spread evenly over the waves the episodes need, so the
 last wave is not a handful of episodes beside idle workers.
@@ -29,11 +29,13 @@ from agos.agents.names import known_latency_s
 CPU_PER_ROUND_S = 0.09
 """``c``: CPU seconds of all of a run's processes per decision round, measured with
 bench/bench_eval.py on the 2-core VM (parks-s23, tiny renderer, 512 px nadir and six 256 px ground
-views, standin-1000ms: 0.087-0.093 s per round over runs of 3 to 48 episodes, start-up excluded).
+views, standin-1000ms): 0.09-0.10 s per round in runs of 3 to 210 episodes with 3 to 35 workers,
+the workers' start-up left out (more workers share the caches: the higher figures).
 Rendering dominates it, so another renderer or other image sizes give another ``c``."""
 HEADROOM = 1.5
-"""Workers per "just enough" worker. With 24 workers (the balance point for L = 1 s on 2 cores) the
-cores were 25 % idle and the wall 1.30x the CPU floor; with twice that, 1.04x (bench/README.md)."""
+"""Workers per "just enough" worker. With 24 workers (the balance point for L = 1 s on 2 cores) a
+round took 1.44 s instead of about 1.1, the cores were about a quarter idle and 48 episodes took 1.30x
+their CPU floor; with 48 workers, 1.04x (bench/README.md, "Evaluation at model speed")."""
 WORKER_RSS_MB = 300.0
 """A world worker's resident memory with one procedural town (262 MB peak measured), rounded up."""
 MEMORY_SHARE = 0.5
@@ -56,7 +58,8 @@ def auto_workers(*, latency_s: float | None, cores: int, episodes: int, availabl
     headroom: one worker per core. Always at least 1."""
     c = max(cpu_per_round_s, 1e-6)
     latency = max(0.0, latency_s or 0.0)
-    ideal = math.ceil((headroom if latency > 0 else 1.0) * max(1, cores) * (c + latency) / c - 1e-9)
+    h = headroom if latency > 0 else 1.0
+    ideal = math.ceil(h * max(1, cores) * (c + latency) / c - 1e-9)
     caps = {"episodes": max(1, episodes)}
     if model_concurrency is not None:
         caps["model concurrency"] = max(1, model_concurrency)
@@ -66,7 +69,7 @@ def auto_workers(*, latency_s: float | None, cores: int, episodes: int, availabl
     waves = math.ceil(max(1, episodes) / capped)
     workers = math.ceil(max(1, episodes) / waves)
     limit = min(caps, key=lambda k: caps[k])
-    why = (f"auto: {headroom:g} x {cores} cores x (c + L) / c with c = {c:g} s, L = "
+    why = (f"auto: {h:g} x {cores} cores x (c + L) / c with c = {c:g} s, L = "
            + ("unknown, give --model-latency" if latency_s is None else f"{latency:g} s")
            + f" -> {ideal}" + (f"; capped by {limit} -> {capped}" if capped < ideal else "")
            + (f"; {waves} waves of {episodes} episodes -> {workers}" if workers < capped else ""))
