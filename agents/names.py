@@ -40,8 +40,13 @@ def needs_vlm(name: str) -> bool:
 
 
 def split_name(name: str) -> tuple[str, str]:
-    """``heuristic:no_rgpp`` -> ("heuristic", "no_rgpp"); raises ValueError for unknown variants."""
+    """``heuristic:no_rgpp`` -> ("heuristic", "no_rgpp"); raises ValueError for an unknown policy or
+    variant, so a misspelt name fails before any process starts."""
     base, _, variant = name.partition(":")
+    if base.startswith("standin-"):
+        parse_standin(base)
+    elif base not in (*VLM_POLICIES, *SCRIPTED):
+        raise ValueError(f"unknown policy {name!r}; known: {KNOWN}")
     if variant not in ABLATIONS:
         raise ValueError(f"unknown policy variant {variant!r} in {name!r}; variants: no_e2a, no_rgpp, no_both")
     if variant and base in NO_CANDIDATES:

@@ -258,8 +258,12 @@ def _run_configured(args: argparse.Namespace, cfg: AgosConfig) -> int:
     if args.command == "demo":
         from agos.deploy import demo
 
-        return demo.main(cfg, config_path=args.config, port=args.port, attach=args.connect is not None,
-                         secure=args.secure)
+        try:
+            return demo.main(cfg, config_path=args.config, port=args.port, attach=args.connect is not None,
+                             secure=args.secure)
+        except ValueError as exc:  # a policy or profile name, a run directory: before any process starts
+            print(f"demo error: {exc}", file=sys.stderr)
+            return 2
     if args.command == "eval":
         return _eval(args, cfg)
     if args.command == "sweep":

@@ -137,3 +137,19 @@ def test_no_e2a_candidate_is_the_uav_footprint(world) -> None:
     e2a = _run(world, "heuristic", world[2][0])
     # the footprint centre is the UAV position: farther from the target than the annotated cell
     assert record.candidates[0].center_error_m > e2a.candidates[0].center_error_m
+
+
+def test_a_misspelt_policy_fails_before_any_process_starts(tmp_path) -> None:
+    import subprocess
+    import sys
+
+    from agos.agents.names import split_name
+
+    with pytest.raises(ValueError, match="unknown policy 'heurstic'"):
+        split_name("heurstic")
+    with pytest.raises(ValueError, match="standin-<milliseconds>ms"):
+        split_name("standin-fast")
+    out = subprocess.run([sys.executable, "-m", "agos.deploy.cli", "eval", "--policy", "heurstic", "--run-dir",
+                          str(tmp_path / "r")], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and "unknown policy 'heurstic'" in out.stderr, out.stderr
+    assert not (tmp_path / "r" / "logs").exists()  # nothing was started
