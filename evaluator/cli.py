@@ -42,6 +42,8 @@ def run(args: argparse.Namespace) -> int:
         if args.command == "compare":
             run_a, run_b = _read(args.run_a, args.allow_mixed), _read(args.run_b, args.allow_mixed)
             result = compare(run_a, run_b, resamples=args.resamples, seed=args.seed)
+            for warning in result.warnings:
+                print(f"warning: {warning}", file=sys.stderr)
             if args.json:
                 print(json.dumps(asdict(result), indent=2))
             else:

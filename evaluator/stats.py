@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -64,6 +64,19 @@ class Comparison:
     sign_test_p: float | None
     resamples: int
     seed: int
+    warnings: list[str] = field(default_factory=list)
+    """Why some intervals mean little (too few paired episodes in a difficulty level)."""
+
+
+MIN_PAIRS_PER_LEVEL = 10
+"""Below this many paired episodes in a difficulty level, its bootstrap resamples hardly vary (with
+one, not at all): the interval looks narrow because it cannot be wide, so compare says so."""
+
+
+def few_pairs_warnings(per_level: dict[str, int]) -> list[str]:
+    return [f"{level} has only {n} paired episode{'s' if n != 1 else ''}: its bootstrap cannot vary much, so "
+            f"intervals involving it are too narrow to mean anything (use at least {MIN_PAIRS_PER_LEVEL} per difficulty)"
+            for level, n in per_level.items() if n < MIN_PAIRS_PER_LEVEL]
 
 
 def pair(a: Sequence[EpisodeSummary], b: Sequence[EpisodeSummary]) -> list[tuple[EpisodeSummary, EpisodeSummary]]:
@@ -130,8 +143,9 @@ def compare(a: Sequence[EpisodeSummary], b: Sequence[EpisodeSummary], *, resampl
     only_a = sum(x.success and not y.success for x, y in pairs)
     only_b = sum(y.success and not x.success for x, y in pairs)
     outcomes = {"both_succeed": both, "only_a": only_a, "only_b": only_b, "neither": len(pairs) - both - only_a - only_b}
-    return Comparison(len(pairs), {k: len(v) for k, v in levels.items()}, results, outcomes,
-                      sign_test(only_a, only_b), resamples, seed)
+    per_level = {k: len(v) for k, v in levels.items()}
+    return Comparison(len(pairs), per_level, results, outcomes, sign_test(only_a, only_b), resamples, seed,
+                      few_pairs_warnings(per_level))
 
 
 def _compare_metric(name, na, nb, da, db, levels, boot_idx, swaps) -> MetricComparison:

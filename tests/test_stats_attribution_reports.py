@@ -244,3 +244,13 @@ def test_report_png(report_dir: Path) -> None:
     data = (report_dir / "stagewise.png").read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n"
     assert len(data) > 5000
+
+
+def test_compare_warns_when_a_difficulty_has_too_few_pairs() -> None:
+    from agos.evaluator.stats import MIN_PAIRS_PER_LEVEL
+
+    few = compare(synthetic(6, 0.5, seed=1), synthetic(6, 0.7, seed=2), resamples=200)
+    assert few.warnings and all("too narrow" in w for w in few.warnings)
+    assert len(few.warnings) == sum(n < MIN_PAIRS_PER_LEVEL for n in few.per_level.values())
+    many = compare(synthetic(90, 0.5, seed=1), synthetic(90, 0.7, seed=2), resamples=200)
+    assert many.warnings == []
