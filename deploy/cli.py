@@ -369,7 +369,11 @@ def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
     except (evaluate.RunDirError, ProfileError, ValueError) as exc:
         print(f"eval error: {exc}", file=sys.stderr)
         return 2
-    workers = cfg.run.workers
+    if args.resume and args.workers is None:  # a resumed run keeps the worker count it was started with
+        args.workers = plan.workers
+    if not args.resume:
+        evaluate.remember(plan, workers=args.workers)
+    workers = args.workers if isinstance(args.workers, int) else cfg.run.workers
     if args.workers == "auto" and not args.connect:
         from agos.agents.names import needs_vlm
         from agos.deploy.concurrency import choose_workers

@@ -55,6 +55,8 @@ class RunPlan:
     vlm: dict[str, Any] = field(default_factory=dict)
     """VLM policies: ``base_url`` and ``model``, or ``standin`` (its fault string) for a stand-in server
     the run starts itself. Stored in run.json (never an API key)."""
+    workers: int | str | None = None
+    """``--workers`` as the run was started with (a count or ``auto``): what ``--resume`` uses again."""
 
     @property
     def run_id(self) -> str:
@@ -128,7 +130,15 @@ def resume_plan(run_dir: Path) -> RunPlan:
     except StoredConfigError as exc:
         raise RunDirError(str(exc)) from None
     return RunPlan(run_dir, read_episodes(run_dir / "episodes.jsonl"), meta["policies"], config, resumed=True,
-                   vlm=meta.get("vlm", {}))
+                   vlm=meta.get("vlm", {}), workers=meta.get("workers"))
+
+
+def remember(plan: RunPlan, *, workers: int | str | None) -> None:
+    """Add the command's ``--workers`` to run.json, for ``--resume``."""
+    path = plan.run_dir / RUN_FILE
+    meta = json.loads(path.read_text())
+    meta["workers"] = plan.workers = workers
+    path.write_text(json.dumps(meta, indent=2) + "\n")
 
 
 def stored_episodes(run_dir: Path) -> set[str]:

@@ -32,7 +32,10 @@ class Launcher:
     def start(self, name: str, args: list[str], env: dict[str, str] | None = None) -> subprocess.Popen:
         """Start ``agos ARGS`` as ``name``; ``env``: variables added to this process's environment
         (credentials travel there, never in ``args``, which any user can read in a process listing)."""
-        out = (self.log_dir / f"{name}.log").open("wb")
+        # Appended, never truncated: a resumed run keeps the logs of its earlier attempts.
+        out = (self.log_dir / f"{name}.log").open("ab")
+        out.write(f"===== agos {' '.join(args[:1])} started {time.strftime('%Y-%m-%d %H:%M:%S')} =====\n".encode())
+        out.flush()
         proc = subprocess.Popen([sys.executable, "-m", "agos.deploy.cli", *args], stdout=out,
                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
                                 preexec_fn=die_with_parent, env={**os.environ, **env} if env else None)

@@ -31,7 +31,8 @@ def test_interrupted_eval_resumes_and_stores_each_episode_once(tmp_path, sample_
     run_dir = tmp_path / "run"
     db = run_dir / "results.sqlite"
     port = str(free_port(23000 + os.getpid() % 400))
-    first = subprocess.Popen([*AGOS, "eval", "--split", str(episodes), "--run-dir", str(run_dir), "--port", port],
+    first = subprocess.Popen([*AGOS, "eval", "--split", str(episodes), "--run-dir", str(run_dir), "--port", port,
+                              "--workers", "2"],
                              cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     deadline = time.monotonic() + 180
     while len(_rows(db)) < 1 and time.monotonic() < deadline and first.poll() is None:
@@ -49,3 +50,6 @@ def test_interrupted_eval_resumes_and_stores_each_episode_once(tmp_path, sample_
     rows = _rows(db)
     assert sorted(eid for eid, _ in rows) == sorted(json.loads(line)["episode_id"] for line in episodes.read_text().splitlines())
     assert all(status == "finished" for _, status in rows)
+    if done_first < 4:  # the resume started two workers again, and appended to the first attempt's logs
+        world_1 = (run_dir / "logs" / "world-1.log").read_text()
+        assert world_1.count("===== agos world started") == 2, world_1[:2000]
