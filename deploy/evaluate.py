@@ -26,6 +26,7 @@ from agos.deploy.certs import RunCredentials
 from agos.deploy.configure import episode_config
 from agos.deploy.launcher import Launcher, free_port, wait_listening
 from agos.deploy.orchestrator import Orchestrator
+from agos.deploy.presence import look, missing_lines
 from agos.evaluator.metrics import by_difficulty
 from agos.evaluator.store import ResultStore, results_path
 from agos.evaluator.table import results_table
@@ -38,6 +39,29 @@ from agos.runtime.settings import AgosConfig
 log = logging.getLogger("agos.eval")
 RUN_FILE = "run.json"
 STANDIN_MODEL = "agos-standin"
+
+
+PRESENCE_EVERY_S = 15.0
+"""While a run makes no progress, how often ``agos eval`` checks who is missing and says so."""
+
+
+class Stall:
+    """Says when a run has made no progress for another ``every_s`` seconds."""
+
+    def __init__(self, every_s: float) -> None:
+        self.every_s = every_s
+        self.progress = -1
+        self.since = time.monotonic()
+
+    def due(self, progress: int) -> bool:
+        now = time.monotonic()
+        if progress != self.progress:
+            self.progress, self.since = progress, now
+            return False
+        if now - self.since >= self.every_s:
+            self.since = now
+            return True
+        return False
 
 
 class RunDirError(ValueError):
@@ -256,6 +280,7 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
             task = progress.add_task("episodes", total=orch.total, completed=len(orch.stored), sr="-", dps="-")
             fresh = 0
             window: deque[tuple[float, int]] = deque()  # (time, decisions seen): the rate over the last 10 s
+            watch = Stall(PRESENCE_EVERY_S)
             while not orch.finished and not stop.is_set():
                 for record in orch.pump(0.25):
                     fresh += 1
@@ -267,6 +292,9 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
                 if window[-1][0] > window[0][0]:
                     rate = (window[-1][1] - window[0][1]) / (window[-1][0] - window[0][0])
                     progress.update(task, dps=f"{rate:.1f}")
+                if watch.due(orch.decisions + len(orch.stored)):
+                    for line in missing_lines(look(bus, plan.run_id), plan.run_id, own.connect, plan.policies):
+                        progress.console.print(f"[yellow]waiting: {line}", highlight=False)
                 dead = {n: c for n, c in launcher.dead().items() if not n.startswith("world")}
                 if dead:
                     names = ", ".join(f"{n} (exit {c})" for n, c in dead.items())

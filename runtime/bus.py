@@ -86,6 +86,7 @@ class Bus(Protocol):
     def declare_token(self, key: str) -> Any: ...
     def undeclare_token(self, handle: Any) -> None: ...
     def watch_liveliness(self, key_expr: str, inbox: Inbox) -> Any: ...
+    def alive_tokens(self, key_expr: str, timeout_s: float = 1.0) -> list[str]: ...
     def close(self) -> None: ...
 
 
@@ -309,6 +310,11 @@ class ZenohBus:
         self._keep.append(sub)
         return sub
 
+    def alive_tokens(self, key_expr: str, timeout_s: float = 1.0) -> list[str]:
+        """The liveliness tokens matching ``key_expr`` alive now (a liveliness query to the router)."""
+        replies = self.session.liveliness().get(key_expr, timeout=timeout_s)
+        return sorted({str(r.ok.key_expr) for r in replies if r.ok is not None})
+
     def close(self) -> None:
         for obj in self._keep:
             with contextlib.suppress(Exception):
@@ -378,6 +384,9 @@ class MemoryBus:
             self._tokens = [token for token in self._tokens if token is not handle]
             if not self._alive(handle[0]):
                 self._tell(handle[0], b"-")
+
+    def alive_tokens(self, key_expr: str, timeout_s: float = 1.0) -> list[str]:
+        return sorted({token[0] for token in self._tokens if _matches(key_expr, token[0])})
 
     def _alive(self, key: str) -> bool:
         return any(token[0] == key for token in self._tokens)

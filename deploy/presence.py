@@ -1,0 +1,57 @@
+"""Who is here? The orchestrator's answer to a run that makes no progress (no silent waits).
+
+While nothing progresses, ``agos eval`` asks the router which processes of the run hold their
+liveliness tokens (world workers, the evaluator, an agent service per role) and prints, for each one
+missing, the exact command that starts it; when agent services are serving other runs, it names
+them (a mistyped ``--run`` is the usual cause).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from agos.runtime import keys
+from agos.runtime.bus import Bus
+
+
+@dataclass(frozen=True)
+class Presence:
+    worlds: int
+    evaluator: bool
+    agents: dict[str, int]
+    """role -> agent services of that role serving the run."""
+    agents_elsewhere: dict[str, list[str]] = field(default_factory=dict)
+    """Other runs with agent services: run -> roles."""
+
+
+def look(bus: Bus, run_id: str, timeout_s: float = 1.0) -> Presence:
+    """Ask the router for the run's liveliness tokens (and agents of other runs)."""
+    worlds = bus.alive_tokens(keys.live(run_id, "world", "*"), timeout_s)
+    evaluator = bus.alive_tokens(keys.live(run_id, "evaluator", "*"), timeout_s)
+    agents: dict[str, int] = dict.fromkeys(keys.ROLES, 0)
+    elsewhere: dict[str, list[str]] = {}
+    for key in bus.alive_tokens(keys.live("*", "agent", "*"), timeout_s):
+        run, role = keys.run_of(key), key.rsplit("/", 1)[-1].split("-", 1)[0]
+        if run == run_id and role in agents:
+            agents[role] += 1
+        elif run != run_id:
+            elsewhere.setdefault(run, []).append(role)
+    return Presence(len(worlds), bool(evaluator), agents, {r: sorted(set(v)) for r, v in elsewhere.items()})
+
+
+def missing_lines(p: Presence, run_id: str, endpoint: str, policies: dict[str, str]) -> list[str]:
+    """One line per missing process, with the command that starts it."""
+    lines = []
+    if not p.worlds:
+        lines.append(f"no world worker serves run {run_id}: start one with `agos world --connect {endpoint} --run {run_id}`")
+    if not p.evaluator:
+        lines.append(f"no evaluator stores run {run_id}: start one with `agos evaluator --connect {endpoint} --run {run_id}` "
+                     "(where this run directory's runs folder is)")
+    for role, n in p.agents.items():
+        if not n:
+            lines.append(f"no {role.upper()} agent serves run {run_id}: start one with `agos agent --role {role} "
+                         f"--policy {policies.get(role, 'heuristic')} --connect {endpoint} --run {run_id}`")
+    if any(not n for n in p.agents.values()) and p.agents_elsewhere:
+        others = ", ".join(f"{run} ({'+'.join(roles)})" for run, roles in sorted(p.agents_elsewhere.items()))
+        lines.append(f"agent services are serving other runs: {others}; is --run {run_id} the run they were started with?")
+    return lines
