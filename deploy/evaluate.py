@@ -33,7 +33,7 @@ from agos.evaluator.table import results_table
 from agos.runtime.bus import ZenohBus
 from agos.runtime.episode_config import EpisodeConfig, StoredConfigError, read_config
 from agos.runtime.process import install_stop_handlers
-from agos.runtime.schemas import EpisodeSpec
+from agos.runtime.schemas import EpisodeRecord, EpisodeSpec
 from agos.runtime.settings import AgosConfig
 
 log = logging.getLogger("agos.eval")
@@ -62,6 +62,28 @@ class Stall:
             self.since = now
             return True
         return False
+
+
+LOST_IN_A_ROW = 3
+"""Episodes lost in a row to one infrastructure cause after which ``agos eval`` stops (exit 3): a
+missing agent or a broken endpoint would otherwise cost every remaining episode its wait."""
+
+
+class LossStreak:
+    """Counts consecutive episodes lost to the same infrastructure cause (status and error)."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit, self.cause, self.count = limit, "", 0
+
+    def add(self, record: EpisodeRecord) -> str | None:
+        """The cause, once ``limit`` episodes in a row were lost to it; else None."""
+        if record.status == "finished":
+            self.cause, self.count = "", 0
+            return None
+        cause = f"{record.status}: {record.error or 'no error message'}"
+        self.count = self.count + 1 if cause == self.cause else 1
+        self.cause = cause
+        return cause if self.count >= self.limit else None
 
 
 class RunDirError(ValueError):
@@ -281,8 +303,15 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
             fresh = 0
             window: deque[tuple[float, int]] = deque()  # (time, decisions seen): the rate over the last 10 s
             watch = Stall(PRESENCE_EVERY_S)
+            losses = LossStreak(LOST_IN_A_ROW)
             while not orch.finished and not stop.is_set():
                 for record in orch.pump(0.25):
+                    cause = losses.add(record)
+                    if cause is not None:
+                        console.print(f"[red]stopping: {LOST_IN_A_ROW} episodes in a row lost to the same cause "
+                                      f"({record.status}): {cause}", highlight=False)
+                        orch.publish_manifest("interrupted")  # attached workers stop asking for jobs
+                        return 3
                     fresh += 1
                     successes += record.success
                     progress.update(task, completed=len(orch.stored), sr=f"{100 * successes / fresh:.0f}%")
