@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
+import shutil
+import signal
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -54,6 +55,10 @@ def plan_jobs(*, train: int, val: int, test: int, trainval_towns: list[str], tes
 _WORKER_TOWNS: dict[str, tuple[Town, Scene]] = {}
 
 
+def _run_keyed(job: Job) -> tuple[Job, list[str]]:
+    return job, run_job(job)
+
+
 def run_job(job: Job) -> list[str]:
     """Sample one chunk in a worker process; returns the episodes as JSON lines."""
     from agos.world.episodes.sampling import sample_episode
@@ -69,20 +74,53 @@ def run_job(job: Job) -> list[str]:
             for i in range(job.start, job.start + job.count)]
 
 
+def _ignore_sigint() -> None:
+    """Pool workers leave Ctrl-C to the parent, which stops them (a worker that dies on its own
+    SIGINT breaks the pool and leaves the parent waiting)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _chunk_path(out_dir: Path, job: Job) -> Path:
+    """Where a finished chunk is kept until the split is written, so an interrupted build resumes."""
+    return out_dir / ".chunks" / f"{job.split}-{job.town}-{job.difficulty}-{job.start}-{job.count}-s{job.seed}.jsonl"
+
+
 def build_split(out_dir: Path, jobs: list[Job], *, workers: int, progress: Callable[[int], None] | None = None) -> dict:
+    """Sample every job (chunks already finished by an interrupted build are reused) and write the
+    split. Ctrl-C stops the workers at once and keeps the finished chunks; it then raises
+    KeyboardInterrupt."""
     results: dict[Job, list[str]] = {}
-    if workers <= 1:
-        for job in jobs:
-            results[job] = run_job(job)
+    (out_dir / ".chunks").mkdir(parents=True, exist_ok=True)
+    for job in jobs:
+        path = _chunk_path(out_dir, job)
+        if path.exists():
+            results[job] = path.read_text().splitlines()
             if progress:
                 progress(job.count)
-    else:
-        with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
-            futures = {pool.submit(run_job, job): job for job in jobs}
-            for future in as_completed(futures):
-                results[futures[future]] = future.result()
-                if progress:
-                    progress(futures[future].count)
+    todo = [job for job in jobs if job not in results]
+
+    def keep(job: Job, lines: list[str]) -> None:
+        tmp = _chunk_path(out_dir, job).with_suffix(".tmp")
+        tmp.write_text("".join(line + "\n" for line in lines))
+        tmp.replace(_chunk_path(out_dir, job))
+        results[job] = lines
+        if progress:
+            progress(job.count)
+
+    if workers <= 1:
+        for job in todo:
+            keep(job, run_job(job))
+    elif todo:
+        pool = mp.get_context("spawn").Pool(min(workers, len(todo)), initializer=_ignore_sigint)
+        try:
+            for job, lines in pool.imap_unordered(_run_keyed, todo):
+                keep(job, lines)
+            pool.close()
+        except BaseException:
+            pool.terminate()  # Ctrl-C (or a worker's error): pending chunks are dropped, finished ones kept
+            raise
+        finally:
+            pool.join()
     counts = {}
     for split in ("train", "val", "test"):
         lines = [line for job in jobs if job.split == split for line in results[job]]
@@ -91,5 +129,6 @@ def build_split(out_dir: Path, jobs: list[Job], *, workers: int, progress: Calla
         counts[split] = len(lines)
     manifest = {"counts": counts, "towns": sorted({j.town for j in jobs}), "seed": jobs[0].seed if jobs else None}
     (out_dir / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    shutil.rmtree(out_dir / ".chunks", ignore_errors=True)
     return manifest
 
