@@ -11,9 +11,11 @@ the same seed gives the same numbers). Writes ``points/*.jsonl`` (episode record
 from __future__ import annotations
 
 import csv
+import hashlib
 import multiprocessing as mp
+import shutil
+import signal
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,6 +25,7 @@ import numpy as np
 from agos.runtime.codec import from_json, to_json
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.links import CommProfile
+from agos.runtime.schemas import EpisodeRecord
 
 METRICS = ("SR", "SPL", "DS")
 
@@ -49,9 +52,9 @@ class Point:
 _CACHE: dict[str, Any] = {}
 
 
-def _run_point_episode(args: tuple[str, str, list[str], str]) -> str:
-    """Worker process: one episode under one point's episode configuration; returns the record JSON."""
-    config_json, episode_json, policies, _ = args
+def _run_point_episode(args: tuple[str, str, list[str], str]) -> tuple[int, str]:
+    """Worker process: one episode under one point's episode configuration; returns (point, record JSON)."""
+    config_json, episode_json, policies, point = args
     from agos.agents.inprocess import InProcessAgents
     from agos.agents.registry import make_policy
     from agos.runtime.episode_config import EpisodeConfig
@@ -70,7 +73,7 @@ def _run_point_episode(args: tuple[str, str, list[str], str]) -> str:
     agents = InProcessAgents({"uav": make_policy(policies[0], "uav"), "ugv": make_policy(policies[1], "ugv")})
     record = EpisodeRunner(scene, town, spec, run_id="sweep", worker_id="sweep",
                            config=config).run(agents)
-    return to_json(record).decode()
+    return int(point), to_json(record).decode()
 
 
 def run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, param: str, values: list[float],
@@ -85,22 +88,52 @@ def run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, para
     points = [Point(v, s) for v in values for s in seeds]
     point_configs = [config.model_copy(update={"comm": with_param(config.comm, param, p.value), "link_seed": p.seed})
                      for p in points]
+    # Each finished episode is appended to its point's file in OUT/.episodes at once, so Ctrl-C loses
+    # only the episodes in flight and the next run of the same sweep plays only what is missing.
+    # A file's name carries the hash of everything that shapes its records (never reused wrongly).
+    done_dir = out_dir / ".episodes"
+    done_dir.mkdir(parents=True, exist_ok=True)
+    done_files = [done_dir / f"{i}-{_point_key(point_configs[i].model_dump_json(), policies)}.jsonl" for i in range(len(points))]
+    results: dict[int, list[str]] = {i: (f.read_text().splitlines() if f.exists() else []) for i, f in enumerate(done_files)}
+    finished = {(i, from_json(line, EpisodeRecord).episode_id) for i, lines in results.items() for line in lines}
     jobs = [(point_configs[i].model_dump_json(), to_json(e).decode(), list(policies), str(i))
-            for i in range(len(points)) for e in episodes]
-    results: dict[int, list[str]] = {i: [] for i in range(len(points))}
-    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as pool:
-        futures = {pool.submit(_run_point_episode, job): int(job[3]) for job in jobs}
-        for future in as_completed(futures):
-            results[futures[future]].append(future.result())
-            if progress:
-                progress()
+            for i in range(len(points)) for e in episodes if (i, e.episode_id) not in finished]
+    for _ in range(len(finished)):
+        if progress:
+            progress()
+    if jobs:
+        pool = mp.get_context("spawn").Pool(min(workers, len(jobs)), initializer=_ignore_sigint)
+        try:
+            for i, line in pool.imap_unordered(_run_point_episode, jobs):
+                with done_files[i].open("a") as fh:
+                    fh.write(line + "\n")
+                results[i].append(line)
+                if progress:
+                    progress()
+            pool.close()
+        except BaseException:
+            pool.terminate()  # Ctrl-C: the episodes in flight are dropped; the finished ones are on disk
+            raise
+        finally:
+            pool.join()
     (out_dir / "points").mkdir(parents=True, exist_ok=True)
     rows = []
     for i, point in enumerate(points):
         lines = sorted(results[i])
         (out_dir / "points" / f"{param}={point.value:g}_seed{point.seed}.jsonl").write_text("\n".join(lines) + "\n")
         rows.append({"value": point.value, "seed": point.seed, "records": lines})
-    return summarize(rows, out_dir, param)
+    table = summarize(rows, out_dir, param)
+    shutil.rmtree(done_dir, ignore_errors=True)
+    return table
+
+
+def _ignore_sigint() -> None:
+    """Pool workers leave Ctrl-C to the parent, which terminates them."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _point_key(config_json: str, policies: tuple[str, str]) -> str:
+    return hashlib.sha256((config_json + "|" + "|".join(policies)).encode()).hexdigest()[:12]
 
 
 def _bootstrap_ci(values: np.ndarray, rng: np.random.Generator, resamples: int = 2000) -> tuple[float, float]:
