@@ -56,6 +56,7 @@ class Orchestrator:
         self._clock = clock
         done = already_stored or set()
         self.total = len(episodes)
+        self.episode_ids = {e.episode_id for e in episodes}
         self.stored: set[str] = {e.episode_id for e in episodes if e.episode_id in done}
         self.already = len(self.stored)
         self.pending: deque[tuple[EpisodeSpec, int]] = deque((e, 1) for e in episodes if e.episode_id not in done)
@@ -113,6 +114,12 @@ class Orchestrator:
             try:
                 message = decode(s.payload)
             except DecodeError:
+                continue
+            # A message counts only for an episode of this run's split, named alike by its key and its
+            # payload: anything else on these keys is a mistake or a forgery.
+            about = keys.episode_of(s.key)
+            if getattr(message, "episode_id", None) != about or getattr(message, "run_id", None) != self.run_id \
+                    or about not in self.episode_ids:
                 continue
             if isinstance(message, EpisodeRecord):
                 self.records.setdefault(message.episode_id, message)

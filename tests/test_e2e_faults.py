@@ -286,3 +286,42 @@ def test_same_results_with_one_or_two_workers_and_with_slow_observers(tmp_path: 
     assert viz.kinds.get("coord") == {"coordination_state"}, viz.kinds
     assert viz.kinds.get("frame", {"viz_frame"}) == {"viz_frame"}, viz.kinds  # the slow one may miss them all
     assert viz.frames > 0
+
+
+def test_garbage_on_the_worlds_control_keys_is_ignored(tmp_path: Path, episodes: Path) -> None:
+    """A plain zenoh client floods the keys a world worker reads (acknowledgements, the manifest) with
+    random bytes, wrong-shaped msgpack and acks of other episodes, and answers job requests with garbage:
+    no world dies, every episode is stored once, the worker logs what it ignored."""
+    import random
+
+    cluster = Cluster(tmp_path, "garbage", workers=1)
+    ids = [json.loads(line)["episode_id"] for line in episodes.read_text().splitlines()]
+    stop = threading.Event()
+    rng = random.Random(0)
+    session = zenoh.open(zenoh_config(connect=[cluster.endpoint]))
+    bad = [b"", b"\xc1", bytes(rng.randrange(256) for _ in range(64)), msgpack.packb({"type": "result_ack", "v": 1}),
+           msgpack.packb({"type": "run_manifest", "v": 1, "status": 7}), msgpack.packb([1, 2, 3]),
+           msgpack.packb({"type": "result_ack", "v": 1, "run_id": "garbage", "episode_id": "elsewhere",
+                          "newly_stored": True})]
+    jobs = session.declare_queryable(keys.jobs("garbage"), lambda q: q.reply(q.key_expr, rng.choice(bad)))
+
+    def flood() -> None:
+        while not stop.is_set():
+            for ep in ids:
+                session.put(keys.result_ack("garbage", ep), rng.choice(bad))
+            session.put(keys.manifest("garbage"), rng.choice(bad))
+            time.sleep(0.02)
+
+    thread = threading.Thread(target=flood, daemon=True)
+    thread.start()
+    try:
+        _finish(cluster.eval(episodes))
+        _one_finished_record_each(cluster.records(), 4)
+        assert cluster.procs["w0"].poll() is None or cluster.procs["w0"].returncode == 0
+        assert "ignoring an unreadable message" in (tmp_path / "w0.log").read_text()
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+        jobs.undeclare()
+        session.close()
+        cluster.close()

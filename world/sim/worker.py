@@ -187,6 +187,7 @@ class WorldWorker:
         self.run_id = cfg.run.run_id
         self._scenes: dict[tuple[str, int, str], tuple[Town, Scene]] = {}
         self.frames = FrameStream(bus)
+        self.rejected: dict[str, int] = {}  # unreadable control messages, per key kind
 
     def serve(self) -> int:
         self.bus.declare_token(keys.live(self.run_id, "world", self.worker_id))
@@ -195,15 +196,19 @@ class WorldWorker:
         self.bus.subscribe(keys.manifest(self.run_id), manifests)
         log.info("world worker %s serving run %s", self.worker_id, self.run_id)
         while not self.stop.is_set():
-            if any(getattr(decode(m.payload), "status", "") in ("finished", "interrupted") for m in manifests.drain()):
+            if any(getattr(self._read(m.payload, m.key), "status", "") in ("finished", "interrupted")
+                   for m in manifests.drain()):
                 log.info("run %s is over; worker exits", self.run_id)
                 break
             replies = self.bus.request(keys.jobs(self.run_id), JobRequest(worker_id=self.worker_id), timeout_s=5.0)
             if not replies:
                 self.stop.wait(1.0)  # no orchestrator yet
                 continue
-            grant = decode(replies[0])
-            if not isinstance(grant, JobGrant) or grant.run_finished:
+            grant = self._read(replies[0], keys.jobs(self.run_id))
+            if not isinstance(grant, JobGrant):
+                self.stop.wait(1.0)  # not a job grant (something else answers ctl/jobs): ask again
+                continue
+            if grant.run_finished:
                 log.info("run %s finished; worker exits", self.run_id)
                 break
             if grant.episode is None:
@@ -217,6 +222,20 @@ class WorldWorker:
         log.info("world worker %s exits: CPU %.1f s, peak RSS %.0f MB", self.worker_id,
                  usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024)
         return 0
+
+    def _read(self, payload: bytes, key: str) -> object | None:
+        """A received control message, or None for one that cannot be read: logged (the first 5 per key
+        kind, then every 100th) and ignored, never fatal; a hostile or broken publisher must not end
+        the worker."""
+        try:
+            return decode(payload)
+        except DecodeError as exc:
+            kind = key.rsplit("/", 1)[-1]
+            self.rejected[kind] = self.rejected.get(kind, 0) + 1
+            if self.rejected[kind] <= 5 or self.rejected[kind] % 100 == 0:
+                log.warning("ignoring an unreadable message on %s (%d so far on */%s): %s", key, self.rejected[kind],
+                            kind, exc)
+            return None
 
     def _scene(self, spec: EpisodeSpec, renderer: str) -> tuple[Town, Scene]:
         key = (spec.town.generator, spec.town.seed, renderer)
@@ -291,7 +310,8 @@ class WorldWorker:
             for attempt in range(1, SUBMIT_ATTEMPTS + 1):
                 self.bus.publish(keys.result(self.run_id, record.episode_id), record)
                 sample = inbox.get(timeout_s=ACK_WAIT_S)
-                if sample is not None and isinstance(decode(sample.payload), ResultAck):
+                ack = None if sample is None else self._read(sample.payload, sample.key)
+                if isinstance(ack, ResultAck) and (ack.run_id, ack.episode_id) == (record.run_id, record.episode_id):
                     return True
                 if self.stop.is_set():
                     break
