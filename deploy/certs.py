@@ -141,6 +141,12 @@ def main(out: Path, *, router_hosts: list[str] | None, days: int, force: bool) -
     return 0
 
 
+def credential_env(certs: Path, identity: str) -> dict[str, str]:
+    """The ``AGOS_ZENOH__*`` variables naming ``identity``'s files in a directory made by :func:`make_certs`."""
+    return {"AGOS_ZENOH__CA_FILE": str(certs / "ca.pem"), "AGOS_ZENOH__CERT_FILE": str(certs / f"{identity}.pem"),
+            "AGOS_ZENOH__KEY_FILE": str(certs / f"{identity}.key")}
+
+
 class RunCredentials:
     """A throwaway CA and certificates for one local secured run (``agos eval/demo --secure``): made in
     a private temporary directory, handed to each child by environment variables naming its files
@@ -152,9 +158,7 @@ class RunCredentials:
 
     def env(self, identity: str) -> dict[str, str]:
         """The environment that gives a child process ``identity``'s credentials."""
-        return {"AGOS_ZENOH__CA_FILE": str(self.dir / "ca.pem"),
-                "AGOS_ZENOH__CERT_FILE": str(self.dir / f"{identity}.pem"),
-                "AGOS_ZENOH__KEY_FILE": str(self.dir / f"{identity}.key")}
+        return credential_env(self.dir, identity)
 
     def settings(self, z: ZenohSettings, identity: str, endpoint: str) -> ZenohSettings:
         """``z`` connecting to ``endpoint`` as ``identity`` (for this process's own session)."""

@@ -24,6 +24,7 @@ import sys
 from pathlib import Path
 
 from agos.runtime.bus import RouterUnreachable
+from agos.runtime.health import HEALTH_KINDS
 from agos.runtime.settings import AgosConfig, ConfigError, load_config
 
 
@@ -155,7 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
     check_agent.add_argument("--agent-wait", type=float, help="seconds to wait for each role's service (default 30)")
 
     health = sub.add_parser("health", help="exit 0 if a process's liveliness token is on the bus (compose healthchecks)")
-    health.add_argument("kind", choices=["router", "world", "agent", "evaluator", "orchestrator"])
+    health.add_argument("kind", choices=HEALTH_KINDS)
     health.add_argument("--id", dest="ident", help="the process id (default: what the process of that kind here announced)")
     health.add_argument("--config", type=Path)
     health.add_argument("--connect", help="zenoh router endpoint (default from settings)")
@@ -365,14 +366,12 @@ def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
             if run_dir is None and args.connect and args.run_id:
                 run_dir = cfg.run.runs_dir / args.run_id
             plan = evaluate.new_plan(cfg, run_dir=run_dir, comm=args.comm, timing_mode=args.timing, stamp=True,
-                                     vlm_standin=args.vlm_standin)
+                                     vlm_standin=args.vlm_standin, workers=args.workers)
     except (evaluate.RunDirError, ProfileError, ValueError) as exc:
         print(f"eval error: {exc}", file=sys.stderr)
         return 2
     if args.resume and args.workers is None:  # a resumed run keeps the worker count it was started with
         args.workers = plan.workers
-    if not args.resume:
-        evaluate.remember(plan, workers=args.workers)
     workers = args.workers if isinstance(args.workers, int) else cfg.run.workers
     if args.workers == "auto" and not args.connect:
         from agos.agents.names import needs_vlm

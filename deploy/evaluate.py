@@ -26,64 +26,19 @@ from agos.deploy.certs import RunCredentials
 from agos.deploy.configure import episode_config
 from agos.deploy.launcher import Launcher, free_port, wait_listening
 from agos.deploy.orchestrator import Orchestrator
-from agos.deploy.presence import look, missing_lines
+from agos.deploy.presence import LOST_IN_A_ROW, PRESENCE_EVERY_S, LossStreak, Stall, look, missing_lines
 from agos.evaluator.metrics import by_difficulty
 from agos.evaluator.store import ResultStore, results_path
 from agos.evaluator.table import results_table
 from agos.runtime.bus import ZenohBus
 from agos.runtime.episode_config import EpisodeConfig, StoredConfigError, read_config
 from agos.runtime.process import install_stop_handlers
-from agos.runtime.schemas import EpisodeRecord, EpisodeSpec
+from agos.runtime.schemas import EpisodeSpec
 from agos.runtime.settings import AgosConfig
 
 log = logging.getLogger("agos.eval")
 RUN_FILE = "run.json"
 STANDIN_MODEL = "agos-standin"
-
-
-PRESENCE_EVERY_S = 15.0
-"""While a run makes no progress, how often ``agos eval`` checks who is missing and says so."""
-
-
-class Stall:
-    """Says when a run has made no progress for another ``every_s`` seconds."""
-
-    def __init__(self, every_s: float) -> None:
-        self.every_s = every_s
-        self.progress = -1
-        self.since = time.monotonic()
-
-    def due(self, progress: int) -> bool:
-        now = time.monotonic()
-        if progress != self.progress:
-            self.progress, self.since = progress, now
-            return False
-        if now - self.since >= self.every_s:
-            self.since = now
-            return True
-        return False
-
-
-LOST_IN_A_ROW = 3
-"""Episodes lost in a row to one infrastructure cause after which ``agos eval`` stops (exit 3): a
-missing agent or a broken endpoint would otherwise cost every remaining episode its wait."""
-
-
-class LossStreak:
-    """Counts consecutive episodes lost to the same infrastructure cause (status and error)."""
-
-    def __init__(self, limit: int) -> None:
-        self.limit, self.cause, self.count = limit, "", 0
-
-    def add(self, record: EpisodeRecord) -> str | None:
-        """The cause, once ``limit`` episodes in a row were lost to it; else None."""
-        if record.status == "finished":
-            self.cause, self.count = "", 0
-            return None
-        cause = f"{record.status}: {record.error or 'no error message'}"
-        self.count = self.count + 1 if cause == self.cause else 1
-        self.cause = cause
-        return cause if self.count >= self.limit else None
 
 
 class RunDirError(ValueError):
@@ -136,7 +91,9 @@ def vlm_plan(cfg: AgosConfig, policies: dict[str, str], standin: str | None) -> 
 
 
 def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: str, stamp: bool,
-             vlm_standin: str | None = None) -> RunPlan:
+             vlm_standin: str | None = None, workers: int | str | None = None) -> RunPlan:
+    """A new run directory with its run.json and episodes.jsonl. ``workers``: the command's
+    ``--workers`` (a count or ``auto``), stored for ``--resume``."""
     from agos.world.episodes.sampling import read_episodes, write_episodes
 
     # Everything that can be wrong with the command fails before episodes are generated.
@@ -151,11 +108,12 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
     episodes = read_episodes(cfg.run.episodes_file) if cfg.run.episodes_file else generated_episodes(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_episodes(run_dir / "episodes.jsonl", episodes)
-    plan = RunPlan(run_dir, episodes, policies, config, vlm=vlm)
+    plan = RunPlan(run_dir, episodes, policies, config, vlm=vlm, workers=workers)
     (run_dir / RUN_FILE).write_text(json.dumps({
         "run_id": plan.run_id, "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "policies": plan.policies, "comm": config.comm.name, "timing_mode": config.timing_mode, "episodes": len(episodes),
-        "vlm": vlm, "config_hash": config.config_hash(), "episode_config": config.model_dump(mode="json"),
+        "vlm": vlm, "workers": workers, "config_hash": config.config_hash(),
+        "episode_config": config.model_dump(mode="json"),
         "episode_source": str(cfg.run.episodes_file or f"generated: {cfg.run.town}, {cfg.run.per_difficulty}/difficulty, "
                                                          f"seed {cfg.run.episode_seed}"),
     }, indent=2) + "\n")
@@ -177,14 +135,6 @@ def resume_plan(run_dir: Path) -> RunPlan:
         raise RunDirError(str(exc)) from None
     return RunPlan(run_dir, read_episodes(run_dir / "episodes.jsonl"), meta["policies"], config, resumed=True,
                    vlm=meta.get("vlm", {}), workers=meta.get("workers"))
-
-
-def remember(plan: RunPlan, *, workers: int | str | None) -> None:
-    """Add the command's ``--workers`` to run.json, for ``--resume``."""
-    path = plan.run_dir / RUN_FILE
-    meta = json.loads(path.read_text())
-    meta["workers"] = plan.workers = workers
-    path.write_text(json.dumps(meta, indent=2) + "\n")
 
 
 def stored_episodes(run_dir: Path) -> set[str]:

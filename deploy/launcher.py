@@ -34,7 +34,7 @@ class Launcher:
         (credentials travel there, never in ``args``, which any user can read in a process listing)."""
         # Appended, never truncated: a resumed run keeps the logs of its earlier attempts.
         out = (self.log_dir / f"{name}.log").open("ab")
-        out.write(f"===== agos {' '.join(args[:1])} started {time.strftime('%Y-%m-%d %H:%M:%S')} =====\n".encode())
+        out.write(f"===== agos {args[0]} started {time.strftime('%Y-%m-%d %H:%M:%S')} =====\n".encode())
         out.flush()
         proc = subprocess.Popen([sys.executable, "-m", "agos.deploy.cli", *args], stdout=out,
                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,

@@ -1,17 +1,20 @@
-"""Who is here? The orchestrator's answer to a run that makes no progress (no silent waits).
+"""Who is here, and is the run getting anywhere? ``agos eval``'s watch over a run (no silent waits).
 
-While nothing progresses, ``agos eval`` asks the router which processes of the run hold their
-liveliness tokens (world workers, the evaluator, an agent service per role) and prints, for each one
-missing, the exact command that starts it; when agent services are serving other runs, it names
-them (a mistyped ``--run`` is the usual cause).
+While nothing progresses (:class:`Stall`), ``agos eval`` asks the router which processes of the run
+hold their liveliness tokens (world workers, the evaluator, an agent service per role) and prints,
+for each one missing, the exact command that starts it; when agent services are serving other runs,
+it names them (a mistyped ``--run`` is the usual cause). Episodes lost in a row to one
+infrastructure cause (:class:`LossStreak`) stop the run.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 from agos.runtime import keys
 from agos.runtime.bus import Bus
+from agos.runtime.schemas import EpisodeRecord
 
 
 @dataclass(frozen=True)
@@ -55,3 +58,48 @@ def missing_lines(p: Presence, run_id: str, endpoint: str, policies: dict[str, s
         others = ", ".join(f"{run} ({'+'.join(roles)})" for run, roles in sorted(p.agents_elsewhere.items()))
         lines.append(f"agent services are serving other runs: {others}; is --run {run_id} the run they were started with?")
     return lines
+
+
+PRESENCE_EVERY_S = 15.0
+"""While a run makes no progress, how often ``agos eval`` checks who is missing and says so."""
+
+
+class Stall:
+    """Says when a run has made no progress for another ``every_s`` seconds."""
+
+    def __init__(self, every_s: float) -> None:
+        self.every_s = every_s
+        self.progress = -1
+        self.since = time.monotonic()
+
+    def due(self, progress: int) -> bool:
+        now = time.monotonic()
+        if progress != self.progress:
+            self.progress, self.since = progress, now
+            return False
+        if now - self.since >= self.every_s:
+            self.since = now
+            return True
+        return False
+
+
+LOST_IN_A_ROW = 3
+"""Episodes lost in a row to one infrastructure cause after which ``agos eval`` stops (exit 3): a
+missing agent or a broken endpoint would otherwise cost every remaining episode its wait."""
+
+
+class LossStreak:
+    """Counts consecutive episodes lost to the same infrastructure cause (status and error)."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit, self.cause, self.count = limit, "", 0
+
+    def add(self, record: EpisodeRecord) -> str | None:
+        """The cause, once ``limit`` episodes in a row were lost to it; else None."""
+        if record.status == "finished":
+            self.cause, self.count = "", 0
+            return None
+        cause = f"{record.status}: {record.error or 'no error message'}"
+        self.count = self.count + 1 if cause == self.cause else 1
+        self.cause = cause
+        return cause if self.count >= self.limit else None

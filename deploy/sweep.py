@@ -12,9 +12,7 @@ from __future__ import annotations
 
 import csv
 import hashlib
-import multiprocessing as mp
 import shutil
-import signal
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +23,7 @@ import numpy as np
 from agos.runtime.codec import from_json, to_json
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.links import CommProfile
+from agos.runtime.process import interruptible_imap
 from agos.runtime.schemas import EpisodeRecord
 
 METRICS = ("SR", "SPL", "DS")
@@ -101,21 +100,12 @@ def run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, para
     for _ in range(len(finished)):
         if progress:
             progress()
-    if jobs:
-        pool = mp.get_context("spawn").Pool(min(workers, len(jobs)), initializer=_ignore_sigint)
-        try:
-            for i, line in pool.imap_unordered(_run_point_episode, jobs):
-                with done_files[i].open("a") as fh:
-                    fh.write(line + "\n")
-                results[i].append(line)
-                if progress:
-                    progress()
-            pool.close()
-        except BaseException:
-            pool.terminate()  # Ctrl-C: the episodes in flight are dropped; the finished ones are on disk
-            raise
-        finally:
-            pool.join()
+    for i, line in interruptible_imap(_run_point_episode, jobs, workers):  # Ctrl-C: finished ones are on disk
+        with done_files[i].open("a") as fh:
+            fh.write(line + "\n")
+        results[i].append(line)
+        if progress:
+            progress()
     (out_dir / "points").mkdir(parents=True, exist_ok=True)
     rows = []
     for i, point in enumerate(points):
@@ -125,11 +115,6 @@ def run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, para
     table = summarize(rows, out_dir, param)
     shutil.rmtree(done_dir, ignore_errors=True)
     return table
-
-
-def _ignore_sigint() -> None:
-    """Pool workers leave Ctrl-C to the parent, which terminates them."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _point_key(config_json: str, policies: tuple[str, str]) -> str:

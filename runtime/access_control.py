@@ -20,7 +20,7 @@ What each identity may say (the issue's rules):
 - ``router``: nothing but the health check (every identity may ask which processes are alive).
 
 Which episodes a world may publish results for is not a key rule (a worker's episodes change
-with every lease); the orchestrator's lease table is what decides whether a result is counted.
+with every lease): any ``world`` certificate may publish any episode's result.
 
 How zenoh's rules read: a message *into* the router from a client is ``ingress``; one the router
 sends *out* to a client is ``egress``. Publishing is ``put`` ingress, and hearing it is ``put``

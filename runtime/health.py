@@ -22,11 +22,12 @@ from pathlib import Path
 from typing import Literal
 
 from agos.runtime import keys
-from agos.runtime.bus import open_session, session_config
+from agos.runtime.bus import ZenohBus
 from agos.runtime.settings import ZenohSettings
 
 HealthKind = Literal["router", "world", "agent", "evaluator", "orchestrator"]
 HEALTH_KINDS: tuple[HealthKind, ...] = ("router", "world", "agent", "evaluator", "orchestrator")
+"""The kinds ``agos health`` can ask about (its argument choices)."""
 
 
 def unique_id(prefix: str) -> str:
@@ -71,13 +72,14 @@ def announced(kind: HealthKind) -> dict[str, str | None] | None:
 
 
 def token_alive(z: ZenohSettings, key: str, timeout_s: float) -> bool:
-    """Whether a liveliness token matching ``key`` is up, asked of the router."""
-    with open_session(session_config(z)) as session:
+    """Whether a liveliness token matching ``key`` is up, asked of the router until ``timeout_s``."""
+    bus = ZenohBus.from_settings(z)
+    try:
         deadline = time.monotonic() + timeout_s
-        while True:
-            replies = session.liveliness().get(key, timeout=max(0.1, min(1.0, deadline - time.monotonic())))
-            if any(reply.ok is not None for reply in replies):
-                return True
+        while not bus.alive_tokens(key, max(0.1, min(1.0, deadline - time.monotonic()))):
             if time.monotonic() >= deadline:
                 return False
             time.sleep(0.2)
+        return True
+    finally:
+        bus.close()

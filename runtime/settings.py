@@ -49,11 +49,6 @@ class ZenohSettings(_Section):
     verify_name: bool = True
     """Clients check that the router's certificate names the host they connect to."""
 
-    @property
-    def secure(self) -> bool:
-        """Whether this process talks TLS (its endpoints say ``tls/``)."""
-        return self.connect.startswith("tls/") or self.listen.startswith("tls/")
-
 
 class RunSettings(_Section):
     run_id: str = "demo"

@@ -15,12 +15,14 @@ import base64
 from pathlib import Path
 from typing import Any
 
+from pydantic import SecretStr
+
 from agos.runtime.settings import ConfigError, ZenohSettings
 
 _MAKE_THEM = "make them with `agos certs --out DIR` (docs/DEPLOY.md)"
 
 
-def _credential(z: ZenohSettings, name: str, what: str) -> tuple[str, str]:
+def _credential(z: ZenohSettings, name: str, what: str, endpoint: str) -> tuple[str, str]:
     """(``"path"`` or ``"base64"``, value) of one credential, or a ConfigError naming both settings."""
     path: Path | None = getattr(z, f"{name}_file")
     pem = getattr(z, f"{name}_pem")
@@ -29,11 +31,10 @@ def _credential(z: ZenohSettings, name: str, what: str) -> tuple[str, str]:
             raise ConfigError(f"config error: zenoh.{name}_file: {path}: file not found ({what}); {_MAKE_THEM}")
         return "path", str(path)
     if pem is not None:
-        text = pem.get_secret_value() if hasattr(pem, "get_secret_value") else pem
+        text = pem.get_secret_value() if isinstance(pem, SecretStr) else pem
         if "-----BEGIN" not in text:
             raise ConfigError(f"config error: zenoh.{name}_pem: not PEM text ({what})")
         return "base64", base64.b64encode(text.encode()).decode()
-    endpoint = z.listen if z.listen.startswith("tls/") and not z.connect.startswith("tls/") else z.connect
     raise ConfigError(f"config error: zenoh.{name}_file: endpoint {endpoint} uses TLS and needs {what}: set "
                       f"AGOS_ZENOH__{name.upper()}_FILE (or AGOS_ZENOH__{name.upper()}_PEM); {_MAKE_THEM}")
 
@@ -41,10 +42,11 @@ def _credential(z: ZenohSettings, name: str, what: str) -> tuple[str, str]:
 def tls_section(z: ZenohSettings, *, listening: bool) -> dict[str, Any]:
     """zenoh's ``transport/link/tls`` for this process: mutual TLS, the peer checked against the CA."""
     side = "listen" if listening else "connect"
+    endpoint = z.listen if listening else z.connect
     section: dict[str, Any] = {"enable_mtls": True, "verify_name_on_connect": z.verify_name}
     for name, zenoh_name, what in (("ca", "root_ca_certificate", "the CA certificate"),
                                    ("cert", f"{side}_certificate", "this process's certificate"),
                                    ("key", f"{side}_private_key", "this process's private key")):
-        kind, value = _credential(z, name, what)
+        kind, value = _credential(z, name, what, endpoint)
         section[zenoh_name if kind == "path" else f"{zenoh_name}_base64"] = value
     return section

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from agos.deploy.certs import make_certs
+from agos.deploy.certs import credential_env, make_certs
 from agos.deploy.launcher import free_port, wait_listening
 
 pytestmark = pytest.mark.e2e
@@ -39,9 +39,7 @@ def test_health_follows_the_process_token(tmp_path, secure: bool) -> None:
     def as_(identity: str) -> dict[str, str]:
         if not secure:
             return env
-        c = tmp_path / "certs"
-        return {**env, "AGOS_ZENOH__CA_FILE": str(c / "ca.pem"), "AGOS_ZENOH__CERT_FILE": str(c / f"{identity}.pem"),
-                "AGOS_ZENOH__KEY_FILE": str(c / f"{identity}.key")}
+        return {**env, **credential_env(tmp_path / "certs", identity)}
 
     no_router = _health("router", endpoint, as_("router"))
     assert no_router.returncode == 1 and "no router has announced itself" in no_router.stderr

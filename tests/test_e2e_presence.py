@@ -82,7 +82,7 @@ def test_eval_stops_after_three_episodes_lost_to_one_cause(tmp_path, sample_mid_
 
 
 def test_a_loss_streak_counts_one_cause_in_a_row() -> None:
-    from agos.deploy.evaluate import LossStreak
+    from agos.deploy.presence import LossStreak
 
     class R:
         def __init__(self, status: str, error: str | None = None) -> None:

@@ -20,7 +20,7 @@ import msgspec
 import pytest
 import zenoh
 
-from agos.deploy.certs import make_certs
+from agos.deploy.certs import credential_env, make_certs
 from agos.deploy.launcher import free_port, wait_listening
 from agos.runtime import keys
 from agos.runtime.bus import session_config, zenoh_config
@@ -36,8 +36,7 @@ RUN = "sec"
 
 
 def _env(certs: Path, identity: str) -> dict[str, str]:
-    return {**os.environ, "AGOS_ZENOH__CA_FILE": str(certs / "ca.pem"),
-            "AGOS_ZENOH__CERT_FILE": str(certs / f"{identity}.pem"), "AGOS_ZENOH__KEY_FILE": str(certs / f"{identity}.key")}
+    return {**os.environ, **credential_env(certs, identity)}
 
 
 def _start(args: list[str], certs: Path, identity: str, log: Path) -> subprocess.Popen:

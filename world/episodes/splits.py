@@ -9,15 +9,14 @@ client each); the result does not depend on the number of workers.
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 import shutil
-import signal
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from agos.runtime.codec import from_json, to_json
+from agos.runtime.process import interruptible_imap
 from agos.runtime.schemas import Difficulty, EpisodeSpec
 from agos.world.episodes.sampling import DIFFICULTIES, write_episodes
 
@@ -74,12 +73,6 @@ def run_job(job: Job) -> list[str]:
             for i in range(job.start, job.start + job.count)]
 
 
-def _ignore_sigint() -> None:
-    """Pool workers leave Ctrl-C to the parent, which stops them (a worker that dies on its own
-    SIGINT breaks the pool and leaves the parent waiting)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
 def _chunk_path(out_dir: Path, job: Job) -> Path:
     """Where a finished chunk is kept until the split is written, so an interrupted build resumes."""
     return out_dir / ".chunks" / f"{job.split}-{job.town}-{job.difficulty}-{job.start}-{job.count}-s{job.seed}.jsonl"
@@ -110,17 +103,9 @@ def build_split(out_dir: Path, jobs: list[Job], *, workers: int, progress: Calla
     if workers <= 1:
         for job in todo:
             keep(job, run_job(job))
-    elif todo:
-        pool = mp.get_context("spawn").Pool(min(workers, len(todo)), initializer=_ignore_sigint)
-        try:
-            for job, lines in pool.imap_unordered(_run_keyed, todo):
-                keep(job, lines)
-            pool.close()
-        except BaseException:
-            pool.terminate()  # Ctrl-C (or a worker's error): pending chunks are dropped, finished ones kept
-            raise
-        finally:
-            pool.join()
+    else:  # Ctrl-C: pending chunks are dropped, finished ones are already kept
+        for job, lines in interruptible_imap(_run_keyed, todo, workers):
+            keep(job, lines)
     counts = {}
     for split in ("train", "val", "test"):
         lines = [line for job in jobs if job.split == split for line in results[job]]
