@@ -3,7 +3,10 @@ tracks which episodes are stored.
 
 * Workers ask on ``agos/<run>/ctl/jobs`` (a queryable) and get the next episode with its attempt
   number and the run's whole episode configuration (runtime/episode_config.py); ``None`` while others are still running; or
-  ``run_finished``.
+  ``run_finished``. Only a worker whose liveliness token is up gets an episode: a stray client
+  asking for jobs cannot take episodes away from the workers.
+* Every lease is announced on ``agos/<run>/ep/<ep>/lease`` (and again every ``LEASE_REPEAT_S``
+  while it lasts): the evaluator stores a result only from the worker named there.
 * A worker whose liveliness token (``agos/<run>/live/world/<id>``) vanishes, or whose episode
   shows no step event for ``stuck_after_s`` of wall time, loses its leases: those episodes go back
   to the front of the queue with attempt + 1. After ``max_attempts`` the orchestrator submits an
@@ -29,9 +32,23 @@ from agos.runtime.codec import DecodeError, decode, encode
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.failure_records import failure_record
 from agos.runtime.health import announce
-from agos.runtime.schemas import EpisodeRecord, EpisodeSpec, JobGrant, JobRequest, ResultAck, RunManifest, StepEvent
+from agos.runtime.rejections import Rejections
+from agos.runtime.schemas import (
+    EpisodeRecord,
+    EpisodeSpec,
+    JobGrant,
+    JobRequest,
+    LeaseNotice,
+    ResultAck,
+    RunManifest,
+    StepEvent,
+)
 
 log = logging.getLogger("agos.orchestrator")
+
+LEASE_REPEAT_S = 5.0
+"""How often current lease notices (and unacknowledged failure records) are published again, for an
+evaluator that started, or restarted, after they were first sent."""
 
 
 @dataclass
@@ -67,6 +84,12 @@ class Orchestrator:
         """Step events seen (decisions applied, both roles), for the progress bar."""
         self.first_lease_s: float | None = None
         self.last_stored_s: float | None = None
+        self.live_workers: set[str] = set()
+        """World workers whose liveliness token is up: the only ones that get episodes."""
+        self.gave_up: dict[str, EpisodeRecord] = {}
+        """Infrastructure-failure records this orchestrator submitted, until acknowledged."""
+        self.rejections = Rejections(log)
+        self._repeat_at = clock() + LEASE_REPEAT_S
         self.created_utc = datetime.now(UTC).isoformat(timespec="seconds")
         self._queries = bus.serve(keys.jobs(run_id))
         # Imported towns travel by hash: workers without the file ask agos/assets/<sha256>.
@@ -113,30 +136,58 @@ class Orchestrator:
                 continue
             try:
                 message = decode(s.payload)
-            except DecodeError:
+            except DecodeError as exc:
+                self.rejections.reject(s.key, "unreadable", exc)
                 continue
             # A message counts only for an episode of this run's split, named alike by its key and its
             # payload: anything else on these keys is a mistake or a forgery.
             about = keys.episode_of(s.key)
             if getattr(message, "episode_id", None) != about or getattr(message, "run_id", None) != self.run_id \
                     or about not in self.episode_ids:
+                self.rejections.reject(s.key, "not an episode of this run named alike by key and payload")
                 continue
             if isinstance(message, EpisodeRecord):
-                self.records.setdefault(message.episode_id, message)
+                if self._from_holder(message):
+                    self.records.setdefault(message.episode_id, message)
+                else:
+                    self.rejections.reject(s.key, "not from the lease holder")
+            elif isinstance(message, ResultAck) and message.episode_id not in self.records:
+                # The evaluator acknowledges only a record it stored, and it stores only the holder's.
+                self.rejections.reject(s.key, "an ack before any record of the lease holder")
             elif isinstance(message, ResultAck) and message.episode_id not in self.stored:
                 self.stored.add(message.episode_id)
                 self.last_stored_s = now
                 self.leases.pop(message.episode_id, None)
+                self.gave_up.pop(message.episode_id, None)
                 if message.episode_id in self.records:
                     newly.append(self.records[message.episode_id])
         for s in self._live.drain():
-            if s.payload == b"-":
-                self._release_worker(s.key.rsplit("/", 1)[-1], "its liveliness token vanished")
+            worker = s.key.rsplit("/", 1)[-1]
+            if s.payload == b"+":
+                self.live_workers.add(worker)
+            else:
+                self.live_workers.discard(worker)
+                self._release_worker(worker, "its liveliness token vanished")
         for episode_id, lease in list(self.leases.items()):
             if now - lease.last_progress > self.stuck_after_s:
                 self._release(episode_id, f"no progress for {self.stuck_after_s:.0f} s on {lease.worker}")
+        if now >= self._repeat_at:
+            self._repeat_at = now + LEASE_REPEAT_S
+            for lease in self.leases.values():
+                self._announce(lease)
+            for record in self.gave_up.values():
+                self.bus.publish(keys.result(self.run_id, record.episode_id), record)
         self._answer_queries()
         return newly
+
+    def _from_holder(self, record: EpisodeRecord) -> bool:
+        lease = self.leases.get(record.episode_id)
+        given_up = self.gave_up.get(record.episode_id)
+        return (lease is not None and record.worker_id == lease.worker) or record == given_up
+
+    def _announce(self, lease: Lease) -> None:
+        self.bus.publish(keys.lease(self.run_id, lease.spec.episode_id), LeaseNotice(
+            run_id=self.run_id, episode_id=lease.spec.episode_id, worker_id=lease.worker, attempt=lease.attempt))
 
     def _release_worker(self, worker: str, why: str) -> None:
         for episode_id, lease in list(self.leases.items()):
@@ -148,9 +199,11 @@ class Orchestrator:
         self.releases += 1
         if lease.attempt >= self.max_attempts:
             log.error("%s failed %d times (%s); recording an infrastructure failure", episode_id, lease.attempt, why)
-            self.bus.publish(keys.result(self.run_id, episode_id), failure_record(
+            # Under the last holder's name: the evaluator stores a result only from the lease holder.
+            record = self.gave_up[episode_id] = failure_record(
                 self.run_id, lease.spec, status="world_crashed", worker_id=lease.worker,
-                error=f"gave up after {lease.attempt} attempts: {why}", config=self.config))
+                error=f"gave up after {lease.attempt} attempts: {why}", config=self.config)
+            self.bus.publish(keys.result(self.run_id, episode_id), record)
             return
         log.warning("re-leasing %s (attempt %d): %s", episode_id, lease.attempt + 1, why)
         self.pending.appendleft((lease.spec, lease.attempt + 1))
@@ -166,17 +219,27 @@ class Orchestrator:
             request = decode(query.payload)
         except DecodeError:
             request = None
-        worker = request.worker_id if isinstance(request, JobRequest) else "?"
+        if not isinstance(request, JobRequest):
+            self.rejections.reject(query.key, "not a job request")
+            return
+        worker = request.worker_id
+        if worker not in self.live_workers:
+            # No world worker of this run, or one whose token is still on its way (it asks again in a
+            # second): no episode for it, so a stray client cannot take episodes from the workers.
+            log.debug("no job for %s: no liveliness token of that world worker", worker)
+            query.reply(encode(JobGrant(worker_id=worker, episode=None, run_finished=self.finished)))
+            return
         if self.pending:
             spec, attempt = self.pending.popleft()
             now = self._clock()
             if self.first_lease_s is None:
                 self.first_lease_s = now
-            self.leases[spec.episode_id] = Lease(spec, worker, attempt, now, now)
+            lease = self.leases[spec.episode_id] = Lease(spec, worker, attempt, now, now)
             log.info("leased %s to %s (attempt %d)", spec.episode_id, worker, attempt)
-            query.reply(encode(JobGrant(episode=spec, attempt=attempt, config=self._config_map)))
+            self._announce(lease)
+            query.reply(encode(JobGrant(worker_id=worker, episode=spec, attempt=attempt, config=self._config_map)))
         else:
-            query.reply(encode(JobGrant(episode=None, run_finished=self.finished)))
+            query.reply(encode(JobGrant(worker_id=worker, episode=None, run_finished=self.finished)))
 
     def _answer_asset(self, query) -> None:
         """Serve a town asset from the local asset cache; unknown hashes get no reply."""

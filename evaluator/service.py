@@ -5,6 +5,13 @@
 It listens to the results of every run (``agos/*/ep/*/result``), writes them to
 ``<runs_dir>/<run>/results.sqlite`` and acknowledges each on ``.../ack``. When a run's
 manifest says ``finished`` it logs the run's results table.
+
+What it stores is checked first, because anything on an open router can publish there: the
+payload must be a record of this schema version, name the run and episode its key names, use
+ids that are names (never paths), hold only finite numbers, and come from the worker that the
+orchestrator's lease notice (``.../ep/<ep>/lease``) names as the episode's current holder; an
+episode that was never leased (not in the run's split) has no holder. Anything else is refused
+(runtime/rejections.py), never stored, never acknowledged.
 """
 
 from __future__ import annotations
@@ -22,7 +29,8 @@ from agos.runtime.bus import Inbox, ZenohBus
 from agos.runtime.codec import DecodeError, decode
 from agos.runtime.health import announce
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
-from agos.runtime.schemas import EpisodeRecord, ResultAck, RunManifest
+from agos.runtime.rejections import Rejections, non_finite_field
+from agos.runtime.schemas import EpisodeRecord, LeaseNotice, ResultAck, RunManifest
 from agos.runtime.settings import AgosConfig
 
 log = logging.getLogger("agos.evaluator")
@@ -33,6 +41,9 @@ class Evaluator:
         self.bus, self.runs_dir = bus, runs_dir
         self._stores: dict[str, ResultStore] = {}
         self._serving: set[str] = set()
+        self.leases: dict[tuple[str, str], LeaseNotice] = {}
+        """(run, episode) -> the newest lease notice: whose result counts."""
+        self.rejections = Rejections(log)
 
     def serve_run(self, run_id: str) -> None:
         """Declare the evaluator's liveliness token under ``run_id`` (once)."""
@@ -51,9 +62,16 @@ class Evaluator:
         try:
             message = decode(payload)
         except DecodeError as exc:
-            log.warning("ignoring undecodable payload on %s: %s", key, exc)
+            self.rejections.reject(key, "unreadable", exc)
             return
-        if isinstance(message, EpisodeRecord):
+        reason = self._refusal(key, message)
+        if reason:
+            self.rejections.reject(key, reason, f"{type(message).__name__} from {getattr(message, 'worker_id', '?')}")
+        elif isinstance(message, LeaseNotice):
+            held = self.leases.get((message.run_id, message.episode_id))
+            if held is None or message.attempt >= held.attempt:
+                self.leases[(message.run_id, message.episode_id)] = message
+        elif isinstance(message, EpisodeRecord):
             newly = self.store(message.run_id).add(message)
             log.info("%s %s/%s (%s, %s)", "stored" if newly else "duplicate", message.run_id, message.episode_id,
                      message.status, "success" if message.success else "failure")
@@ -69,7 +87,33 @@ class Evaluator:
             log.info("run %s finished: %d records in %s\n%s", message.run_id, len(records),
                      results_path(self.runs_dir, message.run_id), cap.get())
 
+    def _refusal(self, key: str, message: object) -> str:
+        """Why ``message`` heard on ``key`` must not be acted on ('' when it may)."""
+        expected = {"result": EpisodeRecord, "lease": LeaseNotice, "manifest": RunManifest}.get(key.rsplit("/", 1)[-1])
+        if expected is None or not isinstance(message, expected):
+            return "wrong message type for the key"
+        try:
+            about_run = keys.check_chunk(keys.run_of(key), what="run id")
+            if message.run_id != about_run:
+                return "names another run than its key"
+            if isinstance(message, (EpisodeRecord, LeaseNotice)):
+                if message.episode_id != keys.episode_of(key):
+                    return "names another episode than its key"
+                keys.check_chunk(message.worker_id, what="worker id")
+        except ValueError:
+            return "an id that is not a name"
+        if non_finite_field(message):
+            return "a number that is not finite"
+        if isinstance(message, EpisodeRecord):
+            lease = self.leases.get((message.run_id, message.episode_id))
+            if lease is None:
+                return "no lease known for the episode"
+            if message.worker_id != lease.worker_id:
+                return "not from the lease holder"
+        return ""
+
     def close(self) -> None:
+        self.rejections.log_summary()
         for store in self._stores.values():
             store.close()
 
@@ -80,6 +124,7 @@ def serve(bus: ZenohBus, runs_dir: Path, stop: StopFlag, *, announce_run: str | 
     evaluator = Evaluator(bus, runs_dir)
     inbox = Inbox()
     bus.subscribe(keys.result("*", "*"), inbox)
+    bus.subscribe(keys.lease("*", "*"), inbox)
     bus.subscribe(keys.manifest("*"), inbox)
     if announce_run is not None:
         evaluator.serve_run(announce_run)

@@ -10,6 +10,7 @@ import sqlite3
 from datetime import UTC, datetime
 from pathlib import Path
 
+from agos.runtime import keys
 from agos.runtime.codec import from_json, to_json
 from agos.runtime.schemas import EpisodeRecord
 
@@ -72,4 +73,6 @@ class ResultStore:
 
 
 def results_path(runs_dir: Path, run_id: str) -> Path:
-    return runs_dir / run_id / "results.sqlite"
+    """``<runs_dir>/<run_id>/results.sqlite``; a run id that is not a name (``..``, ``a/b``) raises
+    ``ValueError``: no file is ever made outside the runs directory."""
+    return runs_dir / keys.check_chunk(run_id, what="run id") / "results.sqlite"

@@ -13,14 +13,15 @@ What each identity may say (the issue's rules):
   manifest; it asks for jobs and assets.
 - ``agent-uav`` / ``agent-ugv``: only that role's action key; they hear that role's observations
   and results (to forget an episode).
-- ``evaluator``: alone publishes acknowledgements; hears results and manifests.
-- ``orchestrator`` (``agos eval``, the compose ``eval`` job): the manifest and infrastructure
-  failure records; serves jobs and assets; hears results, acknowledgements and events.
+- ``evaluator``: alone publishes acknowledgements; hears results, manifests and lease notices.
+- ``orchestrator`` (``agos eval``, the compose ``eval`` job): the manifest, lease notices and
+  infrastructure failure records; serves jobs and assets; hears results, acknowledgements and events.
 - ``observer``: only reads the visualisation stream.
 - ``router``: nothing but the health check (every identity may ask which processes are alive).
 
 Which episodes a world may publish results for is not a key rule (a worker's episodes change
-with every lease): any ``world`` certificate may publish any episode's result.
+with every lease): any ``world`` certificate may publish any episode's result, and the evaluator
+stores it only from the worker the orchestrator's lease notice names (evaluator/service.py).
 
 How zenoh's rules read: a message *into* the router from a client is ``ingress``; one the router
 sends *out* to a client is ``egress``. Publishing is ``put`` ingress, and hearing it is ``put``
@@ -79,12 +80,12 @@ IDENTITIES: dict[str, Grants] = {
     "agent-ugv": _agent("ugv"),
     "evaluator": Grants(
         publish=(keys.result_ack(ANY, ANY),),
-        hear=(keys.result(ANY, ANY), keys.manifest(ANY)),
+        hear=(keys.result(ANY, ANY), keys.manifest(ANY), keys.lease(ANY, ANY)),
         tokens=(keys.live(ANY, "evaluator", ANY),),
         watch=_health(),
     ),
     "orchestrator": Grants(
-        publish=(keys.manifest(ANY), keys.result(ANY, ANY)),
+        publish=(keys.manifest(ANY), keys.result(ANY, ANY), keys.lease(ANY, ANY)),
         hear=(keys.result(ANY, ANY), keys.result_ack(ANY, ANY), keys.events(ANY, ANY)),
         serve=(keys.jobs(ANY), keys.asset(ANY)),
         tokens=(keys.live(ANY, "orchestrator", ANY),),

@@ -276,7 +276,9 @@ class ZenohBus:
 
     def request(self, key: str, message: Any, timeout_s: float) -> list[bytes]:
         payload = message if isinstance(message, (bytes, bytearray)) else encode(message)
-        replies = self.session.get(key, payload=payload, timeout=timeout_s)
+        # Every reply, not zenoh's default "latest per key": a second queryable answering on the same
+        # key (a stray or hostile client) must not replace the real answer.
+        replies = self.session.get(key, payload=payload, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE)
         return [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
 
     def wait_for_subscriber(self, key: str, timeout_s: float) -> bool:

@@ -39,15 +39,18 @@ Role = Literal["uav", "ugv"]
 ROLES: tuple[Role, Role] = ("uav", "ugv")
 LiveKind = Literal["world", "agent", "evaluator", "orchestrator"]
 
-# A chunk is one key segment: no '/', no zenoh wildcards or reserved characters.
-_CHUNK = re.compile(r"^[A-Za-z0-9_.\-]+$")
+# A chunk is one key segment: no '/', no zenoh wildcards or reserved characters. Ids are also
+# directory and file names (runs/<run>/...): a chunk starts with a letter, digit or '_', so '.',
+# '..' and option-like '-x' are refused, and is at most 128 characters.
+_CHUNK = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]{0,127}$")
 
 
 def check_chunk(value: str, *, what: str) -> str:
     """Return ``value`` if it is a legal single key segment, else raise ``ValueError``."""
     if not _CHUNK.fullmatch(value):
         raise ValueError(
-            f"{what} {value!r} is not a valid key segment (letters, digits, '_', '-', '.' only)"
+            f"{what} {value!r} is not a valid name: letters, digits, '_', '-' and '.', starting with a letter, "
+            "digit or '_', at most 128 characters"
         )
     return value
 
@@ -102,6 +105,11 @@ def events(run: str, episode: str) -> str:
 
 def result(run: str, episode: str) -> str:
     return f"{_ep(run, episode)}/result"
+
+
+def lease(run: str, episode: str) -> str:
+    """Who holds the episode's current lease (orchestrator -> evaluator)."""
+    return f"{_ep(run, episode)}/lease"
 
 
 def result_ack(run: str, episode: str) -> str:

@@ -17,11 +17,14 @@ declared is decoded fine but written as a msgpack int, which changes the payload
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any, Final, Literal
 
 import msgspec
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION: Final = 1
+SchemaVersion = Literal[1]
+"""The only ``v`` a message may carry: a payload of another version is refused while decoding
+(``DecodeError`` at ``$.v``), never half-read. Bump both together."""
 
 Role = Literal["uav", "ugv"]
 Difficulty = Literal["easy", "mid", "hard"]
@@ -56,7 +59,7 @@ class Part(msgspec.Struct, forbid_unknown_fields=True):
 class Message(Part, tag_field="type"):
     """Base of the top-level messages: tagged by ``type`` (written first), versioned by ``v``."""
 
-    v: int = SCHEMA_VERSION
+    v: SchemaVersion = SCHEMA_VERSION
 
 
 class Pose(Part, kw_only=True):
@@ -483,6 +486,8 @@ class JobRequest(Message, tag="job_request", kw_only=True):
 
 
 class JobGrant(Message, tag="job_grant", kw_only=True):
+    worker_id: str = ""
+    """The worker the grant is for (the requester's id): a worker runs only grants addressed to it."""
     episode: EpisodeSpec | None
     """The leased episode, or None when there is nothing left."""
     run_finished: bool = False
@@ -491,6 +496,17 @@ class JobGrant(Message, tag="job_grant", kw_only=True):
     config: dict[str, Any] = {}
     """The run's whole episode configuration (``EpisodeConfig`` as a map, runtime/episode_config.py):
     the worker runs with exactly this, whatever its own settings."""
+
+
+class LeaseNotice(Message, tag="lease", kw_only=True):
+    """Orchestrator -> evaluator: who holds an episode's current lease. Published at every lease and
+    again every few seconds while it lasts (an evaluator started late learns it); the evaluator
+    stores a result only from the current holder."""
+
+    run_id: str
+    episode_id: str
+    worker_id: str
+    attempt: int
 
 
 WireMessage = (
@@ -506,6 +522,7 @@ WireMessage = (
     | RunManifest
     | JobRequest
     | JobGrant
+    | LeaseNotice
     | VizFrame
 )
 """Every top-level message; a payload's ``type`` says which (runtime/codec.py decodes through it)."""

@@ -318,7 +318,7 @@ def test_garbage_on_the_worlds_control_keys_is_ignored(tmp_path: Path, episodes:
         _finish(cluster.eval(episodes))
         _one_finished_record_each(cluster.records(), 4)
         assert cluster.procs["w0"].poll() is None or cluster.procs["w0"].returncode == 0
-        assert "ignoring an unreadable message" in (tmp_path / "w0.log").read_text()
+        assert "refused a message on agos/garbage/" in (tmp_path / "w0.log").read_text()
     finally:
         stop.set()
         thread.join(timeout=5)

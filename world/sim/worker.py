@@ -21,6 +21,7 @@ from agos.runtime.episode_config import EpisodeConfig, StoredConfigError, read_c
 from agos.runtime.failure_records import failure_record
 from agos.runtime.health import announce, host_prefix, unique_id
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
+from agos.runtime.rejections import Rejections, non_finite_field
 from agos.runtime.schemas import (
     Action,
     AgentMessage,
@@ -34,6 +35,7 @@ from agos.runtime.schemas import (
     Observation,
     ResultAck,
     Role,
+    RunManifest,
     StepEvent,
 )
 from agos.runtime.settings import AgosConfig
@@ -88,10 +90,14 @@ class BusDecisionSource:
     """Asks the agent services for decisions over zenoh (lockstep: the sim clock waits)."""
 
     def __init__(self, bus: ZenohBus, run_id: str, episode_id: str, *, worker_id: str, timeout_s: float,
-                 stop: StopFlag, agent_wait_s: float = 30.0, frames: FrameStream | None = None, attempt: int = 1) -> None:
-        """``attempt``: the lease's attempt number, stamped on every observation; answers to another
-        attempt (a late action meant for a world that died) are ignored."""
+                 stop: StopFlag, agent_wait_s: float = 30.0, frames: FrameStream | None = None, attempt: int = 1,
+                 rejections: Rejections | None = None) -> None:
+        """``attempt``: the lease's attempt number, stamped on every observation. An action counts only
+        when it answers the decision asked of its role in this attempt and names this run, episode and
+        the role of its key, with finite numbers; anything else (a late answer meant for a world that
+        died, a stray or forged publisher) is refused and counted in ``rejections``."""
         self.bus, self.run_id, self.episode_id, self.attempt = bus, run_id, episode_id, attempt
+        self.rejections = rejections or Rejections(log)
         self.timeout_s, self.stop, self.agent_wait_s = timeout_s, stop, agent_wait_s
         self.frames = frames  # thumbnails for observers (runtime/viz.py)
         self.inbox = Inbox()
@@ -167,12 +173,12 @@ class BusDecisionSource:
             try:
                 action = decode_as(sample.payload, Action)
             except DecodeError as exc:
-                log.warning("%s: undecodable action on %s: %s", self.episode_id, sample.key, exc)
+                self.rejections.reject(sample.key, "unreadable", exc)
                 continue
-            if action.attempt != self.attempt:
-                log.info("%s: ignoring a %s action for attempt %d (this is attempt %d)", self.episode_id, action.role,
-                         action.attempt, self.attempt)
-            elif pending.get(action.role) == action.decision_index:
+            if reason := self._refusal(sample.key, action, pending):
+                self.rejections.reject(sample.key, reason, f"{action.role} decision {action.decision_index}, "
+                                                           f"attempt {action.attempt}")
+            else:
                 actions[action.role] = action
                 del pending[action.role]
         for role in pending:
@@ -181,13 +187,26 @@ class BusDecisionSource:
         return actions
 
 
+    def _refusal(self, key: str, action: Action, pending: dict[Role, int]) -> str:
+        """Why ``action`` heard on ``key`` does not answer a pending decision ('' when it does)."""
+        if (action.run_id, action.episode_id) != (self.run_id, self.episode_id) or not key.endswith(f"/{action.role}"):
+            return "names another run, episode or role than its key"
+        if action.attempt != self.attempt:
+            return "for another attempt of the episode"
+        if pending.get(action.role) != action.decision_index:
+            return "not the decision asked"
+        if non_finite_field(action):
+            return "a number that is not finite"
+        return ""
+
+
 class WorldWorker:
     def __init__(self, cfg: AgosConfig, bus: ZenohBus, stop: StopFlag, worker_id: str) -> None:
         self.cfg, self.bus, self.stop, self.worker_id = cfg, bus, stop, worker_id
         self.run_id = cfg.run.run_id
         self._scenes: dict[tuple[str, int, str], tuple[Town, Scene]] = {}
         self.frames = FrameStream(bus)
-        self.rejected: dict[str, int] = {}  # unreadable control messages, per key kind
+        self.rejections = Rejections(log)
 
     def serve(self) -> int:
         self.bus.declare_token(keys.live(self.run_id, "world", self.worker_id))
@@ -195,18 +214,21 @@ class WorldWorker:
         manifests = Inbox()
         self.bus.subscribe(keys.manifest(self.run_id), manifests)
         log.info("world worker %s serving run %s", self.worker_id, self.run_id)
+        told_over = False
         while not self.stop.is_set():
-            if any(getattr(self._read(m.payload, m.key), "status", "") in ("finished", "interrupted")
-                   for m in manifests.drain()):
+            told_over = any([self._says_over(m) for m in manifests.drain()]) or told_over
+            # A manifest is a hint, not an order (anyone on an open router can publish one): the run is
+            # over when the orchestrator says so in a grant, or is gone after a manifest said it was.
+            if told_over and not self.bus.alive_tokens(keys.live(self.run_id, "orchestrator", "*"), timeout_s=1.0):
                 log.info("run %s is over; worker exits", self.run_id)
                 break
             replies = self.bus.request(keys.jobs(self.run_id), JobRequest(worker_id=self.worker_id), timeout_s=5.0)
             if not replies:
                 self.stop.wait(1.0)  # no orchestrator yet
                 continue
-            grant = self._read(replies[0], keys.jobs(self.run_id))
-            if not isinstance(grant, JobGrant):
-                self.stop.wait(1.0)  # not a job grant (something else answers ctl/jobs): ask again
+            grant = self._grant(replies)
+            if grant is None:
+                self.stop.wait(1.0)  # no grant for this worker (something else answers ctl/jobs): ask again
                 continue
             if grant.run_finished:
                 log.info("run %s finished; worker exits", self.run_id)
@@ -218,10 +240,31 @@ class WorldWorker:
         for _, scene in self._scenes.values():
             scene.close()
         self.frames.close()
+        self.rejections.log_summary()
         usage = resource.getrusage(resource.RUSAGE_SELF)  # read by bench/bench_eval.py
         log.info("world worker %s exits: CPU %.1f s, peak RSS %.0f MB", self.worker_id,
                  usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024)
         return 0
+
+    def _says_over(self, sample: Sample) -> bool:
+        manifest = self._read(sample.payload, sample.key)
+        if not isinstance(manifest, RunManifest) or manifest.run_id != self.run_id:
+            if manifest is not None:
+                self.rejections.reject(sample.key, "not this run's manifest")
+            return False
+        return manifest.status in ("finished", "interrupted")
+
+    def _grant(self, replies: list[bytes]) -> JobGrant | None:
+        """The job grant addressed to this worker among the replies to one request (anything else
+        answering on ``ctl/jobs`` is refused and counted)."""
+        grant = None
+        for payload in replies:
+            message = self._read(payload, keys.jobs(self.run_id))
+            if isinstance(message, JobGrant) and message.worker_id == self.worker_id and grant is None:
+                grant = message
+            elif message is not None:
+                self.rejections.reject(keys.jobs(self.run_id), "not a job grant for this worker")
+        return grant
 
     def _read(self, payload: bytes, key: str) -> object | None:
         """A received control message, or None for one that cannot be read: logged (the first 5 per key
@@ -230,11 +273,7 @@ class WorldWorker:
         try:
             return decode(payload)
         except DecodeError as exc:
-            kind = key.rsplit("/", 1)[-1]
-            self.rejected[kind] = self.rejected.get(kind, 0) + 1
-            if self.rejected[kind] <= 5 or self.rejected[kind] % 100 == 0:
-                log.warning("ignoring an unreadable message on %s (%d so far on */%s): %s", key, self.rejected[kind],
-                            kind, exc)
+            self.rejections.reject(key, "unreadable", exc)
             return None
 
     def _scene(self, spec: EpisodeSpec, renderer: str) -> tuple[Town, Scene]:
@@ -271,7 +310,7 @@ class WorldWorker:
             source = BusDecisionSource(self.bus, self.run_id, spec.episode_id, worker_id=self.worker_id,
                                        timeout_s=config.decision_timeout_s, stop=self.stop,
                                        agent_wait_s=self.cfg.run.agent_wait_s, frames=self.frames,
-                                       attempt=grant.attempt)
+                                       attempt=grant.attempt, rejections=self.rejections)
             runner = EpisodeRunner(scene, town, spec, run_id=self.run_id, worker_id=self.worker_id,
                                    config=config,
                                    sink=BusSink(self.bus, self.run_id, spec.episode_id))
