@@ -31,6 +31,7 @@ import msgspec
 from rich.console import Console
 from rich.table import Table
 
+from agos.deploy.presence import elsewhere_line, look
 from agos.runtime.bus import ZenohBus
 from agos.runtime.process import install_stop_handlers
 from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role, StepEvent
@@ -124,7 +125,7 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "he
         spec = generate_episodes(town, scene, per_difficulty=1, seed=cfg.run.episode_seed)[0]
         spec = msgspec.structs.replace(spec, episode_id=f"check-{spec.episode_id}")
         console.print(f"checking the agents of run {run_id!r} on {cfg.zenoh.connect}: episode {spec.episode_id}, "
-                      f"{budget} decisions")
+                      f"{budget} decisions (waiting up to {cfg.run.agent_wait_s:.0f} s for the agent services)")
         source = BusDecisionSource(bus, run_id, spec.episode_id, worker_id=f"check-{os.getpid()}",
                                    timeout_s=config.decision_timeout_s, stop=stop, agent_wait_s=cfg.run.agent_wait_s)
         sink = StepChecks(BusSink(bus, run_id, spec.episode_id), v)
@@ -134,6 +135,9 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "he
             v.check("subscribed", True)
         except MissingAgent as exc:
             v.check("subscribed", False, str(exc))
+            console.print(f"[red]{exc}", highlight=False)  # whole: the table cell is cut to its width
+            if line := elsewhere_line(look(bus, run_id), run_id):
+                console.print(f"[yellow]{line}", highlight=False)
         finally:
             source.close()
         if record is not None:

@@ -254,6 +254,7 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
             window: deque[tuple[float, int]] = deque()  # (time, decisions seen): the rate over the last 10 s
             watch = Stall(PRESENCE_EVERY_S)
             losses = LossStreak(LOST_IN_A_ROW)
+            unstored_checks = 0
             while not orch.finished and not stop.is_set():
                 for record in orch.pump(0.25):
                     cause = losses.add(record)
@@ -272,8 +273,20 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
                     rate = (window[-1][1] - window[0][1]) / (window[-1][0] - window[0][0])
                     progress.update(task, dps=f"{rate:.1f}")
                 if watch.due(orch.decisions + len(orch.stored)):
-                    for line in missing_lines(look(bus, plan.run_id), plan.run_id, own.connect, plan.policies):
+                    present = look(bus, plan.run_id)
+                    for line in missing_lines(present, plan.run_id, own.connect, plan.policies):
                         progress.console.print(f"[yellow]waiting: {line}", highlight=False)
+                    # Records nobody stores are episodes lost to a missing evaluator (their worker gives up
+                    # after a minute): after LOST_IN_A_ROW checks in a row, stop rather than lose them all.
+                    unstored_checks = unstored_checks + 1 if not present.evaluator and orch.unacknowledged() else 0
+                    if unstored_checks >= LOST_IN_A_ROW:
+                        console.print(f"[red]stopping: no evaluator stored the records of "
+                                      f"{', '.join(orch.unacknowledged())} ({LOST_IN_A_ROW} checks "
+                                      f"{PRESENCE_EVERY_S:.0f} s apart); start one with `agos evaluator --connect "
+                                      f"{own.connect} --run {plan.run_id}` and resume with "
+                                      f"`agos eval --resume {plan.run_dir}`", highlight=False)
+                        orch.publish_manifest("interrupted")
+                        return 3
                 dead = {n: c for n, c in launcher.dead().items() if not n.startswith("world")}
                 if dead:
                     names = ", ".join(f"{n} (exit {c})" for n, c in dead.items())

@@ -180,6 +180,10 @@ class Orchestrator:
         self._answer_queries()
         return newly
 
+    def unacknowledged(self) -> list[str]:
+        """Episodes whose record (from the lease holder) was seen but whose storage nobody acknowledged."""
+        return sorted(e for e in self.records if e not in self.stored)
+
     def _from_holder(self, record: EpisodeRecord) -> bool:
         lease = self.leases.get(record.episode_id)
         given_up = self.gave_up.get(record.episode_id)

@@ -54,10 +54,17 @@ def missing_lines(p: Presence, run_id: str, endpoint: str, policies: dict[str, s
         if not n:
             lines.append(f"no {role.upper()} agent serves run {run_id}: start one with `agos agent --role {role} "
                          f"--policy {policies.get(role, 'heuristic')} --connect {endpoint} --run {run_id}`")
-    if any(not n for n in p.agents.values()) and p.agents_elsewhere:
-        others = ", ".join(f"{run} ({'+'.join(roles)})" for run, roles in sorted(p.agents_elsewhere.items()))
-        lines.append(f"agent services are serving other runs: {others}; is --run {run_id} the run they were started with?")
+    if any(not n for n in p.agents.values()) and (line := elsewhere_line(p, run_id)):
+        lines.append(line)
     return lines
+
+
+def elsewhere_line(p: Presence, run_id: str) -> str | None:
+    """Which other runs have agent services (a mistyped ``--run`` is the usual cause), or None."""
+    if not p.agents_elsewhere:
+        return None
+    others = ", ".join(f"{run} ({'+'.join(roles)})" for run, roles in sorted(p.agents_elsewhere.items()))
+    return f"agent services are serving other runs: {others}; is --run {run_id} the run they were started with?"
 
 
 PRESENCE_EVERY_S = 15.0

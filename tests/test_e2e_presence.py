@@ -93,3 +93,95 @@ def test_a_loss_streak_counts_one_cause_in_a_row() -> None:
            R("world_crashed", "y"), R("agent_crashed", "x"), R("agent_crashed", "x")]
     assert [streak.add(r) for r in seq] == [None] * 7  # type: ignore[arg-type]
     assert streak.add(R("agent_crashed", "x")) == "agent_crashed: x"  # type: ignore[arg-type]
+
+
+class _Procs:
+    """A router on a free port and whatever the test starts beside it, all stopped at the end."""
+
+    def __init__(self, tmp_path, base: int) -> None:
+        self.port = free_port(base)
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.cwd = tmp_path
+        self.procs: list[subprocess.Popen] = []
+        self.start("router", "--listen", self.endpoint)
+        assert wait_listening("127.0.0.1", self.port, 15)
+
+    def start(self, *argv: str) -> subprocess.Popen:
+        proc = subprocess.Popen([*AGOS, *argv], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=self.cwd)
+        self.procs.append(proc)
+        return proc
+
+    def close(self) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                p.terminate()
+                p.wait(timeout=10)
+
+
+def test_eval_without_an_evaluator_says_so_and_stops(tmp_path, sample_mid_episodes) -> None:
+    """World and agents but no evaluator: the console names the missing evaluator and its start command
+    within 30 s, and once records have waited unstored for three checks the run stops with exit 3."""
+    procs = _Procs(tmp_path, 17900)
+    try:
+        procs.start("world", "--connect", procs.endpoint, "--run", "unstored")
+        for role in ("uav", "ugv"):
+            procs.start("agent", "--role", role, "--connect", procs.endpoint, "--run", "unstored")
+        started = time.monotonic()
+        ev = subprocess.Popen([*AGOS, "eval", "--connect", procs.endpoint, "--run", "unstored", "--split",
+                               str(sample_mid_episodes(3, 7)), "--runs-dir", "runs"], cwd=tmp_path,
+                              env={**os.environ, "PYTHONUNBUFFERED": "1"}, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True)
+        procs.procs.append(ev)
+        assert ev.stdout is not None
+        seen = ""
+        while "no evaluator stores run unstored" not in " ".join(seen.split()):
+            assert time.monotonic() - started < 30 and ev.poll() is None, seen
+            seen += ev.stdout.readline()
+        out, _ = ev.communicate(timeout=120)
+        text = " ".join((seen + out).split())
+        assert f"start one with `agos evaluator --connect {procs.endpoint} --run unstored`" in text
+        assert ev.returncode == 3, text
+        assert "stopping: no evaluator stored the records of" in text
+    finally:
+        procs.close()
+
+
+def test_demo_connect_names_what_is_missing(tmp_path) -> None:
+    """``agos demo --connect`` on a router with nothing else: the same lines as ``agos eval``, within 30 s."""
+    procs = _Procs(tmp_path, 18000)
+    try:
+        started = time.monotonic()
+        demo = subprocess.Popen([*AGOS, "demo", "--connect", procs.endpoint, "--run", "handmade", "--runs-dir", "runs"],
+                                cwd=tmp_path, env={**os.environ, "PYTHONUNBUFFERED": "1"}, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True)
+        procs.procs.append(demo)
+        assert demo.stdout is not None
+        seen = ""
+        while "no UGV agent" not in seen:
+            assert time.monotonic() - started < 30 and demo.poll() is None, seen
+            seen += demo.stdout.readline()
+        text = " ".join(seen.split())
+        assert f"start one with `agos world --connect {procs.endpoint} --run handmade`" in text
+        assert "no evaluator stores run handmade" in text
+        demo.send_signal(signal.SIGINT)
+        demo.wait(timeout=30)
+        assert demo.returncode == 130
+    finally:
+        procs.close()
+
+
+def test_check_agent_names_the_start_command_and_other_runs(tmp_path) -> None:
+    """``agos check agent`` with the UAV agent started under another run id: one failed check that
+    names the start command, a line naming the other run, exit 1, all within the agent wait."""
+    procs = _Procs(tmp_path, 18100)
+    try:
+        procs.start("agent", "--role", "uav", "--connect", procs.endpoint, "--run", "checked-typo")
+        time.sleep(2.0)  # its token is up
+        out = subprocess.run([*AGOS, "check", "agent", "--connect", procs.endpoint, "--run", "checked",
+                              "--agent-wait", "3"], cwd=tmp_path, capture_output=True, text=True, timeout=60)
+        text = " ".join(out.stdout.split())
+        assert out.returncode == 1, text
+        assert "agos agent --role uav --run checked --connect" in text
+        assert "checked-typo (uav)" in text
+    finally:
+        procs.close()
