@@ -34,7 +34,8 @@ from agos.runtime.bus import Bus, Sample, ZenohBus
 from agos.runtime.codec import DecodeError, decode, decode_as, encode
 from agos.runtime.health import announce, unique_id
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
-from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role
+from agos.runtime.rejections import Rejections, non_finite_field
+from agos.runtime.schemas import Action, Observation, Role
 from agos.runtime.settings import AgosConfig
 
 log = logging.getLogger("agos.agent")
@@ -50,11 +51,12 @@ class _Dispatch:
     serialises decoding and, for inline policies, every policy call."""
 
     def __init__(self, bus: ZenohBus, policy: Policy, run_id: str, loop: asyncio.AbstractEventLoop,
-                 on_loop: Callable[[Observation | EpisodeRecord], None]) -> None:
+                 on_loop: Callable[[Observation], None]) -> None:
         self.bus, self.policy, self.run_id, self.loop, self.on_loop = bus, policy, run_id, loop, on_loop
         self.inline = bool(getattr(policy, "inline", False))
         self.lock = threading.Lock()
         self.attempts: dict[str, int] = {}  # episode -> the latest attempt observed
+        self.rejections = Rejections(log)
 
     def _current(self, obs: Observation) -> bool:
         """Whether ``obs`` belongs to the episode's latest attempt. A newer attempt (the episode was
@@ -74,34 +76,44 @@ class _Dispatch:
                 self.loop.call_soon_threadsafe(self.policy.end_episode, obs.episode_id)
         return True
 
-    def put(self, sample: Sample) -> None:
-        """An ``Inbox`` for the result subscription."""
-        self.take(sample.payload, sample.key)
-
     def take(self, payload: bytes, key: str) -> None:
-        """One received payload (``key`` names it in the log if it cannot be read)."""
+        """One payload received on the observation key ``key``: answered when it is an observation
+        of this run for that key's episode and role, with finite numbers, of the episode's latest
+        attempt; anything else is refused and counted."""
         with self.lock:
             try:
                 message = decode(payload)
             except DecodeError as exc:
-                log.warning("ignoring undecodable payload on %s: %s", key, exc)
+                self.rejections.reject(key, "unreadable", exc)
                 return
-            if type(message) is Observation:
-                if not self._current(message):
-                    return
-                if self.inline:
-                    started = time.monotonic()
-                    publish_action(self.bus, self.run_id, message, decide(self.policy, message), started)
-                    return
-            elif type(message) is EpisodeRecord:
-                self.attempts.pop(message.episode_id, None)
-                if self.inline:
-                    end_episode(self.bus, self.policy, self.run_id, message.episode_id)
-                    return
-            else:
+            if type(message) is not Observation:
+                self.rejections.reject(key, "wrong message type for the key", type(message).__name__)
+                return
+            if message.run_id != self.run_id or key != keys.obs(self.run_id, message.episode_id, message.role):
+                self.rejections.reject(key, "names another run, episode or role than its key")
+                return
+            if where := non_finite_field(message):
+                self.rejections.reject(key, "a number that is not finite", where)
+                return
+            if not self._current(message):
+                return
+            if self.inline:
+                started = time.monotonic()
+                publish_action(self.bus, self.run_id, message, decide(self.policy, message), started)
                 return
         with contextlib.suppress(RuntimeError):  # the loop is closed: the service is stopping
             self.loop.call_soon_threadsafe(self.on_loop, message)
+
+    def episode_over(self, episode_id: str) -> None:
+        """No world runs the episode any more (its liveliness token is gone: finished, or the world
+        died): the policy forgets it. Not a result on the bus, which anyone could publish."""
+        with self.lock:
+            self.attempts.pop(episode_id, None)
+            if self.inline:
+                end_episode(self.bus, self.policy, self.run_id, episode_id)
+                return
+        with contextlib.suppress(RuntimeError):
+            self.loop.call_soon_threadsafe(end_episode, self.bus, self.policy, self.run_id, episode_id)
 
 
 class _EpisodeSubscriptions:
@@ -150,6 +162,7 @@ class _EpisodeSubscriptions:
             subscription, ready = self.handles.pop(episode)
             self.bus.undeclare_token(ready)
             self.bus.unsubscribe(subscription)
+            self.dispatch.episode_over(episode)
 
     def close(self) -> None:
         for episode in list(self.handles):
@@ -219,20 +232,16 @@ async def serve_async(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag
             action = await answer(policy, obs, executor)
         publish_action(bus, run_id, obs, action, started)
 
-    def on_loop(message: Observation | EpisodeRecord) -> None:
-        """Start answering an observation, or forget an episode that is over."""
-        if isinstance(message, EpisodeRecord):
-            end_episode(bus, policy, run_id, message.episode_id)
-        else:
-            task = loop.create_task(handle(message))
-            tasks.add(task)
-            task.add_done_callback(tasks.discard)
+    def on_loop(message: Observation) -> None:
+        """Start answering an observation."""
+        task = loop.create_task(handle(message))
+        tasks.add(task)
+        task.add_done_callback(tasks.discard)
 
     agent_id = unique_id(policy.role)
     dispatch = _Dispatch(bus, policy, run_id, loop, on_loop)
     episodes = _EpisodeSubscriptions(bus, run_id, policy.role, agent_id, dispatch, loop)
     bus.watch_liveliness(keys.episode_live(run_id, "*", "*"), episodes)  # type: ignore[arg-type]
-    bus.subscribe(keys.result(run_id, "*"), dispatch)  # type: ignore[arg-type]
     bus.declare_token(keys.live(run_id, "agent", agent_id))
     announce("agent", agent_id, run_id)
     log.info("%s agent (%s) serving run %s, up to %d decisions at once%s", policy.role, policy.name, run_id,
@@ -242,6 +251,7 @@ async def serve_async(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag
             await asyncio.sleep(0.25)  # samples arrive through the dispatch; this only watches the stop flag
     finally:
         episodes.close()
+        dispatch.rejections.log_summary()
         for task in tasks:
             task.cancel()
         executor.shutdown(wait=False, cancel_futures=True)

@@ -334,6 +334,9 @@ def _summary(console: Console, plan: RunPlan, orch: Orchestrator | None, attach:
         console.print(f"logs:    {plan.run_dir / 'logs'}", highlight=False)
     if orch is not None and orch.releases:
         console.print(f"re-leased episodes: {orch.releases}", highlight=False)
+    if orch is not None and orch.rejections.total:
+        console.print(f"orchestrator {orch.rejections.summary()} (see docs/ARCHITECTURE.md, 'A hostile bus')",
+                      highlight=False)
     if orch is not None:
         rate = orch.episodes_per_minute(len(orch.stored) - orch.already)
         if rate is not None:

@@ -198,14 +198,14 @@ class Orchestrator:
             if lease.worker == worker:
                 self._release(episode_id, f"worker {worker}: {why}")
 
-    def _release(self, episode_id: str, why: str) -> None:
+    def _release(self, episode_id: str, why: str, status: Literal["world_crashed", "agent_crashed"] = "world_crashed") -> None:
         lease = self.leases.pop(episode_id)
         self.releases += 1
         if lease.attempt >= self.max_attempts:
             log.error("%s failed %d times (%s); recording an infrastructure failure", episode_id, lease.attempt, why)
             # Under the last holder's name: the evaluator stores a result only from the lease holder.
             record = self.gave_up[episode_id] = failure_record(
-                self.run_id, lease.spec, status="world_crashed", worker_id=lease.worker,
+                self.run_id, lease.spec, status=status, worker_id=lease.worker,
                 error=f"gave up after {lease.attempt} attempts: {why}", config=self.config)
             self.bus.publish(keys.result(self.run_id, episode_id), record)
             return
@@ -227,6 +227,9 @@ class Orchestrator:
             self.rejections.reject(query.key, "not a job request")
             return
         worker = request.worker_id
+        given_back = self.leases.get(request.give_back or "")
+        if given_back is not None and given_back.worker == worker:
+            self._release(given_back.spec.episode_id, f"{worker} gave it back: {request.why}", status="agent_crashed")
         if worker not in self.live_workers:
             # No world worker of this run, or one whose token is still on its way (it asks again in a
             # second): no episode for it, so a stray client cannot take episodes from the workers.

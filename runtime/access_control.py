@@ -12,7 +12,7 @@ What each identity may say (the issue's rules):
   messages, results and the visualisation stream; it hears actions, acknowledgements and the
   manifest; it asks for jobs and assets.
 - ``agent-uav`` / ``agent-ugv``: only that role's action key; they hear that role's observations
-  and results (to forget an episode).
+  (an episode is forgotten when the world's token for it vanishes, not on a result).
 - ``evaluator``: alone publishes acknowledgements; hears results, manifests and lease notices.
 - ``orchestrator`` (``agos eval``, the compose ``eval`` job): the manifest, lease notices and
   infrastructure failure records; serves jobs and assets; hears results, acknowledgements and events.
@@ -59,7 +59,7 @@ def _health() -> tuple[str, ...]:
 def _agent(role: str) -> Grants:
     return Grants(
         publish=(keys.act(ANY, ANY, role),),
-        hear=(keys.obs(ANY, ANY, role), keys.result(ANY, ANY)),
+        hear=(keys.obs(ANY, ANY, role),),
         tokens=(keys.live(ANY, "agent", ANY), keys.episode_ready(ANY, ANY, role, ANY)),
         watch=(keys.episode_live(ANY, ANY, ANY), *_health()),
     )

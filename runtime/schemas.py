@@ -483,6 +483,10 @@ class RunManifest(Message, tag="run_manifest", kw_only=True):
 
 class JobRequest(Message, tag="job_request", kw_only=True):
     worker_id: str
+    give_back: str | None = None
+    """An episode of this worker's lease it could not finish (its agents vanished mid-episode): the
+    orchestrator leases it again as the next attempt."""
+    why: str = ""
 
 
 class JobGrant(Message, tag="job_grant", kw_only=True):

@@ -141,7 +141,10 @@ def test_policy_errors_cost_a_wait_and_episodes_end(inline: bool) -> None:
             final_distance_m=50.0, uav_budget=80, uav_first_visible_step=None, candidates=[], decisions_uav=2,
             decisions_ugv=0, sim_time_s=2.0, wall_time_s=0.1, worker_id="w", town_id="grid-s7", asset_sha256="ab" * 32,
             seed=1, renderer="tiny")
-        svc.bus.publish(keys.result(RUN, "e1"), encode(record))
+        svc.bus.publish(keys.result(RUN, "e1"), encode(record))  # anyone may publish a result: it ends nothing
+        time.sleep(0.2)
+        assert policy.ended == []
+        svc.bus.undeclare_token(svc.token)  # the world is done with e1
         deadline = time.monotonic() + 5
         while not policy.ended and time.monotonic() < deadline:
             time.sleep(0.01)

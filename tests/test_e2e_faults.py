@@ -137,58 +137,72 @@ def _one_finished_record_each(records: list[dict], n: int) -> None:
     assert all(r["status"] == "finished" for r in records), [r.get("error") for r in records]
 
 
-def test_killed_world_worker_episode_completes_on_another_with_the_same_record(tmp_path: Path, episodes: Path) -> None:
-    """A world killed mid-episode, after its agents have built up memory of it: the episode is
-    re-leased as attempt 2, the agents start it afresh, and its record equals a clean run's
-    (wall-clock fields and worker ids aside)."""
-    clean_dir, killed_dir = tmp_path / "clean", tmp_path / "killed"
-    clean_dir.mkdir()
-    killed_dir.mkdir()
+@pytest.fixture(scope="module")
+def clean_lossy(tmp_path_factory, episodes: Path) -> dict[str, dict]:
+    """The records of an undisturbed 1-worker run of ``episodes`` on the lossy link."""
+    clean_dir = tmp_path_factory.mktemp("clean")
     clean = Cluster(clean_dir, "clean", workers=1)
     try:
         _finish(clean.eval(episodes, "--comm", "lossy"))
-        expected = _summaries(clean.records())
+        return _summaries(clean.records())
     finally:
         clean.close()
-    cluster = Cluster(killed_dir, "kill-worker")
+
+
+def _running_on(w: Watcher, worker: str) -> str | None:
+    """The episode ``worker`` started last, unless its record is already in (it may have run several)."""
+    mine = [e for e, wid in w.started.items() if wid == worker]
+    return mine[-1] if mine and mine[-1] not in w.results else None
+
+
+def test_killed_world_worker_episode_completes_on_another_with_the_same_record(
+        tmp_path: Path, episodes: Path, clean_lossy: dict[str, dict]) -> None:
+    """A world killed mid-episode, after its agents have built up memory of it: the episode is
+    re-leased as attempt 2, the agents start it afresh, and its record equals a clean run's
+    (wall-clock fields and worker ids aside)."""
+    cluster = Cluster(tmp_path, "kill-worker")
     watcher = Watcher(cluster.endpoint)
     try:
         proc = cluster.eval(episodes, "--comm", "lossy")
         # Killed once its UAV has moved twice: the heuristic UAV remembers the waypoints it has seen.
-        def running_on_w0(w: Watcher) -> str | None:
-            """The episode w0 started last, unless its record is already in (w0 may have run several)."""
-            mine = [e for e, wid in w.started.items() if wid == "w0"]
-            return mine[-1] if mine and mine[-1] not in w.results else None
-
-        watcher.wait(lambda w: (e := running_on_w0(w)) is not None and w.uav_moves_of.get(e, 0) >= 2)
-        victim = running_on_w0(watcher)
+        watcher.wait(lambda w: (e := _running_on(w, "w0")) is not None and w.uav_moves_of.get(e, 0) >= 2)
+        victim = _running_on(watcher, "w0")
         cluster.kill("w0")
         out = _finish(proc)
         records = cluster.records()
         _one_finished_record_each(records, 4)
         assert next(r for r in records if r["episode_id"] == victim)["worker_id"] == "w1"
         assert "re-leased episodes: 1" in out
-        assert _summaries(records)[victim] == expected[victim]
-        assert _summaries(records) == expected
+        assert _summaries(records)[victim] == clean_lossy[victim]
+        assert _summaries(records) == clean_lossy
     finally:
         watcher.close()
         cluster.close()
 
 
-def test_killed_and_restarted_agent_service_run_completes(tmp_path: Path, episodes: Path) -> None:
+def test_killed_agent_service_episode_is_rerun_afresh_with_the_same_record(
+        tmp_path: Path, episodes: Path, clean_lossy: dict[str, dict]) -> None:
+    """The UAV agent service killed mid-episode (it remembers the waypoints it has seen) and started
+    again: the world gives the attempt back
+    (the agents' memory of it is gone), the orchestrator leases it again as attempt 2, and every
+    record equals a clean run's."""
     cluster = Cluster(tmp_path, "kill-agent", workers=1)
     watcher = Watcher(cluster.endpoint)
     try:
-        proc = cluster.eval(episodes)
-        watcher.wait(lambda w: w.steps >= 3)
-        cluster.kill("agent-ugv")
+        proc = cluster.eval(episodes, "--comm", "lossy")
+        watcher.wait(lambda w: (e := _running_on(w, "w0")) is not None and w.uav_moves_of.get(e, 0) >= 2
+                     and w.steps_of.get(e, 0) >= 6)
+        victim = _running_on(watcher, "w0")
+        cluster.kill("agent-uav")
         time.sleep(1.0)
-        cluster.start_agent("ugv")
-        _finish(proc)
+        cluster.start_agent("uav")
+        out = _finish(proc)
         records = cluster.records()
         _one_finished_record_each(records, 4)
-        # a re-requested decision is one decision: no episode counts more decisions than steps allow
-        assert all(r["decisions_uav"] + r["decisions_ugv"] <= 80 for r in records)
+        assert "re-leased episodes: 1" in out, out
+        assert "giving the attempt back to be run afresh" in (tmp_path / "w0.log").read_text()
+        assert _summaries(records)[victim] == clean_lossy[victim]
+        assert _summaries(records) == clean_lossy
     finally:
         watcher.close()
         cluster.close()

@@ -86,6 +86,15 @@ class MissingAgent(RuntimeError):
         self.roles = roles
 
 
+class AgentVanished(RuntimeError):
+    """Mid-episode, the last agent service of a role serving this episode went away: the agents'
+    memory of the episode is gone with it, so the attempt is given back to be run afresh."""
+
+    def __init__(self, roles: list[Role]) -> None:
+        super().__init__(f"the {' and '.join(r.upper() for r in roles)} agent service of this episode vanished")
+        self.roles = roles
+
+
 class BusDecisionSource:
     """Asks the agent services for decisions over zenoh (lockstep: the sim clock waits)."""
 
@@ -108,6 +117,7 @@ class BusDecisionSource:
         self.obs_keys = {role: keys.obs(run_id, episode_id, role) for role in keys.ROLES}
         self.viz_keys = {role: keys.viz_frame(run_id, episode_id, role) for role in keys.ROLES}
         self._ready: dict[str, set[str]] = {role: set() for role in keys.ROLES}  # role -> agents subscribed
+        self._served: set[str] = set()  # roles whose agents answered this episode
         self._ready_changes = Inbox()
         self._handles.append(bus.watch_liveliness(keys.episode_ready(run_id, episode_id, "*", "*"), self._ready_changes))
         # While this token lives, agent services subscribe to this episode's observation keys
@@ -138,6 +148,20 @@ class BusDecisionSource:
             change = self._ready_changes.get(timeout_s=min(remaining, 0.5))
             if change is not None:
                 self._note_ready(change)
+        self._served.update(first)
+
+    def _watch_agents(self) -> None:
+        """Raise :class:`AgentVanished` when, since the episode's first decision, every agent service of
+        a role has withdrawn its ``ready`` token (died, or lost its session): a service started in its
+        place would answer without the memory the episode so far built up."""
+        vanished = set()
+        for change in self._ready_changes.drain():
+            self._note_ready(change)
+            role = change.key.rsplit("/", 2)[-2]
+            if change.payload == b"-" and role in self._served and not self._ready[role]:
+                vanished.add(role)
+        if vanished:
+            raise AgentVanished(sorted(vanished))  # type: ignore[arg-type]
 
     def _note_ready(self, change: Sample) -> None:
         """One change of an ``episode_ready`` token: ``.../ready/<role>/<agent>``, ``+`` or ``-``."""
@@ -149,6 +173,7 @@ class BusDecisionSource:
         """The ``Action`` structs the agents answered (type-checked while read, applied as they are),
         ``None`` for a role that did not answer in time."""
         self._check_agents(observations)
+        self._watch_agents()
         for role, obs in observations.items():
             obs.attempt = self.attempt
             encode_into(obs, self.buffers[role])  # zenoh copies it on put; kept for a resend
@@ -161,6 +186,7 @@ class BusDecisionSource:
         resend_at = time.monotonic() + RESEND_S
         while pending and not self.stop.is_set():
             sample = self.inbox.get(timeout_s=min(0.5, max(0.0, deadline - time.monotonic())))
+            self._watch_agents()
             if time.monotonic() >= resend_at and pending:
                 for role in pending:
                     log.info("%s: re-requesting %s decision %d", self.episode_id, role, pending[role])
@@ -205,6 +231,7 @@ class WorldWorker:
         self.cfg, self.bus, self.stop, self.worker_id = cfg, bus, stop, worker_id
         self.run_id = cfg.run.run_id
         self._scenes: dict[tuple[str, int, str], tuple[Town, Scene]] = {}
+        self._give_back: tuple[str | None, str] = (None, "")  # an episode this worker could not finish, and why
         self.frames = FrameStream(bus)
         self.rejections = Rejections(log)
 
@@ -222,7 +249,8 @@ class WorldWorker:
             if told_over and not self.bus.alive_tokens(keys.live(self.run_id, "orchestrator", "*"), timeout_s=1.0):
                 log.info("run %s is over; worker exits", self.run_id)
                 break
-            replies = self.bus.request(keys.jobs(self.run_id), JobRequest(worker_id=self.worker_id), timeout_s=5.0)
+            request = JobRequest(worker_id=self.worker_id, give_back=self._give_back[0], why=self._give_back[1])
+            replies = self.bus.request(keys.jobs(self.run_id), request, timeout_s=5.0)
             if not replies:
                 self.stop.wait(1.0)  # no orchestrator yet
                 continue
@@ -230,6 +258,7 @@ class WorldWorker:
             if grant is None:
                 self.stop.wait(1.0)  # no grant for this worker (something else answers ctl/jobs): ask again
                 continue
+            self._give_back = (None, "")  # the orchestrator has heard it
             if grant.run_finished:
                 log.info("run %s finished; worker exits", self.run_id)
                 break
@@ -323,6 +352,10 @@ class WorldWorker:
         except MissingAgent as exc:
             log.error("episode %s: %s", spec.episode_id, exc)
             record = self._failed(spec, "agent_crashed", str(exc), started, config)
+        except AgentVanished as exc:
+            log.warning("episode %s: %s; giving the attempt back to be run afresh", spec.episode_id, exc)
+            self._give_back = (spec.episode_id, str(exc))
+            return
         except Exception as exc:
             log.error("episode %s crashed:\n%s", spec.episode_id, traceback.format_exc())
             record = self._failed(spec, "world_crashed", f"{type(exc).__name__}: {exc}", started, config)
