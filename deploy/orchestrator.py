@@ -18,7 +18,6 @@ tracks which episodes are stored.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import time
 from collections import deque
@@ -36,6 +35,7 @@ from agos.runtime.rejections import Rejections
 from agos.runtime.schemas import (
     EpisodeRecord,
     EpisodeSpec,
+    EpisodeStarted,
     JobGrant,
     JobRequest,
     LeaseNotice,
@@ -128,11 +128,18 @@ class Orchestrator:
         now = self._clock()
         for s in ([sample] if sample else []) + self._inbox.drain():
             if s.key.endswith("/events"):
-                lease = self.leases.get(keys.episode_of(s.key))
+                try:
+                    event = decode(s.payload)
+                except DecodeError as exc:
+                    self.rejections.reject(s.key, "unreadable", exc)
+                    continue
+                if not isinstance(event, (StepEvent, EpisodeStarted)) or event.episode_id != keys.episode_of(s.key):
+                    self.rejections.reject(s.key, "not an event of the episode its key names")
+                    continue
+                lease = self.leases.get(event.episode_id)
                 if lease is not None:
                     lease.last_progress = now
-                with contextlib.suppress(DecodeError):
-                    self.decisions += isinstance(decode(s.payload), StepEvent)
+                self.decisions += isinstance(event, StepEvent)
                 continue
             try:
                 message = decode(s.payload)

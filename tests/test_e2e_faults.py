@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import sqlite3
 import subprocess
@@ -339,3 +340,142 @@ def test_garbage_on_the_worlds_control_keys_is_ignored(tmp_path: Path, episodes:
         jobs.undeclare()
         session.close()
         cluster.close()
+
+
+def _forgeries(run: str, episode_ids: list[str], rng) -> list[tuple[str, bytes]]:
+    """(key, payload) pairs a hostile client on an open router sends during a run: for every key the
+    run's processes subscribe to, unreadable bytes, wrong shapes, another schema version, messages of
+    the wrong type, messages naming another run, episode or role than their key, non-finite numbers,
+    results from a worker holding no lease, actions for decisions nobody asked, forged "finished"
+    manifests, and results under a run id that is a path. What the defences cannot tell from the real
+    thing without authentication (a well-formed action for the exact decision asked, a lease notice,
+    an ack naming the episode) is left to the secured bus (tests/test_e2e_secure_bus.py)."""
+    import msgspec
+
+    from agos.runtime.codec import encode
+    from agos.runtime.schemas import (
+        Action,
+        CoordinationState,
+        EpisodeRecord,
+        LeaseNotice,
+        Observation,
+        Pose,
+        ResultAck,
+        RunManifest,
+    )
+
+    def v99(message) -> bytes:
+        data = msgpack.unpackb(encode(message), raw=False)
+        data["v"] = 99
+        return msgpack.packb(data)
+
+    junk = [b"", b"\xc1", bytes(rng.randrange(256) for _ in range(48)), msgpack.packb([1, 2, 3]),
+            msgpack.packb({"type": "no_such_type", "v": 1}), msgpack.packb({"type": "action", "v": 1, "role": 5})]
+    out: list[tuple[str, bytes]] = []
+    manifest = RunManifest(run_id=run, status="finished", policies={"uav": "x", "ugv": "x"}, n_episodes=1,
+                           created_utc="2026-01-01T00:00:00+00:00")
+    out += [(keys.manifest(run), encode(manifest)), (keys.manifest(run), v99(manifest)),
+            (keys.manifest(run), rng.choice(junk))]
+    for ep in episode_ids:
+        record = EpisodeRecord(
+            run_id=run, episode_id=ep, difficulty="mid", status="finished", termination="confirmed", success=True,
+            ground_observed=True, n_confirm=1, ugv_path_length_m=1.0, shortest_path_length_m=1.0,
+            final_distance_m=1.0, uav_budget=80, uav_first_visible_step=1, candidates=[], decisions_uav=1,
+            decisions_ugv=1, sim_time_s=1.0, wall_time_s=0.1, worker_id="forger", town_id="grid-s7",
+            asset_sha256="ab" * 32, seed=1, renderer="tiny")
+        obs = Observation(
+            run_id=run, episode_id=ep, role="uav", decision_index=rng.randrange(1, 80), sim_time_s=1.0,
+            pose=Pose(position_world_m=(0.0, 0.0, 80.0), yaw_rad=float("nan")), mode="aerial", images=[],
+            references=[], legal_actions=["WAIT"], waypoint_options=[], region_world_m=(0.0, 0.0, 100.0, 100.0),
+            coordination=CoordinationState(run_id=run, episode_id=ep, sim_time_s=1.0))
+        action = Action(run_id=run, episode_id=ep, role="uav", decision_index=rng.randrange(1, 80), action="WAIT")
+        for role in ("uav", "ugv"):
+            out += [(keys.act(run, ep, role), rng.choice(junk)),
+                    (keys.act(run, ep, role), encode(msgspec.structs.replace(action, role=role, decision_index=9999))),
+                    (keys.act(run, ep, role), encode(msgspec.structs.replace(action, role=role, attempt=7))),
+                    (keys.act(run, ep, role), encode(msgspec.structs.replace(
+                        action, role="ugv" if role == "uav" else "uav"))),
+                    (keys.act(run, ep, role), encode(msgspec.structs.replace(action, role=role, episode_id="elsewhere"))),
+                    (keys.act(run, ep, role), encode(msgspec.structs.replace(
+                        action, role=role, agent_wall_latency_s=float("nan")))),
+                    (keys.act(run, ep, role), v99(msgspec.structs.replace(action, role=role))),
+                    (keys.obs(run, ep, role), rng.choice(junk)),
+                    (keys.obs(run, ep, role), encode(msgspec.structs.replace(obs, role=role))),  # NaN heading
+                    (keys.obs(run, ep, role), encode(msgspec.structs.replace(obs, run_id="another-run"))),
+                    (keys.obs(run, ep, role), v99(obs)),
+                    (keys.obs(run, ep, role), encode(record))]
+        out += [(keys.result(run, ep), rng.choice(junk)),
+                (keys.result(run, ep), encode(record)),  # no lease: the holder is a real worker
+                (keys.result(run, ep), encode(msgspec.structs.replace(record, final_distance_m=float("nan")))),
+                (keys.result(run, ep), encode(msgspec.structs.replace(record, episode_id="elsewhere"))),
+                (keys.result(run, ep), v99(record)),
+                (keys.result(run, ep), encode(manifest)),
+                (keys.result_ack(run, ep), rng.choice(junk)),
+                (keys.result_ack(run, ep), encode(ResultAck(run_id=run, episode_id="elsewhere", newly_stored=True))),
+                (keys.lease(run, ep), rng.choice(junk)),
+                (keys.lease(run, ep), v99(LeaseNotice(run_id=run, episode_id=ep, worker_id="forger", attempt=9))),
+                (keys.lease(run, ep), encode(LeaseNotice(run_id=run, episode_id="elsewhere", worker_id="forger",
+                                                         attempt=9))),
+                (keys.events(run, ep), rng.choice(junk)),
+                (keys.events(run, ep), encode(record)),
+                (f"agos/..-{ep}/ep/{ep}/result", encode(msgspec.structs.replace(record, run_id=f"..-{ep}"))),
+                (f"agos/-rf/ep/{ep}/result", encode(msgspec.structs.replace(record, run_id="-rf")))]
+    return out
+
+
+def test_a_hostile_client_changes_no_record(tmp_path: Path, episodes: Path, clean_lossy: dict[str, dict]) -> None:
+    """Over 1,000 malformed and forged messages on every key the run's processes subscribe to, and
+    garbage job requests, during a real run: every process lives, the records equal a clean run's,
+    nothing is written outside the run directory, and every process counts what it refused."""
+    import random
+
+    from agos.runtime.schemas import JobRequest
+
+    run = "hostile"
+    cluster = Cluster(tmp_path, run, workers=1)
+    ids = [json.loads(line)["episode_id"] for line in episodes.read_text().splitlines()]
+    rng = random.Random(7)
+    session = zenoh.open(zenoh_config(connect=[cluster.endpoint]))
+    stop = threading.Event()
+    sent = [0]
+
+    def flood() -> None:
+        from agos.runtime.codec import encode
+
+        while not stop.is_set():
+            for key, payload in _forgeries(run, ids, rng):
+                session.put(key, payload)
+                sent[0] += 1
+            for payload in (b"\xc1", encode(JobRequest(worker_id="thief"))):  # a client asking for jobs
+                session.get(keys.jobs(run), payload=payload, timeout=1.0)
+                sent[0] += 1
+            time.sleep(0.3)
+
+    thread = threading.Thread(target=flood, daemon=True)
+    thread.start()
+    try:
+        out = _finish(cluster.eval(episodes, "--comm", "lossy"))
+        stop.set()
+        thread.join(10)
+        assert sent[0] >= 1000, sent[0]
+        assert _summaries(cluster.records()) == clean_lossy
+        alive = {name: p.poll() for name, p in cluster.procs.items() if name != "w0"}
+        assert all(code is None for code in alive.values()), alive  # w0 exits 0 when the run is over
+        assert cluster.procs["w0"].wait(timeout=30) == 0
+        assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == [run]
+        assert not any(tmp_path.glob("*-rf*")) and not any(tmp_path.parent.glob("..-*"))
+        assert re.search(r"orchestrator rejected \d+ messages", out), out
+    finally:
+        stop.set()
+        session.close()
+        cluster.close()
+    counted = {}
+    for name in ("evaluator", "w0", "agent-uav", "agent-ugv"):
+        found = re.findall(r"rejected (\d+) messages: (.*)", (tmp_path / f"{name}.log").read_text())
+        assert found, f"{name} counted no refusal"
+        counted[name] = int(found[-1][0])
+    assert sum(counted.values()) >= 1000, counted
+    evaluator_reasons = re.findall(r"rejected \d+ messages: (.*)", (tmp_path / "evaluator.log").read_text())[-1]
+    for reason in ("not from the lease holder", "a number that is not finite", "unreadable",
+                   "an id that is not a name", "names another episode than its key"):
+        assert reason in evaluator_reasons, evaluator_reasons
