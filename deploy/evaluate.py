@@ -105,7 +105,13 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
     policies = {"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv}
     config = episode_config(cfg, policies=policies, comm=comm, timing_mode=timing_mode)  # bad names fail here
     vlm = vlm_plan(cfg, policies, vlm_standin)
-    episodes = read_episodes(cfg.run.episodes_file) if cfg.run.episodes_file else generated_episodes(cfg)
+    if cfg.run.episodes_file:
+        from agos.world.towns.asset import check_towns
+
+        episodes = read_episodes(cfg.run.episodes_file)
+        check_towns(episodes, str(cfg.run.episodes_file))
+    else:
+        episodes = generated_episodes(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_episodes(run_dir / "episodes.jsonl", episodes)
     plan = RunPlan(run_dir, episodes, policies, config, vlm=vlm, workers=workers)

@@ -4,6 +4,7 @@ through ``agos map``, and the top-down map."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -331,3 +332,25 @@ def test_region_map_has_the_requested_size_and_shows_roads():
     assert default.shape == (384, 384, 3)
     far, _ = region_map(t.layout, (5000.0, 5000.0, 5150.0, 5150.0), size_px=64)
     assert not np.all(far == road_rgb, axis=-1).any()
+
+
+def test_eval_refuses_a_split_whose_towns_cannot_be_had_before_starting_anything(tmp_path, sample_mid_episodes) -> None:
+    """An unknown generator, a build that hashes otherwise, an imported town not in the cache: one line
+    naming the file and the episode, exit 2, no run directory made."""
+    lines = sample_mid_episodes(1, 3).read_text().splitlines()
+    spec = json.loads(lines[0])
+    cases = {
+        "generator.jsonl": ({**spec, "town": {**spec["town"], "generator": "nosuchgen"}}, "unknown town generator"),
+        "hash.jsonl": ({**spec, "asset_sha256": "ff" * 32}, "episode expects asset sha256 ffffffffffff"),
+        "imported.jsonl": ({**spec, "town": {**spec["town"], "generator": "opendrive"}, "asset_sha256": "ee" * 32},
+                           "agos map import"),
+    }
+    for name, (bad, says) in cases.items():
+        (tmp_path / name).write_text(json.dumps(bad) + "\n")
+        out = subprocess.run([sys.executable, "-m", "agos.deploy.cli", "eval", "--split", name, "--runs-dir", "runs"],
+                             cwd=tmp_path, capture_output=True, text=True, timeout=60,
+                             env={**os.environ, "AGOS_ASSET_CACHE": str(tmp_path / "cache")})
+        assert out.returncode == 2, out.stdout + out.stderr
+        assert out.stderr.startswith(f"eval error: {name}: episode {spec['episode_id']}: ") and says in out.stderr
+        assert len(out.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "runs").exists()
