@@ -185,3 +185,29 @@ def test_check_agent_names_the_start_command_and_other_runs(tmp_path) -> None:
         assert "checked-typo (uav)" in text
     finally:
         procs.close()
+
+
+def test_a_wrong_port_is_one_line_and_exit_2_in_every_command(tmp_path, sample_mid_episodes) -> None:
+    """Nothing listens on the port: each command says so in one line naming the endpoint and what to
+    check, exits 2, within the connect timeout (10 s; all run at once here)."""
+    endpoint = f"tcp/127.0.0.1:{free_port(18200)}"
+    split = str(sample_mid_episodes(1, 3))
+    commands = {
+        "eval": ["eval", "--connect", endpoint, "--run", "x", "--split", split, "--runs-dir", "runs"],
+        "demo": ["demo", "--connect", endpoint, "--run", "x", "--runs-dir", "runs"],
+        "world": ["world", "--connect", endpoint, "--run", "x"],
+        "agent": ["agent", "--role", "uav", "--connect", endpoint, "--run", "x"],
+        "evaluator": ["evaluator", "--connect", endpoint],
+        "watch": ["watch", "--connect", endpoint],
+        "check": ["check", "agent", "--connect", endpoint],
+    }
+    started = time.monotonic()
+    procs = {name: subprocess.Popen([*AGOS, *argv], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                    text=True) for name, argv in commands.items()}
+    for name, proc in procs.items():
+        out, _ = proc.communicate(timeout=60)
+        assert proc.returncode == 2, (name, out)
+        errors = [line for line in out.splitlines() if "cannot reach" in line]
+        assert len(errors) == 1 and f"agos {name}: cannot reach the zenoh router at {endpoint}" in errors[0], out
+        assert "Traceback" not in out
+    assert time.monotonic() - started < 40
