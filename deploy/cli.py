@@ -82,12 +82,18 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--config", type=Path, help="TOML settings file: its [world] section shapes the episodes")
     sw.add_argument("--split", type=Path, required=True, help="JSONL episode file")
     sw.add_argument("--comm", default="ideal", help="base profile")
-    sw.add_argument("--param", default="loss.p", help="dotted profile field, e.g. loss.p, latency.mean_s")
+    sw.add_argument("--param", default="loss.p",
+                    help="dotted profile field (loss.p, latency.mean_s, bandwidth.bits_per_s, range.max_range_m, "
+                         "loss.p_bad_to_good ...), beacon_s, or loss.burst_len / blackouts.duration_s (docs/COMMS.md)")
     sw.add_argument("--values", default="0,0.1,0.2,0.3,0.4,0.5", help="comma-separated values")
     sw.add_argument("--seeds", default="0,1", help="comma-separated link seeds")
     sw.add_argument("--policy", default="heuristic")
     sw.add_argument("--workers", type=int, default=2)
     sw.add_argument("--out", type=Path, required=True)
+    _vlm_flags(sw)
+    sw.add_argument("--vlm-standin", nargs="?", const="", metavar="FAULTS",
+                    help="start the offline stand-in VLM server for the sweep (optionally with faults); "
+                         "VLM policies then use it")
 
     watch = sub.add_parser("watch", help="print every message under agos/** (a read-only observer)")
     watch.add_argument("--connect", help="zenoh router endpoint (default tcp/127.0.0.1:7447, or from settings)")
@@ -345,7 +351,7 @@ def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
             task = bar.add_task("episodes", total=total)
             table = run_sweep(args.split, args.out, config=config, param=args.param, values=values, seeds=seeds,
                               policies=(args.policy, args.policy), workers=args.workers,
-                              progress=lambda: bar.advance(task))
+                              progress=lambda: bar.advance(task), vlm=cfg.vlm, vlm_standin=args.vlm_standin)
     except (ProfileError, ValueError) as exc:
         print(f"sweep error: {exc}", file=sys.stderr)
         return 2

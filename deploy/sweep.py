@@ -1,17 +1,31 @@
 """``agos sweep``: how a link parameter changes cooperation.
 
-A grid of values of one comm-profile parameter (``loss.p``, ``latency.mean_s``,
-``bandwidth.bits_per_s``, ``range.max_range_m`` ...) times link seeds, each point run on the same
+A grid of values of one comm-profile parameter times link seeds, each point run on the same
 episodes. Episodes run in parallel worker processes with the policies called in-process (the link
 model lives in the world, so this measures exactly what `agos eval` would, without a router;
-the same seed gives the same numbers). Writes ``points/*.jsonl`` (episode records), ``sweep.csv``,
-``sweep.md`` and one PNG per metric (SR, SPL, DS) with 95 % bootstrap intervals over episodes.
+the same seed gives the same numbers). VLM policies ask the endpoint of ``[vlm]`` (or a stand-in
+server the sweep starts itself, ``vlm_standin``). Writes ``points/*.jsonl`` (episode records),
+``sweep.csv``, ``sweep.md`` and ``sweep.png`` with 95 % bootstrap intervals over episodes.
+
+The parameter is any field of a profile section (``loss.p``, ``latency.mean_s``,
+``bandwidth.bits_per_s``, ``bandwidth.queue_bytes``, ``range.max_range_m``, ``range.nlos_loss``,
+the Gilbert-Elliott ``loss.p_good_to_bad`` ... on a Gilbert-Elliott base), ``beacon_s``, or one of
+two derived axes: ``loss.burst_len`` (mean stay in the bad state, in transmissions, at the base
+profile's share of time in the bad state, so the mean loss stays put while bursts lengthen) and
+``blackouts.duration_s`` (every blackout of the base profile lasts this long from its start).
+
+Besides SR, SPL and DS the table has the episode's simulated duration and the *handoff delay*: from
+the UAV's first annotation to the UGV hearing of it, read from the ledger (the UAV's first sync or
+beacon that carries a candidate, and the first of those that was delivered), with how many
+episodes' first candidate never reached the UGV.
 """
 
 from __future__ import annotations
 
 import csv
 import hashlib
+import json
+import math
 import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,21 +39,61 @@ from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.links import CommProfile
 from agos.runtime.process import interruptible_imap
 from agos.runtime.schemas import EpisodeRecord
+from agos.runtime.settings import VlmOptions
 
-METRICS = ("SR", "SPL", "DS")
+METRICS = ("SR", "SPL", "DS", "T", "handoff")
+LABELS = {"SR": "SR (%)", "SPL": "SPL (%)", "DS": "DS", "T": "episode sim time (s)", "handoff": "handoff delay (s)"}
+GILBERT_ELLIOTT = ("p_good_to_bad", "p_bad_to_good", "loss_good", "loss_bad")
+DERIVED = ("loss.burst_len", "blackouts.duration_s")
 
 
 def with_param(profile: CommProfile, param: str, value: float) -> CommProfile:
-    """A copy of ``profile`` with a dotted parameter set (``loss.p`` also switches Bernoulli loss on)."""
+    """A copy of ``profile`` with one parameter set (see the module; ``loss.p`` also switches Bernoulli loss on).
+
+    Raises ValueError naming the parameter when it is not one, or when the base profile lacks what
+    it changes (a Gilbert-Elliott field on a profile without that loss model, a blackout length on
+    a profile without blackouts)."""
     data = profile.model_dump()
     section, _, key = param.partition(".")
-    if section not in data or not isinstance(data[section], dict) or key not in data[section]:
-        raise ValueError(f"sweep parameter {param!r}: not a field of a comm profile (e.g. loss.p, latency.mean_s)")
-    data[section][key] = value
-    if param == "loss.p" and data["loss"]["model"] == "none":
-        data["loss"]["model"] = "bernoulli"
+    if param == "beacon_s":
+        data["beacon_s"] = value
+    elif param == "loss.burst_len":
+        _set_burst_len(profile, data["loss"], value)
+    elif param == "blackouts.duration_s":
+        if not profile.blackouts:
+            raise ValueError(f"sweep parameter {param}: the base profile {profile.name!r} has no blackouts "
+                             "(use e.g. --comm outage)")
+        data["blackouts"] = [{"start_s": b.start_s, "end_s": b.start_s + value} for b in profile.blackouts]
+    elif section not in data or not isinstance(data[section], dict) or key not in data[section]:
+        raise ValueError(f"sweep parameter {param!r}: not a field of a comm profile (e.g. loss.p, latency.mean_s, "
+                         f"beacon_s, {', '.join(DERIVED)})")
+    elif section == "loss" and key in GILBERT_ELLIOTT and profile.loss.model != "gilbert_elliott":
+        raise ValueError(f"sweep parameter {param}: the base profile {profile.name!r} has no Gilbert-Elliott loss "
+                         "(use e.g. --comm bursty or --comm fading)")
+    else:
+        data[section][key] = value
+        if param == "loss.p" and data["loss"]["model"] == "none":
+            data["loss"]["model"] = "bernoulli"
     data["name"] = f"{profile.name}[{param}={value:g}]"
     return CommProfile.model_validate(data)
+
+
+def _set_burst_len(profile: CommProfile, loss: dict[str, Any], burst: float) -> None:
+    """Gilbert-Elliott with a mean stay of ``burst`` transmissions in the bad state, keeping the base
+    profile's stationary share of the bad state p_gb / (p_gb + p_bg) (hence its mean loss rate)."""
+    if profile.loss.model != "gilbert_elliott":
+        raise ValueError(f"sweep parameter loss.burst_len: the base profile {profile.name!r} has no Gilbert-Elliott "
+                         "loss (use e.g. --comm bursty or --comm fading)")
+    if burst < 1:
+        raise ValueError(f"sweep parameter loss.burst_len: {burst:g} transmissions; a burst lasts at least 1")
+    share = profile.loss.p_good_to_bad / (profile.loss.p_good_to_bad + profile.loss.p_bad_to_good)
+    if share >= 1:
+        raise ValueError(f"loss.burst_len: the base profile {profile.name!r} never leaves the bad state")
+    loss["p_bad_to_good"] = 1.0 / burst
+    loss["p_good_to_bad"] = share / (1 - share) / burst
+    if loss["p_good_to_bad"] > 1:
+        raise ValueError(f"loss.burst_len={burst:g}: with {share:.0%} of the time in the bad state, bursts this short "
+                         "would need p_good_to_bad > 1")
 
 
 @dataclass(frozen=True)
@@ -51,13 +105,14 @@ class Point:
 _CACHE: dict[str, Any] = {}
 
 
-def _run_point_episode(args: tuple[str, str, list[str], str]) -> tuple[int, str]:
+def _run_point_episode(args: tuple[str, str, list[str], str, str]) -> tuple[int, str]:
     """Worker process: one episode under one point's episode configuration; returns (point, record JSON)."""
-    config_json, episode_json, policies, point = args
+    config_json, episode_json, policies, point, vlm_json = args
     from agos.agents.inprocess import InProcessAgents
     from agos.agents.registry import make_policy
     from agos.runtime.episode_config import EpisodeConfig
     from agos.runtime.schemas import EpisodeSpec
+    from agos.runtime.settings import VlmOptions
     from agos.world.sim.engine import EpisodeRunner
     from agos.world.sim.scene import Scene
     from agos.world.towns.asset import town_for
@@ -69,7 +124,9 @@ def _run_point_episode(args: tuple[str, str, list[str], str]) -> tuple[int, str]
         _CACHE[key] = (town, Scene(town.layout))
     town, scene = _CACHE[key]
     config = EpisodeConfig.model_validate_json(config_json)
-    agents = InProcessAgents({"uav": make_policy(policies[0], "uav"), "ugv": make_policy(policies[1], "ugv")})
+    vlm = VlmOptions.model_validate_json(vlm_json) if vlm_json else None
+    agents = InProcessAgents({"uav": make_policy(policies[0], "uav", vlm=vlm),
+                              "ugv": make_policy(policies[1], "ugv", vlm=vlm)})
     record = EpisodeRunner(scene, town, spec, run_id="sweep", worker_id="sweep",
                            config=config).run(agents)
     return int(point), to_json(record).decode()
@@ -77,12 +134,40 @@ def _run_point_episode(args: tuple[str, str, list[str], str]) -> tuple[int, str]
 
 def run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, param: str, values: list[float],
               seeds: list[int], policies: tuple[str, str], workers: int,
-              progress: Callable[[], None] | None = None) -> list[dict]:
+              progress: Callable[[], None] | None = None, vlm: VlmOptions | None = None,
+              vlm_standin: str | None = None) -> list[dict]:
     """Run every episode at every (value, link seed) point: ``config`` (from
     :func:`agos.deploy.configure.episode_config`) with its comm profile's ``param`` set to the value
-    and ``link_seed`` to the seed."""
+    and ``link_seed`` to the seed. VLM policies ask ``vlm``'s endpoint, or, with ``vlm_standin`` (a
+    fault string, "" for none), a stand-in server started here for the sweep's duration."""
+    from agos.agents.names import needs_vlm
+
+    for value in values:  # a bad parameter or value fails before anything runs
+        with_param(config.comm, param, value)
+    options = (vlm or VlmOptions()) if any(needs_vlm(p) for p in policies) else None
+    if options is None or vlm_standin is None:
+        return _run_sweep(episodes_file, out_dir, config=config, param=param, values=values, seeds=seeds,
+                          policies=policies, workers=workers, progress=progress, vlm=options)
+    from agos.agents.vlm.standin_server import DEFAULT_MODELS, StandinServer, parse_faults
+
+    with StandinServer(faults=parse_faults(vlm_standin)) as server:
+        options = options.model_copy(update={"base_url": server.url, "model": DEFAULT_MODELS[0]})
+        return _run_sweep(episodes_file, out_dir, config=config, param=param, values=values, seeds=seeds,
+                          policies=policies, workers=workers, progress=progress, vlm=options,
+                          key_extra=f"standin:{vlm_standin}")
+
+
+def _run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, param: str, values: list[float],
+               seeds: list[int], policies: tuple[str, str], workers: int, progress: Callable[[], None] | None,
+               vlm: VlmOptions | None, key_extra: str = "") -> list[dict]:
+    from agos.agents.registry import make_policy
     from agos.world.episodes.sampling import read_episodes
 
+    make_policy(policies[0], "uav", vlm=vlm)  # a missing endpoint fails here, not in a worker
+    make_policy(policies[1], "ugv", vlm=vlm)
+    vlm_json = vlm.model_dump_json() if vlm is not None else ""
+    if vlm is not None and not key_extra:
+        key_extra = f"{vlm.base_url}|{vlm.model}"
     episodes = read_episodes(episodes_file)
     points = [Point(v, s) for v in values for s in seeds]
     point_configs = [config.model_copy(update={"comm": with_param(config.comm, param, p.value), "link_seed": p.seed})
@@ -92,10 +177,11 @@ def run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, para
     # A file's name carries the hash of everything that shapes its records (never reused wrongly).
     done_dir = out_dir / ".episodes"
     done_dir.mkdir(parents=True, exist_ok=True)
-    done_files = [done_dir / f"{i}-{_point_key(point_configs[i].model_dump_json(), policies)}.jsonl" for i in range(len(points))]
+    done_files = [done_dir / f"{i}-{_point_key(point_configs[i].model_dump_json(), policies, key_extra)}.jsonl"
+                  for i in range(len(points))]
     results: dict[int, list[str]] = {i: (f.read_text().splitlines() if f.exists() else []) for i, f in enumerate(done_files)}
     finished = {(i, from_json(line, EpisodeRecord).episode_id) for i, lines in results.items() for line in lines}
-    jobs = [(point_configs[i].model_dump_json(), to_json(e).decode(), list(policies), str(i))
+    jobs = [(point_configs[i].model_dump_json(), to_json(e).decode(), list(policies), str(i), vlm_json)
             for i in range(len(points)) for e in episodes if (i, e.episode_id) not in finished]
     for _ in range(len(finished)):
         if progress:
@@ -117,8 +203,9 @@ def run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, para
     return table
 
 
-def _point_key(config_json: str, policies: tuple[str, str]) -> str:
-    return hashlib.sha256((config_json + "|" + "|".join(policies)).encode()).hexdigest()[:12]
+def _point_key(config_json: str, policies: tuple[str, str], extra: str = "") -> str:
+    tail = f"|{extra}" if extra else ""  # scripted policies keep the keys they always had
+    return hashlib.sha256((config_json + "|" + "|".join(policies) + tail).encode()).hexdigest()[:12]
 
 
 def _bootstrap_ci(values: np.ndarray, rng: np.random.Generator, resamples: int = 2000) -> tuple[float, float]:
@@ -129,23 +216,45 @@ def _bootstrap_ci(values: np.ndarray, rng: np.random.Generator, resamples: int =
     return float(low), float(high)
 
 
+def handoff_delay(record: dict[str, Any]) -> float | None:
+    """Seconds from the UAV's first annotation until the UGV heard of it; ``inf`` when it never did,
+    None when the UAV annotated nothing (or the record has no ledger).
+
+    Read from the ledger: a sync carries the sender's candidates, and one without any has exactly
+    ``EMPTY_SYNC_BYTES``; so the UAV's first larger sync or beacon was sent at its first annotation,
+    and the first of those delivered told the UGV."""
+    from agos.world.sim.comms import EMPTY_SYNC_BYTES
+
+    carrying = [e for e in record.get("ledger") or []
+                if e["sender"] == "uav" and e["kind"] != "message" and e["size_bytes"] > EMPTY_SYNC_BYTES]
+    if not carrying:
+        return None
+    arrivals = [e["arrive_s"] for e in carrying if e["delivered"]]
+    return min(arrivals) - carrying[0]["sent_s"] if arrivals else math.inf
+
+
 def summarize(rows: list[dict], out_dir: Path, param: str) -> list[dict]:
     from agos.evaluator.metrics import decision_steps, spl, success
     from agos.evaluator.summary import EpisodeSummary
 
     rng = np.random.default_rng(0)
-    by_value: dict[float, list] = {}
+    by_value: dict[float, list[tuple[EpisodeSummary, dict[str, Any]]]] = {}
     for row in rows:
-        eps = [EpisodeSummary.from_valid(__import__("json").loads(line)) for line in row["records"]]
-        by_value.setdefault(row["value"], []).extend(eps)
+        raw = [json.loads(line) for line in row["records"]]
+        by_value.setdefault(row["value"], []).extend((EpisodeSummary.from_valid(r), r) for r in raw)
     table = []
     for value in sorted(by_value):
-        eps = [e for e in by_value[value] if e.status == "finished"]
+        pairs = [(e, r) for e, r in by_value[value] if e.status == "finished"]
+        eps = [e for e, _ in pairs]
         entry: dict[str, Any] = {"value": value, "episodes": len(eps)}
         for name, fn in (("SR", success), ("SPL", spl), ("DS", decision_steps)):
-            arr = np.array([fn(e) for e in eps], dtype=float)
-            low, high = _bootstrap_ci(arr, rng)
-            entry[name], entry[f"{name}_low"], entry[f"{name}_high"] = float(arr.mean()), low, high
+            entry.update(_mean_ci(name, np.array([fn(e) for e in eps], dtype=float), rng))
+        entry.update(_mean_ci("T", np.array([r["sim_time_s"] for _, r in pairs], dtype=float), rng))
+        delays = [d for d in (handoff_delay(r) for _, r in pairs) if d is not None]
+        entry.update(_mean_ci("handoff", np.array([d for d in delays if math.isfinite(d)], dtype=float), rng))
+        entry["handoff_never"] = sum(not math.isfinite(d) for d in delays)
+        entry["handoff_episodes"] = len(delays)
+        entry["handoff_never_pct"] = 100.0 * entry["handoff_never"] / len(delays) if delays else None
         rates = [e.link["delivery_rate"] for e in eps if e.link and e.link.get("delivery_rate") is not None]
         entry["delivery_rate"] = float(np.mean(rates)) if rates else None
         table.append(entry)
@@ -153,16 +262,30 @@ def summarize(rows: list[dict], out_dir: Path, param: str) -> list[dict]:
         writer = csv.DictWriter(fh, fieldnames=list(table[0]))
         writer.writeheader()
         writer.writerows(table)
-    lines = [f"| {param} | episodes | delivered % | SR % [95% CI] | SPL % [95% CI] | DS [95% CI] |",
-             "|---:|---:|---:|---|---|---|"]
+    lines = [f"| {param} | episodes | delivered % | SR % [95% CI] | SPL % [95% CI] | DS [95% CI] | time s [95% CI] "
+             "| handoff s [95% CI] (never/annotated) |",
+             "|---:|---:|---:|---|---|---|---|---|"]
     for t in table:
         delivered = "-" if t["delivery_rate"] is None else f"{100 * t['delivery_rate']:.1f}"
-        lines.append(f"| {t['value']:g} | {t['episodes']} | {delivered} | {100 * t['SR']:.1f} [{100 * t['SR_low']:.1f}, "
-                     f"{100 * t['SR_high']:.1f}] | {100 * t['SPL']:.1f} [{100 * t['SPL_low']:.1f}, {100 * t['SPL_high']:.1f}] "
-                     f"| {t['DS']:.1f} [{t['DS_low']:.1f}, {t['DS_high']:.1f}] |")
+        lines.append(f"| {t['value']:g} | {t['episodes']} | {delivered} | {_cell(t, 'SR', 100)} | {_cell(t, 'SPL', 100)} "
+                     f"| {_cell(t, 'DS')} | {_cell(t, 'T', fmt='.0f')} | {_cell(t, 'handoff')} "
+                     f"({t['handoff_never']}/{t['handoff_episodes']}) |")
     (out_dir / "sweep.md").write_text("\n".join(lines) + "\n")
     _plots(table, out_dir, param)
     return table
+
+
+def _mean_ci(name: str, values: np.ndarray, rng: np.random.Generator) -> dict[str, float | None]:
+    if not len(values):
+        return {name: None, f"{name}_low": None, f"{name}_high": None}
+    low, high = _bootstrap_ci(values, rng)
+    return {name: float(values.mean()), f"{name}_low": low, f"{name}_high": high}
+
+
+def _cell(t: dict[str, Any], name: str, scale: float = 1.0, fmt: str = ".1f") -> str:
+    if t[name] is None:
+        return "-"
+    return f"{scale * t[name]:{fmt}} [{scale * t[f'{name}_low']:{fmt}}, {scale * t[f'{name}_high']:{fmt}}]"
 
 
 def _plots(table: list[dict], out_dir: Path, param: str) -> None:
@@ -171,20 +294,33 @@ def _plots(table: list[dict], out_dir: Path, param: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    x = [t["value"] for t in table]
-    fig, axes = plt.subplots(1, 3, figsize=(11, 3.2), dpi=140)
-    for ax, name in zip(axes, METRICS, strict=True):
-        scale = 1.0 if name == "DS" else 100.0
-        y = [scale * t[name] for t in table]
-        lo = [scale * (t[name] - t[f"{name}_low"]) for t in table]
-        hi = [scale * (t[f"{name}_high"] - t[name]) for t in table]
-        ax.errorbar(x, y, yerr=[lo, hi], marker="o", capsize=3)
-        ax.set_xlabel(param)
-        ax.set_ylabel(name + ("" if name == "DS" else " (%)"))
-        ax.set_title(f"{name} vs {param} (95% CI)", fontsize=9)
-        ax.grid(alpha=0.3)
-        if name != "DS":
+    x = np.array([t["value"] for t in table], dtype=float)
+    log_x = len(x) > 1 and x.min() > 0 and x.max() / x.min() >= 50
+    panels = [*METRICS, "handoff_never_pct"]
+    fig, axes = plt.subplots(2, 3, figsize=(11, 6), dpi=140)
+    for ax, name in zip(axes.flat, panels, strict=True):
+        rows = [t for t in table if t[name] is not None]
+        if name == "handoff_never_pct":
+            ax.plot([t["value"] for t in rows], [t[name] for t in rows], marker="o")
+            ax.set_ylabel("first candidate never heard (%)")
+            ax.set_title("UGV never heard of the first candidate", fontsize=9)
             ax.set_ylim(0, 105)
+        else:
+            scale = 100.0 if name in ("SR", "SPL") else 1.0
+            y = [scale * t[name] for t in rows]
+            lo = [scale * (t[name] - t[f"{name}_low"]) for t in rows]
+            hi = [scale * (t[f"{name}_high"] - t[name]) for t in rows]
+            ax.errorbar([t["value"] for t in rows], y, yerr=[lo, hi], marker="o", capsize=3)
+            ax.set_ylabel(LABELS[name])
+            ax.set_title(f"{LABELS[name]}{' of those heard' if name == 'handoff' else ''} (95% CI)", fontsize=9)
+            if name in ("SR", "SPL"):
+                ax.set_ylim(0, 105)
+            else:
+                ax.set_ylim(bottom=0)
+        ax.set_xlabel(param)
+        ax.grid(alpha=0.3)
+        if log_x:
+            ax.set_xscale("log")
     fig.tight_layout()
     fig.savefig(out_dir / "sweep.png")
     plt.close(fig)

@@ -31,6 +31,16 @@ STATUS_RANK = {"pending": 0, "arrived": 1, "rejected": 2, "confirmed": 2, "false
 MESSAGE_OVERHEAD_BYTES = 64
 
 
+def sync_payload(candidates: list[Candidate], pose: Pose, t: float) -> dict[str, Any]:
+    """What a sync or beacon carries: the sender's candidates, its pose, when it was sent."""
+    return {"candidates": candidates, "pose": pose, "t": t}
+
+
+EMPTY_SYNC_BYTES = len(encode(sync_payload([], Pose(position_world_m=(0.0, 0.0, 0.0), yaw_rad=0.0), 0.0)))
+"""The size of every sync or beacon that carries no candidate (msgpack floats are fixed-width), so a
+ledger reader can tell which transmissions carried one (``agos sweep``'s handoff delay)."""
+
+
 @dataclass
 class RoleView:
     candidates: dict[str, Candidate] = field(default_factory=dict)
@@ -107,7 +117,7 @@ class Channel:
              kind: TransmissionKind = "sync") -> None:
         """Send the sender's knowledge (its candidates and its pose) to the teammate."""
         cands = [copy.copy(c) for _, c in sorted(self.views[sender].candidates.items())]
-        payload = {"candidates": cands, "pose": pose, "t": t}
+        payload = sync_payload(cands, pose, t)
         size = len(encode(payload))
         self._send(sender, kind, t, payload, size, geometry)
 
