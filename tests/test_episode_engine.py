@@ -169,3 +169,36 @@ def test_every_message_is_written_with_its_declared_types(world) -> None:
     for message in [*seen, *sink.messages, record]:
         payload = encode(message)
         assert encode(decode(payload)) == payload, type(message).__name__
+
+
+def test_the_map_shows_the_teammate_where_the_link_reported_it(world) -> None:
+    """M carries no more than the link: each role's map has its own marker where it is and its
+    teammate's at the pose in that role's coordination view (none before the first report)."""
+    from agos.runtime.codec import decode_image
+    from agos.world.towns.topdown import region_map
+
+    seen: list[tuple[Observation, bytes]] = []
+    agents = heuristic()
+
+    class Watching:
+        def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
+            seen.extend((obs, next(f.data for f in obs.images if f.kind == "map")) for obs in observations.values())
+            return agents.decide(observations)
+
+    from agos.runtime.links import load_profile
+
+    town, scene, episodes = world
+    config = EpisodeConfig(comm=load_profile("outage"))  # nothing gets through after 20 s
+    EpisodeRunner(scene, town, episodes["mid001"], run_id="t", worker_id="w", config=config).run(Watching())
+    late = [(obs, png) for obs, png in seen if obs.sim_time_s > 60.0]
+    assert len(late) > 5
+    for obs, png in seen[:6] + late[:6]:
+        image = decode_image(png)
+        mate = obs.coordination.poses.get("ugv" if obs.role == "uav" else "uav")
+        mate_xy = None if mate is None else mate.position_world_m[:2]
+        own_xy = obs.pose.position_world_m[:2]
+        uav_xy, ugv_xy = (own_xy, mate_xy) if obs.role == "uav" else (mate_xy, own_xy)
+        ugv_yaw = (obs.pose.yaw_rad if obs.role == "ugv" else (0.0 if mate is None else mate.yaw_rad))
+        expected, _ = region_map(town.layout, obs.region_world_m, size_px=image.shape[1], uav_xy=uav_xy,
+                                 ugv_xy=ugv_xy, ugv_yaw_rad=ugv_yaw)
+        assert (expected == image).all(), (obs.role, obs.decision_index)

@@ -36,7 +36,7 @@ def observe(st: EpisodeState, role: Role) -> Observation:
         st.uav_target_px = sensors.target_pixels(shot, st.target_uid)
         if st.tau is None and st.uav_target_px >= st.cfg.uav_visible_min_px():
             st.tau = st.uav.decisions
-        images = sensors.frames_of(shot, st.scene, cam, with_grid=True) + _map_frame(st)
+        images = sensors.frames_of(shot, st.scene, cam, with_grid=True) + _map_frame(st, "uav")
         options = [uav_waypoint(st.town, n) for n in uav_options(st.town.uav_grid, st.uav.position[:2], st.active_uav)]
         return Observation(
             run_id=st.run_id, episode_id=st.spec.episode_id, role="uav",
@@ -49,10 +49,10 @@ def observe(st: EpisodeState, role: Role) -> Observation:
             oracle=_oracle(st, "uav", st.uav_target_px >= st.cfg.uav_visible_min_px()))
     st.ugv.decisions += 1
     if st.ugv.mode == "stop_6view":
-        images = [f for shot in st.ugv.six for f in sensors.frames_of(shot, st.scene, cam)] + _map_frame(st)
+        images = [f for shot in st.ugv.six for f in sensors.frames_of(shot, st.scene, cam)] + _map_frame(st, "ugv")
     else:
         shot = sensors.ground_view(st.scene, "forward", st.ugv_xy(), st.ugv.heading_rad, cam)
-        images = sensors.frames_of(shot, st.scene, cam) + _map_frame(st)
+        images = sensors.frames_of(shot, st.scene, cam) + _map_frame(st, "ugv")
     road_options = _ugv_options(st)
     return Observation(
         run_id=st.run_id, episode_id=st.spec.episode_id, role="ugv",
@@ -90,11 +90,20 @@ def coordination(st: EpisodeState, role: Role | None = None) -> CoordinationStat
         annotations_used=len(st.candidates), max_annotations=st.cfg.max_annotations)
 
 
-def _map_frame(st: EpisodeState) -> list[ImageFrame]:
-    """M: the episode region from above with both agents' markers (north up)."""
+def _map_frame(st: EpisodeState, role: Role) -> list[ImageFrame]:
+    """M: the episode region from above (north up) with ``role``'s own marker where it is and its
+    teammate's where the link last reported it (none before the first report): the map must not
+    carry what the link did not (docs/COMMS.md)."""
     if st.region_map is None:
         return []
-    rgb = st.region_map.render(uav_xy=st.uav.position[:2], ugv_xy=st.ugv_xy(), ugv_yaw_rad=st.ugv.heading_rad)
+    own_xy = st.uav.position[:2] if role == "uav" else st.ugv_xy()
+    reported = st.channel.views[role].teammate_pose
+    mate_xy = None if reported is None else reported.position_world_m[:2]
+    if role == "uav":
+        rgb = st.region_map.render(uav_xy=own_xy, ugv_xy=mate_xy,
+                                   ugv_yaw_rad=0.0 if reported is None else reported.yaw_rad)
+    else:
+        rgb = st.region_map.render(uav_xy=mate_xy, ugv_xy=own_xy, ugv_yaw_rad=st.ugv.heading_rad)
     return [ImageFrame(name="map", kind="map", encoding="png", data=encode_png(rgb),
                        metres_per_px=st.region_map.metres_per_px)]
 
