@@ -121,8 +121,9 @@ def _solvable(town: Town, scene, spec: EpisodeSpec) -> bool:
     uid = scene.add_vehicle(spec.target.model, spec.target.colour, spec.target.position_world_m, spec.target.yaw_rad)
     others = [scene.add_vehicle(d.model, d.colour, d.position_world_m, d.yaw_rad) for d in spec.distractors]
     try:
-        result = check(scene, town, uid, spec.target.position_world_m, spec.target.yaw_rad, spec.active_uav_waypoints)
         start = town.roads.parse_anchor_id(spec.ugv_start_waypoint)
+        result = check(scene, town, uid, spec.target.position_world_m, spec.target.yaw_rad, spec.active_uav_waypoints,
+                       ugv_start=start, uav_start=spec.uav_start_waypoint)
         return result.solvable and reachable(town, start, result.verifying_anchors)
     finally:
         for body in [uid, *others]:

@@ -16,6 +16,7 @@ Execution always follows the fine graph (:meth:`shortest_path`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import networkx as nx
@@ -124,3 +125,12 @@ def _backward_anchor(roads: RoadGraphs, route: list[int]) -> int | None:
 def shortest_path(roads: RoadGraphs, source: int, target: int) -> list[int]:
     """Fine-node path the UGV executes (raises networkx.NetworkXNoPath)."""
     return nx.shortest_path(roads.fine, source, target, weight="length_m")
+
+
+def heading_after(roads: RoadGraphs, path: list[int], heading_rad: float) -> float:
+    """The UGV's heading after driving ``path``: along its last edge (``heading_rad``, the heading
+    before, when the path does not move)."""
+    if len(path) < 2:
+        return heading_rad
+    a, b = roads.positions_world_m[path[-2]], roads.positions_world_m[path[-1]]
+    return math.atan2(b[1] - a[1], b[0] - a[0])

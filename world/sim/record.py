@@ -2,9 +2,9 @@
 
 Contract: :func:`shortest_confirmable_path` is computed once when the episode is set up (before
 any decision, target and look-alikes already in the scene): the road distance from the UGV
-start to the nearest fine node from which STOP_OBSERVE then CONFIRM would be accepted, or
-``None`` when no such node is found within ``max_checks`` renders. It renders only the views
-facing the target and changes nothing. :func:`episode_record` reads the finished
+start to the nearest decision anchor (the poses a UGV can stop at) from which STOP_OBSERVE then
+CONFIRM would be accepted, or ``None`` when none can be reached. It renders only the views facing
+the target and changes nothing. :func:`episode_record` reads the finished
 :class:`~agos.world.sim.state.EpisodeState` and changes nothing either.
 """
 
@@ -12,43 +12,25 @@ from __future__ import annotations
 
 import math
 
-import networkx as nx
-
 from agos.runtime.episode_config import CameraConfig, ConfirmConfig
 from agos.runtime.geometry import distance_to_polygon
 from agos.runtime.schemas import CandidateOutcome, EpisodeRecord, VehicleSpec
 from agos.runtime.traces import trace_stats
-from agos.world.sim.confirm import check_confirm
-from agos.world.sim.evidence import ground_evidence, line_of_sight, target_points
+from agos.world.sim.evidence import nearest_verifying_anchor
 from agos.world.sim.scene import Scene
 from agos.world.sim.state import EpisodeState
 from agos.world.towns.asset import Town
 
 
 def shortest_confirmable_path(scene: Scene, town: Town, start_node: int, target: VehicleSpec, target_uid: int,
-                              confirm: ConfirmConfig, cameras: CameraConfig,
-                              max_checks: int = 30) -> float | None:
-    """SPL's shortest path: road distance from ``start_node`` to the nearest fine node from
-    which a STOP_OBSERVE then CONFIRM would be accepted (nodes in Dijkstra order, ties by node id;
-    distance and line of sight are checked before rendering)."""
-    lengths = nx.single_source_dijkstra_path_length(town.roads.fine, start_node, weight="length_m")
-    pos = town.roads.positions_world_m
-    target_xy = (target.position_world_m[0], target.position_world_m[1])
-    points = target_points(target.position_world_m, target.yaw_rad)
-    checks = 0
-    for node, dist in sorted(lengths.items(), key=lambda kv: (kv[1], kv[0])):
-        xy = (float(pos[node][0]), float(pos[node][1]))
-        if math.dist(xy, target_xy) > confirm.max_distance_m:
-            continue
-        if not line_of_sight(scene, xy, target_uid, points):
-            continue
-        checks += 1
-        evidence = ground_evidence(scene, town, node, target_uid, points, target_xy, cameras)
-        if not check_confirm(evidence, confirm):
-            return round(float(dist), 3)
-        if checks >= max_checks:
-            break
-    return None
+                              confirm: ConfirmConfig, cameras: CameraConfig) -> float | None:
+    """SPL's shortest path: road distance from ``start_node`` (the UGV's start, with the road's
+    heading there) to the nearest pose the UGV can take where a STOP_OBSERVE then CONFIRM would
+    be accepted: a decision anchor, judged with the heading the UGV arrives with
+    (:func:`~agos.world.sim.evidence.nearest_verifying_anchor`, the oracle's goal)."""
+    found = nearest_verifying_anchor(scene, town, start_node, town.roads.heading_at(start_node), target_uid,
+                                     target.position_world_m, target.yaw_rad, confirm, cameras)
+    return None if found is None else round(found[1], 3)
 
 
 def episode_record(st: EpisodeState, wall_time_s: float) -> EpisodeRecord:

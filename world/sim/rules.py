@@ -11,7 +11,9 @@ the engine's.
 
 The two tools the paper ablates live here: E2A (Ego-to-Allo projection, :func:`_project_cell`:
 an annotated grid cell becomes a polygon on the ground) and RGPP (road-graph path planning,
-:func:`_approach_anchor`: a candidate gets the road anchor GO_TO_CANDIDATE drives to).
+:func:`_approach_anchor`: a candidate gets the road anchor GO_TO_CANDIDATE drives to). In runs
+with the oracle's hints a candidate that contains the target is approached where the CONFIRM
+checker would accept (:func:`_oracle_approach`): the oracle's shortest road path.
 """
 
 from __future__ import annotations
@@ -22,12 +24,12 @@ import math
 import networkx as nx
 import numpy as np
 
-from agos.runtime.geometry import centroid
+from agos.runtime.geometry import centroid, point_in_polygon
 from agos.runtime.schemas import Action, ActionName, Candidate, CandidateStatus, Observation, Role, Waypoint
 from agos.world.sim import sensors
 from agos.world.sim.confirm import ConfirmEvidence, check_confirm
-from agos.world.sim.evidence import line_of_sight, target_points
-from agos.world.sim.options import shortest_path
+from agos.world.sim.evidence import line_of_sight, nearest_verifying_anchor, target_points
+from agos.world.sim.options import heading_after, shortest_path
 from agos.world.sim.state import EpisodeState
 from agos.world.towns.roadgraph import RoadGraphs
 
@@ -98,7 +100,9 @@ def _apply_uav(st: EpisodeState, action: Action, obs: Observation) -> str | None
         except ValueError as exc:
             raise IllegalAction(str(exc)) from None
         polygon, centre = _project_cell(st, cell)
-        approach = _approach_anchor(st, centre)
+        approach = _oracle_approach(st, polygon) if st.cfg.tools.oracle else None
+        if approach is None:
+            approach = _approach_anchor(st, centre)
         cand = Candidate(candidate_id=f"C{len(st.candidates) + 1:03d}", cell=cell,
                          polygon_world_m=[(round(x, 3), round(y, 3)) for x, y in polygon],
                          center_world_m=(round(centre[0], 3), round(centre[1], 3)), status="pending",
@@ -189,9 +193,7 @@ def _drive_to(st: EpisodeState, target: int) -> None:
     length = roads.path_length_m(path)
     ugv.route.extend(path[1:])
     ugv.node = target
-    if len(path) > 1:
-        a, b = roads.positions_world_m[path[-2]], roads.positions_world_m[path[-1]]
-        ugv.heading_rad = math.atan2(b[1] - a[1], b[0] - a[0])
+    ugv.heading_rad = heading_after(roads, path, ugv.heading_rad)
     ugv.path_length_m += length
     ugv.mode, ugv.fresh_stop, ugv.six = "driving", False, []
     ugv.ready_at = st.sim_time_s + max(length / st.cfg.ugv_speed_mps, st.cfg.short_action_s)
@@ -223,6 +225,19 @@ def _approach_anchor(st: EpisodeState, centre: tuple[float, float], radius_m: fl
     if near:
         return min(near)[1]
     return next((int(ids[i]) for i in np.argsort(dist) if int(ids[i]) in lengths), None)
+
+
+def _oracle_approach(st: EpisodeState, polygon: list[tuple[float, float]]) -> int | None:
+    """The oracle tool's road-graph path planning (runs with the oracle's hints only): a candidate
+    that contains the target is approached at the anchor nearest by road from the UGV where
+    STOP_OBSERVE then CONFIRM is accepted (ground truth), so GO_TO_CANDIDATE drives the shortest
+    road path to a verifying pose. None for a candidate without the target, or none verifying."""
+    if not point_in_polygon(st.target_xy, polygon):
+        return None
+    t = st.spec.target
+    found = nearest_verifying_anchor(st.scene, st.town, st.ugv.node, st.ugv.heading_rad, st.target_uid,
+                                     t.position_world_m, t.yaw_rad, st.cfg.confirm_at_view_size(), st.cfg.cameras)
+    return None if found is None else found[0]
 
 
 # ----- CONFIRM evidence -------------------------------------------------------------------------

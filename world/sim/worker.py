@@ -230,7 +230,9 @@ class WorldWorker:
     def __init__(self, cfg: AgosConfig, bus: ZenohBus, stop: StopFlag, worker_id: str) -> None:
         self.cfg, self.bus, self.stop, self.worker_id = cfg, bus, stop, worker_id
         self.run_id = cfg.run.run_id
-        self._scenes: dict[tuple[str, int, str], tuple[Town, Scene]] = {}
+        self._scenes: dict[tuple[str, str], tuple[Town, Scene]] = {}
+        """(asset sha256, renderer) -> town and scene: the asset hash names a town (imported towns all share
+        one generator and seed)."""
         self._give_back: tuple[str | None, str] = (None, "")  # an episode this worker could not finish, and why
         self.frames = FrameStream(bus)
         self.rejections = Rejections(log)
@@ -306,7 +308,7 @@ class WorldWorker:
             return None
 
     def _scene(self, spec: EpisodeSpec, renderer: str) -> tuple[Town, Scene]:
-        key = (spec.town.generator, spec.town.seed, renderer)
+        key = (spec.asset_sha256, renderer)
         if key not in self._scenes:
             cpu = time.process_time()
             town = town_for(spec.town.generator, spec.town.seed, spec.asset_sha256, town_id=spec.town.town_id,

@@ -52,6 +52,17 @@ class UavGrid:
                     out.append(key)
         return out
 
+    def reachable(self, start: str, active: set[str]) -> set[str]:
+        """The active nodes a UAV at ``start`` can fly to by neighbour moves (``start`` included):
+        the active flags of a region need not be one connected piece of the grid."""
+        seen, frontier = {start}, [start]
+        while frontier:
+            for n in self.neighbours(frontier.pop(), active):
+                if n not in seen:
+                    seen.add(n)
+                    frontier.append(n)
+        return seen
+
 
 def build_uav_grid(road_positions_m: np.ndarray, anchor_positions_m: np.ndarray) -> UavGrid:
     x_min, y_min = road_positions_m.min(axis=0) - EXPAND_M
