@@ -260,7 +260,7 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
             window: deque[tuple[float, int]] = deque()  # (time, decisions seen): the rate over the last 10 s
             watch = Stall(PRESENCE_EVERY_S)
             losses = LossStreak(LOST_IN_A_ROW)
-            unstored_checks = 0
+            unstored_checks = workerless_checks = 0
             while not orch.finished and not stop.is_set():
                 for record in orch.pump(0.25):
                     cause = losses.add(record)
@@ -285,6 +285,14 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
                     # Records nobody stores are episodes lost to a missing evaluator (their worker gives up
                     # after a minute): after LOST_IN_A_ROW checks in a row, stop rather than lose them all.
                     unstored_checks = unstored_checks + 1 if not present.evaluator and orch.unacknowledged() else 0
+                    workerless_checks = workerless_checks + 1 if not present.worlds else 0
+                    if workerless_checks >= LOST_IN_A_ROW:
+                        console.print(f"[red]stopping: no world worker joined run {plan.run_id} ({LOST_IN_A_ROW} checks "
+                                      f"{PRESENCE_EVERY_S:.0f} s apart); start one with `agos world --connect "
+                                      f"{own.connect} --run {plan.run_id}` and resume with "
+                                      f"`agos eval --resume {plan.run_dir}`", highlight=False)
+                        orch.publish_manifest("interrupted")
+                        return 3
                     if unstored_checks >= LOST_IN_A_ROW:
                         console.print(f"[red]stopping: no evaluator stored the records of "
                                       f"{', '.join(orch.unacknowledged())} ({LOST_IN_A_ROW} checks "

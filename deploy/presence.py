@@ -92,7 +92,9 @@ class Stall:
 
 LOST_IN_A_ROW = 3
 """Episodes lost in a row to one infrastructure cause after which ``agos eval`` stops (exit 3): a
-missing agent or a broken endpoint would otherwise cost every remaining episode its wait."""
+missing agent or a broken endpoint would otherwise cost every remaining episode its wait. Also the
+presence checks in a row (``PRESENCE_EVERY_S`` apart) that find no world worker, or records that no
+evaluator stores, after which it stops the same way (``--resume`` goes on once they are up)."""
 
 
 class LossStreak:

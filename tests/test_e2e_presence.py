@@ -211,3 +211,22 @@ def test_a_wrong_port_is_one_line_and_exit_2_in_every_command(tmp_path, sample_m
         assert len(errors) == 1 and f"agos {name}: cannot reach the zenoh router at {endpoint}" in errors[0], out
         assert "Traceback" not in out
     assert time.monotonic() - started < 40
+
+
+def test_eval_without_a_world_worker_stops_after_three_checks(tmp_path, sample_mid_episodes) -> None:
+    """Evaluator and agents but no world worker: the start command within 30 s, exit 3 after three
+    presence checks (45 s), with the resume command."""
+    procs = _Procs(tmp_path, 18300)
+    try:
+        procs.start("evaluator", "--connect", procs.endpoint, "--runs-dir", "runs")
+        for role in ("uav", "ugv"):
+            procs.start("agent", "--role", role, "--connect", procs.endpoint, "--run", "workerless")
+        out = subprocess.run([*AGOS, "eval", "--connect", procs.endpoint, "--run", "workerless", "--split",
+                              str(sample_mid_episodes(1, 7)), "--runs-dir", "runs"], cwd=tmp_path,
+                             capture_output=True, text=True, timeout=120)
+        text = " ".join(out.stdout.split())
+        assert out.returncode == 3, text
+        assert f"no world worker serves run workerless: start one with `agos world --connect {procs.endpoint}" in text
+        assert "stopping: no world worker joined run workerless" in text and "agos eval --resume" in text
+    finally:
+        procs.close()
