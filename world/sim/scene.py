@@ -16,6 +16,7 @@ import numpy as np
 from agos.world.towns.catalog import CARGO_WHITE, GLASS, TYRE, body_type, colour_rgb
 from agos.world.towns.layout import TownLayout
 from agos.world.towns.meshes import chunks, slab_mesh, strip_mesh, surface_mesh, vertex_normals
+from agos.world.towns.vehicles import FIXED_RGB, VehicleAttributes, vehicle_mesh
 
 
 def _import_pybullet_quietly():
@@ -58,6 +59,9 @@ STUDIO_OFFSET_M = np.array([10_000.0, 10_000.0, 0.0])
 """Where a vehicle is moved, alone, to render its reference views."""
 
 _PAINTS = {"glass": GLASS, "tyre": TYRE, "cargo": CARGO_WHITE}
+LOOKS: tuple[str, ...] = ("flat", "rich")
+"""``flat``: vehicles as coloured boxes (the default, unchanged); ``rich``: vehicles as meshes by body
+type with glass, wheels, lights and plates (world/towns/vehicles.py)."""
 
 
 @dataclass
@@ -73,7 +77,10 @@ class RenderResult:
 class Scene:
     """A town in a private PyBullet DIRECT client."""
 
-    def __init__(self, layout: TownLayout, *, renderer: str = "tiny") -> None:
+    def __init__(self, layout: TownLayout, *, renderer: str = "tiny", look: str = "flat") -> None:
+        if look not in LOOKS:
+            raise ValueError(f"unknown look {look!r}; known: {', '.join(LOOKS)}")
+        self.look = look
         self.client = pb.connect(pb.DIRECT)
         self.renderer = renderer
         self._renderer_flag = pb.ER_TINY_RENDERER
@@ -99,11 +106,19 @@ class Scene:
                 specularColor=[0.05, 0.05, 0.05], physicsClientId=self.client)
         return self._shape_cache[key]
 
-    def _collision_box(self, half_extents: tuple[float, float, float]) -> int:
-        key = ("c", *(round(h, 4) for h in half_extents))
+    def _collision_box(self, half_extents: tuple[float, float, float],
+                       centre: tuple[float, float, float] | None = None) -> int:
+        if centre is None:  # the flat look's boxes, centred on their link
+            key: tuple = ("c", *(round(h, 4) for h in half_extents))
+            if key not in self._shape_cache:
+                self._shape_cache[key] = pb.createCollisionShape(
+                    pb.GEOM_BOX, halfExtents=list(half_extents), physicsClientId=self.client)
+            return self._shape_cache[key]
+        key = ("c", *(round(h, 4) for h in half_extents), "at", *(round(c, 4) for c in centre))
         if key not in self._shape_cache:
             self._shape_cache[key] = pb.createCollisionShape(
-                pb.GEOM_BOX, halfExtents=list(half_extents), physicsClientId=self.client)
+                pb.GEOM_BOX, halfExtents=list(half_extents), collisionFramePosition=list(centre),
+                physicsClientId=self.client)
         return self._shape_cache[key]
 
     def _static_box(self, center: tuple[float, float, float], half: tuple[float, float, float],
@@ -172,8 +187,13 @@ class Scene:
                     self._semantic[uid] = SEM_VEGETATION
 
     def add_vehicle(self, model: str, colour: str, position_world_m: tuple[float, float, float],
-                    yaw_rad: float) -> int:
-        """Place a vehicle of a catalog body type and paint; return its body id."""
+                    yaw_rad: float, *, attributes: VehicleAttributes | None = None) -> int:
+        """Place a vehicle of a body type and paint; return its body id. ``attributes`` (roof,
+        rack, stripe) need the rich look."""
+        if self.look == "rich":
+            return self._add_mesh_vehicle(model, colour, position_world_m, yaw_rad, attributes or VehicleAttributes())
+        if attributes is not None and attributes != VehicleAttributes():
+            raise ValueError("vehicle attributes need look='rich'")
         body = body_type(model)
         paint = colour_rgb(colour)
         visuals, collisions, centres = [], [], []
@@ -192,6 +212,41 @@ class Scene:
             linkOrientations=[[0, 0, 0, 1]] * n, linkInertialFramePositions=[[0, 0, 0]] * n,
             linkInertialFrameOrientations=[[0, 0, 0, 1]] * n, linkParentIndices=[0] * n,
             linkJointTypes=[pb.JOINT_FIXED] * n, linkJointAxis=[[0, 0, 1]] * n,
+            physicsClientId=self.client)
+        self._semantic[uid] = SEM_VEHICLE
+        return uid
+
+    def _add_mesh_vehicle(self, model: str, colour: str, position_world_m: tuple[float, float, float],
+                          yaw_rad: float, attributes: VehicleAttributes) -> int:
+        """A rich-look vehicle: one link per material of its mesh (the segmentation reports the
+        body id for every link) and a few collision boxes; shapes are made once per scene."""
+        mesh = vehicle_mesh(model, attributes)
+        paint = colour_rgb(colour)
+        colours = {"paint": paint, "roof": colour_rgb(attributes.roof) if attributes.roof else paint,
+                   "stripe": colour_rgb(attributes.stripe) if attributes.stripe else paint, **FIXED_RGB}
+        visuals = []
+        for material in sorted(mesh.triangles):
+            rgb = colours[material]
+            key = ("mesh", model, attributes, material, *(round(c, 4) for c in rgb))
+            if key not in self._shape_cache:
+                vertices, indices, normals = mesh.arrays(material)
+                specular = 0.35 if material == "glass" else 0.05
+                self._shape_cache[key] = pb.createVisualShape(
+                    pb.GEOM_MESH, vertices=vertices.tolist(), indices=indices.tolist(), normals=normals.tolist(),
+                    rgbaColor=[*rgb, 1.0], specularColor=[specular] * 3, physicsClientId=self.client)
+            visuals.append(self._shape_cache[key])
+        # Every link carries a material's mesh, the first ones also a collision box (a link with a
+        # collision box and no visual shape would be drawn as that box).
+        collisions = [self._collision_box(half, centre) for centre, half in mesh.collision_boxes]
+        collisions += [-1] * (len(visuals) - len(collisions))
+        n = len(visuals) - 1
+        uid = pb.createMultiBody(
+            baseMass=0, baseVisualShapeIndex=visuals[0], baseCollisionShapeIndex=collisions[0],
+            basePosition=list(position_world_m), baseOrientation=pb.getQuaternionFromEuler([0, 0, yaw_rad]),
+            linkMasses=[0] * n, linkCollisionShapeIndices=collisions[1:], linkVisualShapeIndices=visuals[1:],
+            linkPositions=[[0.0, 0.0, 0.0]] * n, linkOrientations=[[0, 0, 0, 1]] * n,
+            linkInertialFramePositions=[[0, 0, 0]] * n, linkInertialFrameOrientations=[[0, 0, 0, 1]] * n,
+            linkParentIndices=[0] * n, linkJointTypes=[pb.JOINT_FIXED] * n, linkJointAxis=[[0, 0, 1]] * n,
             physicsClientId=self.client)
         self._semantic[uid] = SEM_VEHICLE
         return uid
