@@ -119,7 +119,7 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "he
     bus = ZenohBus.from_settings(cfg.zenoh)
     town = open_town(town_name)
     config = episode_config(cfg, policies={"uav": policy, "ugv": policy}, decision_budget=budget)
-    scene = Scene(town.layout, renderer=config.renderer)
+    scene = Scene(town.layout, renderer=config.renderer, look=config.look)
     record: EpisodeRecord | None = None
     try:
         spec = generate_episodes(town, scene, per_difficulty=1, seed=cfg.run.episode_seed)[0]

@@ -81,6 +81,10 @@ class EpisodeConfig(_Part):
 
     renderer: Literal["tiny", "egl"] = "tiny"
     """PyBullet renderer; the two differ pixel for pixel."""
+    look: Literal["flat", "rich"] = "flat"
+    """How vehicles are drawn: ``flat`` (boxes) or ``rich`` (triangle meshes by body type,
+    world/towns/vehicles.py). Experimental: episodes are still sampled and checked solvable with the
+    flat look (issue 22 makes rich the default)."""
     uav_speed_mps: float = Field(10.0, gt=0)
     ugv_speed_mps: float = Field(8.0, gt=0)
     wait_max_s: float = Field(20.0, gt=0)
@@ -144,7 +148,11 @@ def read_config(data: Any, *, where: str) -> EpisodeConfig:
 
 
 def config_hash(data: dict[str, Any]) -> str:
-    """Short hash of a configuration as stored (a map): the same for an object and its stored copy."""
+    """Short hash of a configuration as stored (a map): the same for an object and its stored copy.
+    ``look`` counts only when it is not the default ``flat``, so configurations stored before the
+    field existed keep their hash."""
+    if data.get("look") == "flat":
+        data = {k: v for k, v in data.items() if k != "look"}
     canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=False)
     return hashlib.sha256(canonical.encode()).hexdigest()[:12]
 

@@ -117,3 +117,16 @@ def test_compare_checks_each_run(tmp_path: Path) -> None:
 def test_demo_toml_writes_out_the_defaults() -> None:
     cfg = load_config(REPO / "deploy" / "configs" / "demo.toml", environ={})
     assert cfg.world == EpisodeConfig()
+
+
+def test_the_look_is_named_in_every_configuration_and_hashed_only_when_not_flat() -> None:
+    from agos.runtime.episode_config import EpisodeConfig, config_hash
+
+    flat = EpisodeConfig()
+    stored = flat.model_dump(mode="json")
+    assert stored["look"] == "flat"
+    before_the_field = {k: v for k, v in stored.items() if k != "look"}
+    assert flat.config_hash() == config_hash(before_the_field) == config_hash(stored)
+    rich = EpisodeConfig(look="rich")
+    assert rich.config_hash() != flat.config_hash()
+    assert config_hash(rich.model_dump(mode="json")) == rich.config_hash()

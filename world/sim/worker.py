@@ -230,8 +230,8 @@ class WorldWorker:
     def __init__(self, cfg: AgosConfig, bus: ZenohBus, stop: StopFlag, worker_id: str) -> None:
         self.cfg, self.bus, self.stop, self.worker_id = cfg, bus, stop, worker_id
         self.run_id = cfg.run.run_id
-        self._scenes: dict[tuple[str, str], tuple[Town, Scene]] = {}
-        """(asset sha256, renderer) -> town and scene: the asset hash names a town (imported towns all share
+        self._scenes: dict[tuple[str, str, str], tuple[Town, Scene]] = {}
+        """(asset sha256, renderer, look) -> town and scene: the asset hash names a town (imported towns all share
         one generator and seed)."""
         self._give_back: tuple[str | None, str] = (None, "")  # an episode this worker could not finish, and why
         self.frames = FrameStream(bus)
@@ -307,13 +307,13 @@ class WorldWorker:
             self.rejections.reject(key, "unreadable", exc)
             return None
 
-    def _scene(self, spec: EpisodeSpec, renderer: str) -> tuple[Town, Scene]:
-        key = (spec.asset_sha256, renderer)
+    def _scene(self, spec: EpisodeSpec, renderer: str, look: str) -> tuple[Town, Scene]:
+        key = (spec.asset_sha256, renderer, look)
         if key not in self._scenes:
             cpu = time.process_time()
             town = town_for(spec.town.generator, spec.town.seed, spec.asset_sha256, town_id=spec.town.town_id,
                             fetch=self._fetch_asset)
-            self._scenes[key] = (town, Scene(town.layout, renderer=renderer))
+            self._scenes[key] = (town, Scene(town.layout, renderer=renderer, look=look))
             log.info("town %s ready: %.1f s CPU for town and scene, %.1f s CPU since the process started",
                      town.town_id, time.process_time() - cpu, time.process_time())
         return self._scenes[key]
@@ -332,7 +332,7 @@ class WorldWorker:
         config = self.cfg.world  # only for the failure record of a grant whose configuration is unreadable
         try:
             config = read_config(grant.config, where="job grant")  # the run's, whatever this host's settings
-            town, scene = self._scene(spec, config.renderer)
+            town, scene = self._scene(spec, config.renderer, config.look)
             started_msg = encode(EpisodeStarted(
                 run_id=self.run_id, episode_id=spec.episode_id, difficulty=spec.difficulty,
                 worker_id=self.worker_id, town_id=town.town_id, asset_sha256=town.sha256))
