@@ -78,9 +78,11 @@ class Evaluator:
             self.bus.publish(keys.result_ack(message.run_id, message.episode_id),
                              ResultAck(run_id=message.run_id, episode_id=message.episode_id, newly_stored=newly))
         elif isinstance(message, RunManifest) and message.status == "running":
-            self.store(message.run_id)
-        elif isinstance(message, RunManifest) and message.status == "finished":
-            records = self.store(message.run_id).records(message.run_id)
+            # Present for the run at once, but no file yet: a manifest alone (perhaps forged) must not
+            # make a run directory look as if it held results.
+            self.serve_run(message.run_id)
+        elif isinstance(message, RunManifest) and message.status == "finished" and message.run_id in self._stores:
+            records = self._stores[message.run_id].records(message.run_id)
             console = Console(width=100)
             with console.capture() as cap:
                 console.print(results_table(by_difficulty(records), title=f"run {message.run_id}"))

@@ -172,7 +172,7 @@ def test_a_world_worker_runs_each_imported_town_in_its_own_scene(tmp_path, monke
                                                   yaw_rad=0.0),
                                distractors=[], uav_start_waypoint="U0_0", ugv_start_waypoint="R0",
                                active_uav_waypoints=[], decision_budget=80, seed=0)
-            assert worker._scene(spec, "tiny")[0].sha256 == town.sha256, f"{name} played in another town's scene"
+            assert worker._scene(spec, "tiny", "flat")[0].sha256 == town.sha256, f"{name} played in another town's scene"
     finally:
         for _, scene in worker._scenes.values():
             scene.close()
