@@ -1,6 +1,9 @@
 """Regenerate the figures of docs/WORLD.md (run from the repository root):
 
     .venv/bin/python docs/world_figures.py [--carla ../shared/maps/carla/Town10HD.xodr]
+
+The UAV view, the six views and the references are drawn in both looks from the same episode
+(sampled on the flat scene): ``<town>_<figure>.png`` (flat) and ``<town>_<figure>_rich.png``.
 """
 
 from __future__ import annotations
@@ -37,35 +40,38 @@ def label(img: np.ndarray, text: str) -> np.ndarray:
 
 
 def figures(town: Town, tag: str) -> None:
-    scene = Scene(town.layout)
     cam = sensors.CameraConfig()
-    spec = sample_episode(town, scene, "hard", 0, seed=5)
+    flat = Scene(town.layout)
+    spec = sample_episode(town, flat, "hard", 0, seed=5)
     t = spec.target
-    uid = scene.add_vehicle(t.model, t.colour, t.position_world_m, t.yaw_rad)
-    for d in spec.distractors:
-        scene.add_vehicle(d.model, d.colour, d.position_world_m, d.yaw_rad)
-    # UAV: the active node nearest the target, with the grid overlay the agents see
+    # UAV: the active node nearest the target; UGV: the nearest decision anchor
     node = min(spec.active_uav_waypoints, key=lambda k: math.dist(town.uav_grid.nodes[k].position_world_m[:2],
                                                                   t.position_world_m[:2]))
     pos = town.uav_grid.nodes[node].position_world_m
-    shot = sensors.nadir(scene, pos[:2], pos[2], cam)
-    save(f"{tag}_uav_grid.png", sensors.grid_overlay(shot.render.rgb))
-    # UGV: six views from the nearest decision anchor that sees the target
     ids, xy = town.roads.anchor_array()
     anchor = int(ids[np.argmin(np.hypot(xy[:, 0] - t.position_world_m[0], xy[:, 1] - t.position_world_m[1]))])
     p = town.roads.positions_world_m[anchor]
-    six = sensors.six_views(scene, (float(p[0]), float(p[1])), town.roads.heading_at(anchor), cam)
-    top = np.concatenate([label(s.render.rgb, s.name) for s in six[:3]], axis=1)
-    bottom = np.concatenate([label(s.render.rgb, s.name) for s in six[3:]], axis=1)
-    save(f"{tag}_six_views.png", np.concatenate([top, bottom], axis=0))
-    refs = sensors.reference_views(scene, uid, t.position_world_m, t.yaw_rad, cam)
-    tiles = []
-    for f in refs:
-        rgba = decode_image(f.data)
-        bg = np.full(rgba.shape[:2] + (3,), 235, np.uint8)
-        alpha = rgba[:, :, 3:4] / 255.0
-        tiles.append(label((rgba[:, :, :3] * alpha + bg * (1 - alpha)).astype(np.uint8), f.name))
-    save(f"{tag}_references.png", np.concatenate(tiles, axis=1))
+    for look, scene in (("flat", flat), ("rich", None)):
+        scene = scene or Scene(town.layout, look=look)
+        suffix = "" if look == "flat" else f"_{look}"
+        uid = scene.add_vehicle(t.model, t.colour, t.position_world_m, t.yaw_rad)
+        for d in spec.distractors:
+            scene.add_vehicle(d.model, d.colour, d.position_world_m, d.yaw_rad)
+        shot = sensors.nadir(scene, pos[:2], pos[2], cam)
+        save(f"{tag}_uav_grid{suffix}.png", sensors.grid_overlay(shot.render.rgb))
+        six = sensors.six_views(scene, (float(p[0]), float(p[1])), town.roads.heading_at(anchor), cam)
+        top = np.concatenate([label(s.render.rgb, s.name) for s in six[:3]], axis=1)
+        bottom = np.concatenate([label(s.render.rgb, s.name) for s in six[3:]], axis=1)
+        save(f"{tag}_six_views{suffix}.png", np.concatenate([top, bottom], axis=0))
+        refs = sensors.reference_views(scene, uid, t.position_world_m, t.yaw_rad, cam)
+        tiles = []
+        for f in refs:
+            rgba = decode_image(f.data)
+            bg = np.full(rgba.shape[:2] + (3,), 235, np.uint8)
+            alpha = rgba[:, :, 3:4] / 255.0
+            tiles.append(label((rgba[:, :, :3] * alpha + bg * (1 - alpha)).astype(np.uint8), f.name))
+        save(f"{tag}_references{suffix}.png", np.concatenate(tiles, axis=1))
+        scene.close()
     rmap, _ = region_map(town.layout, spec.region_world_m, size_px=384, uav_xy=pos[:2], ugv_xy=(p[0], p[1]),
                          ugv_yaw_rad=town.roads.heading_at(anchor))
     save(f"{tag}_episode_map.png", rmap)
@@ -74,7 +80,6 @@ def figures(town: Town, tag: str) -> None:
     cx, cy = t.position_world_m[:2]
     save(f"{tag}_graphs_zoom.png", debug_map(town.layout, town.roads, nodes, size_px=900,
                                              region=(cx - 70, cy - 70, cx + 70, cy + 70)))
-    scene.close()
 
 
 def main() -> None:

@@ -32,7 +32,7 @@ CARLA = Path(__file__).resolve().parents[2] / "shared" / "maps" / "carla"
 # GO_TO_CANDIDATE, rejected, and spent its 80 decisions searching greedily 460 m away.
 TOWN04_MID_003 = (
     '{"type":"episode_spec","v":1,"episode_id":"Town04-mid-003-v1","town":{"generator":"opendrive","seed":0,'
-    '"town_id":"Town04"},"asset_sha256":"864034b40e9f2a552a34ac770c02f83fb1e1a89d4e550007546a4726221ff1f0",'
+    '"town_id":"Town04"},"asset_sha256":"8d443698bb7069d53db59aea6d75882f28e9081a923e6e8b6f74fbbc8976bc8e",'
     '"difficulty":"mid","region_world_m":[-118.607,-360.494,181.393,-60.494],"target":{"model":"box_truck",'
     '"colour":"red","position_world_m":[-94.667,-136.456,0.0],"yaw_rad":2.667091},"distractors":[],'
     '"uav_start_waypoint":"U12_8","ugv_start_waypoint":"R4755","active_uav_waypoints":["U12_10","U12_4","U12_8",'
@@ -46,7 +46,7 @@ TOWN04_MID_003 = (
 # for the whole episode; the UGV found the target alone after 36 decisions of greedy search.
 TOWN01_HARD_006 = (
     '{"type":"episode_spec","v":1,"episode_id":"Town01-hard-006-v1","town":{"generator":"opendrive","seed":0,'
-    '"town_id":"Town01"},"asset_sha256":"a47cd52916cdbb9b28dd73a2570694b0154c77e22997d7e1e95e09909552477f",'
+    '"town_id":"Town01"},"asset_sha256":"ef5a013e654d01017ed0fed86bb7fe77a9f43715f2631abc96ea1a57ad46a5f0",'
     '"difficulty":"hard","region_world_m":[-0.47,-328.9,299.53,-28.9],"target":{"model":"box_truck",'
     '"colour":"red","position_world_m":[203.17,-60.586,0.0],"yaw_rad":0.000122},"distractors":[{"model":'
     '"box_truck","colour":"maroon","position_world_m":[87.308,-251.83,0.0],"yaw_rad":-1.570644},{"model":'

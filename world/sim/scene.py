@@ -14,8 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from agos.world.towns.catalog import CARGO_WHITE, GLASS, TYRE, body_type, colour_rgb
+from agos.world.towns.city import City, build_city, vehicle_shadow_mesh
 from agos.world.towns.layout import TownLayout
 from agos.world.towns.meshes import chunks, slab_mesh, strip_mesh, surface_mesh, vertex_normals
+from agos.world.towns.texmesh import TexMesh, chunked
 from agos.world.towns.vehicles import FIXED_RGB, VehicleAttributes, vehicle_mesh
 
 
@@ -43,9 +45,9 @@ def _import_pybullet_quietly():
 
 pb = _import_pybullet_quietly()
 
-# Semantic classes of the uint8 semantic map.
-SEM_NONE, SEM_GROUND, SEM_ROAD, SEM_SIDEWALK, SEM_BUILDING, SEM_VEHICLE, SEM_MARKING, SEM_VEGETATION = range(8)
-SEMANTIC_NAMES = ("none", "ground", "road", "sidewalk", "building", "vehicle", "marking", "vegetation")
+# Semantic classes of the uint8 semantic map (furniture: lamp posts of the rich look).
+SEM_NONE, SEM_GROUND, SEM_ROAD, SEM_SIDEWALK, SEM_BUILDING, SEM_VEHICLE, SEM_MARKING, SEM_VEGETATION, SEM_FURNITURE = range(9)
+SEMANTIC_NAMES = ("none", "ground", "road", "sidewalk", "building", "vehicle", "marking", "vegetation", "furniture")
 # Heights keep coplanar surfaces apart (no z-fighting) and cameras off mesh vertices.
 SURFACE_Z = {"park": 0.015, "plaza": 0.02, "road": 0.02, "junction": 0.025, "marking_white": 0.035,
              "marking_yellow": 0.035, "sidewalk": 0.12}
@@ -60,8 +62,29 @@ STUDIO_OFFSET_M = np.array([10_000.0, 10_000.0, 0.0])
 
 _PAINTS = {"glass": GLASS, "tyre": TYRE, "cargo": CARGO_WHITE}
 LOOKS: tuple[str, ...] = ("flat", "rich")
-"""``flat``: vehicles as coloured boxes (the default, unchanged); ``rich``: vehicles as meshes by body
-type with glass, wheels, lights and plates (world/towns/vehicles.py)."""
+"""``flat``: boxes and flat colours (the default, unchanged); ``rich``: vehicles as meshes by body type
+(world/towns/vehicles.py) in a textured city with drawn shadows (world/towns/city.py)."""
+_FLAT_LIGHT = {"lightDirection": [0.35, 0.25, 1.0], "lightAmbientCoeff": 0.55, "lightDiffuseCoeff": 0.45,
+               "lightSpecularCoeff": 0.05}
+RICH_AMBIENT, RICH_DIFFUSE = 0.5, 0.55
+_COMPOUND_MAX = 16
+SKY_ZENITH_RGB, SKY_HORIZON_RGB = (118, 156, 206), (204, 218, 230)
+
+
+@dataclass
+class _VehicleExtras:
+    """What the rich look adds to a vehicle: its drawn shadow (its last link, so it moves and goes
+    with it without a body of its own) and the colours of its other links."""
+
+    shadow_link: int
+    link_rgb: list[tuple[int, tuple[float, float, float]]]
+    """(link index, -1 for the base; its colour in sunlight)."""
+    shaded: bool = False
+
+
+_SEMANTIC_OF = {"ground": SEM_GROUND, "road": SEM_ROAD, "sidewalk": SEM_SIDEWALK, "building": SEM_BUILDING,
+                "skyline": SEM_BUILDING,
+                "marking": SEM_MARKING, "vegetation": SEM_VEGETATION, "furniture": SEM_FURNITURE}
 
 
 @dataclass
@@ -95,7 +118,17 @@ class Scene:
             self._renderer_flag = pb.ER_BULLET_HARDWARE_OPENGL
         self._semantic: dict[int, int] = {}
         self._shape_cache: dict[tuple, int] = {}
-        self._build_static(layout)
+        self._extras: dict[int, _VehicleExtras] = {}
+        self._shadow_lut: np.ndarray | None = None
+        self._shadow_proxy = -1
+        """Instance id shown for vehicles' shadow pixels (a hidden body of class road)."""
+        self._city: City | None = None
+        self._textures: dict[str, int] = {}
+        self._sky: dict[tuple[int, int], np.ndarray] = {}
+        if look == "rich":
+            self._build_rich(layout)
+        else:
+            self._build_static(layout)
 
     # ----- construction -------------------------------------------------------------------
     def _visual_box(self, half_extents: tuple[float, float, float], rgb: tuple[float, float, float]) -> int:
@@ -169,6 +202,80 @@ class Scene:
             slot = slots[car.slot_id]
             self.add_vehicle(car.model, car.colour, (*slot.position_world_m, 0.0), slot.yaw_rad)
 
+    def _build_rich(self, layout: TownLayout) -> None:
+        """The textured city (world/towns/city.py): one body per material and chunk, the buildings'
+        collision boxes in compound bodies, then the parked traffic with shadows."""
+        from agos.world.towns.asset import cache_dir
+
+        city = build_city(layout, texture_root=cache_dir() / "textures")
+        self._city = city
+        while city.parts:  # PyBullet copies each mesh: let go of ours as we go (peak memory)
+            part = city.parts.pop(0)
+            self._textured_body(part.mesh, part.material, part.rgb, _SEMANTIC_OF[part.semantic], specular=part.specular)
+        if layout.decks:
+            self._mesh_body([slab_mesh(d.polygon_m, d.bottom_m, d.top_m) for d in layout.decks], (0.56, 0.55, 0.52),
+                            SEM_BUILDING)
+        self._building_colliders(layout)
+        self._shadow_proxy = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=self._hidden_visual(),
+                                                physicsClientId=self.client)
+        self._semantic[self._shadow_proxy] = SEM_ROAD
+        slots = {s.slot_id: s for s in layout.slots}
+        for car in layout.parked:
+            slot = slots[car.slot_id]
+            self.add_vehicle(car.model, car.colour, (*slot.position_world_m, 0.0), slot.yaw_rad)
+
+    def _building_colliders(self, layout: TownLayout) -> None:
+        """The buildings' boxes as compound collision shapes (PyBullet keeps at most 16 children a
+        compound) on bodies whose only visual is one tiny triangle far below the ground (a body
+        without a visual shape is drawn as its collision shapes)."""
+        boxes = [((b.center_world_m[0], b.center_world_m[1], b.size_m[2] / 2),
+                  (b.size_m[0] / 2, b.size_m[1] / 2, b.size_m[2] / 2), b.yaw_rad) for b in layout.buildings]
+        if not boxes:
+            return
+        hidden = self._hidden_visual()
+        for k in range(0, len(boxes), _COMPOUND_MAX):
+            group = boxes[k:k + _COMPOUND_MAX]
+            collision = pb.createCollisionShapeArray(
+                [pb.GEOM_BOX] * len(group), halfExtents=[list(h) for _, h, _ in group],
+                collisionFramePositions=[list(c) for c, _, _ in group],
+                collisionFrameOrientations=[pb.getQuaternionFromEuler([0, 0, y]) for _, _, y in group],
+                physicsClientId=self.client)
+            uid = pb.createMultiBody(baseMass=0, baseCollisionShapeIndex=collision, baseVisualShapeIndex=hidden,
+                                     physicsClientId=self.client)
+            self._semantic[uid] = SEM_BUILDING
+
+    def _hidden_visual(self) -> int:
+        key = ("hidden",)
+        if key not in self._shape_cache:
+            self._shape_cache[key] = pb.createVisualShape(
+                pb.GEOM_MESH, vertices=[[0, 0, -500.0], [0.01, 0, -500.0], [0, 0.01, -500.0]], indices=[0, 1, 2],
+                physicsClientId=self.client)
+        return self._shape_cache[key]
+
+    def _texture(self, name: str) -> int:
+        if name not in self._textures:
+            assert self._city is not None
+            self._textures[name] = pb.loadTexture(str(self._city.texture_files[name]), physicsClientId=self.client)
+        return self._textures[name]
+
+    def _textured_body(self, mesh: TexMesh, material: str, rgb: tuple[float, float, float], semantic: int, *,
+                       specular: float = 0.03) -> list[int]:
+        """One body a chunk of the mesh, with the material's texture (if it has one) times ``rgb``."""
+        uids = []
+        assert self._city is not None
+        texture = self._city.texture_of.get(material)
+        for part in chunked(mesh):
+            kwargs = {"uvs": part.uvs.tolist()} if texture else {}
+            shape = pb.createVisualShape(pb.GEOM_MESH, vertices=part.vertices.tolist(), indices=part.indices.tolist(),
+                                         normals=part.normals.tolist(), rgbaColor=[*rgb, 1.0],
+                                         specularColor=[specular] * 3, physicsClientId=self.client, **kwargs)
+            uid = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape, physicsClientId=self.client)
+            if texture:
+                pb.changeVisualShape(uid, -1, textureUniqueId=self._texture(texture), physicsClientId=self.client)
+            self._semantic[uid] = semantic
+            uids.append(uid)
+        return uids
+
     def _add_trees(self, layout: TownLayout) -> None:
         # Trees in three size classes, each created in one batched call.
         classes: dict[tuple[float, float], list[tuple[float, float]]] = {}
@@ -191,7 +298,9 @@ class Scene:
         """Place a vehicle of a body type and paint; return its body id. ``attributes`` (roof,
         rack, stripe) need the rich look."""
         if self.look == "rich":
-            return self._add_mesh_vehicle(model, colour, position_world_m, yaw_rad, attributes or VehicleAttributes())
+            uid = self._add_mesh_vehicle(model, colour, position_world_m, yaw_rad, attributes or VehicleAttributes())
+            self._update_shade(uid)
+            return uid
         if attributes is not None and attributes != VehicleAttributes():
             raise ValueError("vehicle attributes need look='rich'")
         body = body_type(model)
@@ -225,8 +334,10 @@ class Scene:
         colours = {"paint": paint, "roof": colour_rgb(attributes.roof) if attributes.roof else paint,
                    "stripe": colour_rgb(attributes.stripe) if attributes.stripe else paint, **FIXED_RGB}
         visuals = []
-        for material in sorted(mesh.triangles):
+        link_rgb: list[tuple[int, tuple[float, float, float]]] = []
+        for k, material in enumerate(sorted(mesh.triangles)):
             rgb = colours[material]
+            link_rgb.append((k - 1, rgb))
             key = ("mesh", model, attributes, material, *(round(c, 4) for c in rgb))
             if key not in self._shape_cache:
                 vertices, indices, normals = mesh.arrays(material)
@@ -235,8 +346,14 @@ class Scene:
                     pb.GEOM_MESH, vertices=vertices.tolist(), indices=indices.tolist(), normals=normals.tolist(),
                     rgbaColor=[*rgb, 1.0], specularColor=[specular] * 3, physicsClientId=self.client)
             visuals.append(self._shape_cache[key])
-        # Every link carries a material's mesh, the first ones also a collision box (a link with a
-        # collision box and no visual shape would be drawn as that box).
+        if self._city is not None:  # the rich city: the vehicle's shadow as its last link, in its frame
+            shadow = vehicle_shadow_mesh(self._city, mesh, yaw_rad)
+            visuals.append(pb.createVisualShape(
+                pb.GEOM_MESH, vertices=shadow.vertices.tolist(), indices=shadow.indices.tolist(),
+                normals=shadow.normals.tolist(), rgbaColor=[*self._city.vehicle_shadow_rgb, 1.0],
+                specularColor=[0.0] * 3, physicsClientId=self.client))
+        # Every link carries a mesh, the first ones also a collision box (a link with a collision box
+        # and no visual shape would be drawn as that box).
         collisions = [self._collision_box(half, centre) for centre, half in mesh.collision_boxes]
         collisions += [-1] * (len(visuals) - len(collisions))
         n = len(visuals) - 1
@@ -249,34 +366,85 @@ class Scene:
             linkParentIndices=[0] * n, linkJointTypes=[pb.JOINT_FIXED] * n, linkJointAxis=[[0, 0, 1]] * n,
             physicsClientId=self.client)
         self._semantic[uid] = SEM_VEHICLE
+        if self._city is not None:
+            self._extras[uid] = _VehicleExtras(n - 1, link_rgb)
+            self._shadow_lut = None
         return uid
+
+    def _update_shade(self, uid: int) -> None:
+        """Darken a rich-look vehicle standing in a building's shadow (and light it again out of it)."""
+        extras = self._extras[uid]
+        assert self._city is not None
+        pos, _ = pb.getBasePositionAndOrientation(uid, physicsClientId=self.client)
+        shaded = self._city.in_building_shadow((pos[0], pos[1]))
+        if shaded == extras.shaded:
+            return
+        k = self._city.vehicle_shade if shaded else 1.0
+        for link, rgb in extras.link_rgb:
+            pb.changeVisualShape(uid, link, rgbaColor=[rgb[0] * k, rgb[1] * k, rgb[2] * k, 1.0],
+                                 physicsClientId=self.client)
+        extras.shaded = shaded
 
     def remove(self, uid: int) -> None:
         pb.removeBody(uid, physicsClientId=self.client)
         self._semantic.pop(uid, None)
+        if self._extras.pop(uid, None) is not None:
+            self._shadow_lut = None
 
     def move(self, uid: int, offset_world_m: np.ndarray) -> None:
-        """Translate a body by an offset (used to carry a vehicle to the studio and back)."""
+        """Translate a body by an offset (used to carry a vehicle to the studio and back); a rich-look
+        vehicle's shadow goes with it, and its shading follows the place it arrives at."""
         pos, orn = pb.getBasePositionAndOrientation(uid, physicsClientId=self.client)
         pb.resetBasePositionAndOrientation(uid, (np.asarray(pos) + offset_world_m).tolist(), orn,
                                            physicsClientId=self.client)
+        if uid in self._extras:
+            self._update_shade(uid)
 
     # ----- queries --------------------------------------------------------------------------
     def render(self, eye_world_m: np.ndarray, forward: np.ndarray, up: np.ndarray, *, fov_deg: float,
                width_px: int, height_px: int, near_m: float = 0.3, far_m: float = 400.0) -> RenderResult:
         view = pb.computeViewMatrix(eye_world_m.tolist(), (eye_world_m + forward).tolist(), up.tolist())
         proj = pb.computeProjectionMatrixFOV(fov_deg, width_px / height_px, near_m, far_m)
+        light = _FLAT_LIGHT if self._city is None else {
+            "lightDirection": self._city.sun_direction.tolist(), "lightAmbientCoeff": RICH_AMBIENT,
+            "lightDiffuseCoeff": RICH_DIFFUSE, "lightSpecularCoeff": 0.05}
+        flags = {} if self._city is None else {"flags": pb.ER_SEGMENTATION_MASK_OBJECT_AND_LINKINDEX}
         _, _, rgba, depth, seg = pb.getCameraImage(
-            width_px, height_px, view, proj, renderer=self._renderer_flag, shadow=0,
-            lightDirection=[0.35, 0.25, 1.0], lightAmbientCoeff=0.55, lightDiffuseCoeff=0.45,
-            lightSpecularCoeff=0.05, physicsClientId=self.client)
+            width_px, height_px, view, proj, renderer=self._renderer_flag, shadow=0, physicsClientId=self.client,
+            **light, **flags)
         rgb = np.asarray(rgba, dtype=np.uint8).reshape(height_px, width_px, 4)[:, :, :3].copy()
-        instance = np.asarray(seg, dtype=np.int64).reshape(height_px, width_px)
-        instance = np.where(instance < 0, -1, instance & ((1 << 24) - 1)).astype(np.int32)
-        rgb[instance < 0] = SKY_RGB
+        raw = np.asarray(seg, dtype=np.int64).reshape(height_px, width_px)
+        instance = np.where(raw < 0, -1, raw & ((1 << 24) - 1)).astype(np.int32)
+        if self._extras:  # a vehicle's shadow link is not the vehicle: its pixels show the shadow proxy
+            lut = self._shadow_links()
+            body = np.clip(instance, 0, len(lut) - 1)
+            shadow = (raw >= 0) & ((raw >> 24) - 1 == lut[body])
+            instance[shadow] = self._shadow_proxy
+        if self._city is None:
+            rgb[instance < 0] = SKY_RGB
+        else:
+            sky = instance < 0
+            rgb[sky] = self._sky_gradient(height_px, width_px)[sky]
         zbuf = np.asarray(depth, dtype=np.float32).reshape(height_px, width_px)
         depth_m = far_m * near_m / (far_m - (far_m - near_m) * zbuf)
         return RenderResult(rgb, depth_m.astype(np.float32), instance)
+
+    def _shadow_links(self) -> np.ndarray:
+        """body id -> link index of its drawn shadow (-9 for bodies without one)."""
+        if self._shadow_lut is None:
+            lut = np.full(max(self._extras, default=0) + 1, -9, np.int64)
+            for uid, extras in self._extras.items():
+                lut[uid] = extras.shadow_link
+            self._shadow_lut = lut
+        return self._shadow_lut
+
+    def _sky_gradient(self, height_px: int, width_px: int) -> np.ndarray:
+        key = (height_px, width_px)
+        if key not in self._sky:
+            t = np.linspace(0.0, 1.0, height_px)[:, None] ** 0.7  # 0 at the top row, 1 at the bottom
+            col = np.asarray(SKY_ZENITH_RGB) * (1 - t) + np.asarray(SKY_HORIZON_RGB) * t
+            self._sky[key] = np.repeat(np.round(col).astype(np.uint8)[:, None, :], width_px, axis=1)
+        return self._sky[key]
 
     def semantic(self, instance: np.ndarray) -> np.ndarray:
         """uint8 class map (SEMANTIC_NAMES) of an instance image."""

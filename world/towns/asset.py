@@ -26,6 +26,7 @@ import networkx as nx
 import numpy as np
 
 from agos.runtime.schemas import EpisodeSpec
+from agos.world.towns.dressing import DRESSING_VERSION, Dressing, Facade, Lamp, RoofUnit
 from agos.world.towns.lanes import Lane, LaneNetwork
 from agos.world.towns.layout import Deck, ParkedVehicle, TownLayout
 from agos.world.towns.placement import Building, ParkingSlot, Tree
@@ -33,7 +34,9 @@ from agos.world.towns.roadgraph import RoadGraphs, _build_decision_graph, build_
 from agos.world.towns.streets import Surface
 from agos.world.towns.uavgrid import UavGrid, UavNode, build_uav_grid
 
-ASSET_FORMAT = 1
+ASSET_FORMAT = 2
+"""2: the rich look's dressing (façades, rooftop units, lamps, street trees, sun, texture seed and
+the dressing version) is part of the document, so the hash covers the look."""
 
 
 class AssetMismatch(ValueError):
@@ -91,7 +94,34 @@ def town_document(layout: TownLayout, roads: RoadGraphs, grid: UavGrid) -> dict[
         "decision_edges": sorted(e.fine_nodes for e in roads.decision_edges.values()),
         "uav_nodes": sorted([n.node_id, n.i, n.j, *_mm(n.position_world_m)] for n in grid.nodes.values()),
         "uav_spacing_mm": round(grid.spacing_m * 1000), "uav_altitude_mm": round(grid.altitude_m * 1000),
+        "dressing": _dressing_document(layout),
     }
+
+
+def _dressing_document(layout: TownLayout) -> list | None:
+    d = layout.dressing
+    if d is None:
+        return None
+    if len(d.facades) != len(layout.buildings):
+        raise ValueError(f"town {layout.town_id}: {len(d.facades)} façades for {len(layout.buildings)} buildings")
+    return [d.version, d.texture_seed, round(d.sun_azimuth_rad * 1e6), round(d.sun_elevation_rad * 1e6),
+            [[f.style, f.ground] for f in d.facades],
+            [[u.building, *_mm(u.offset_m), *_mm(u.size_m)] for u in d.roof_units],
+            [[*_mm(lamp.position_world_m), round(lamp.arm_yaw_rad * 1e6)] for lamp in d.lamps],
+            [[*_mm(t.position_world_m), *_mm([t.height_m, t.crown_radius_m])] for t in d.street_trees]]
+
+
+def _dressing_from_document(doc: list | None) -> Dressing | None:
+    if doc is None:
+        return None
+    version, seed, azimuth, elevation, facades, units, lamps, trees = doc
+    if version != DRESSING_VERSION:  # what the scene derives from the dressing would not be what was hashed
+        raise AssetError(f"dressing version {version!r} is not {DRESSING_VERSION} (re-import or rebuild the town)")
+    return Dressing(
+        version, seed, azimuth / 1e6, elevation / 1e6, tuple(Facade(style, ground) for style, ground in facades),
+        tuple(RoofUnit(u[0], (u[1] / 1000, u[2] / 1000), (u[3] / 1000, u[4] / 1000, u[5] / 1000)) for u in units),
+        tuple(Lamp((lp[0] / 1000, lp[1] / 1000), lp[2] / 1e6) for lp in lamps),
+        tuple(Tree((t[0] / 1000, t[1] / 1000), t[2] / 1000, t[3] / 1000) for t in trees))
 
 
 def encode_document(doc: dict[str, Any]) -> bytes:
@@ -116,7 +146,8 @@ def town_from_document(data: bytes) -> Town:
         decks=[Deck(_from_mm(poly), lo / 1000, hi / 1000) for poly, lo, hi in doc["decks"]],
         slots=[ParkingSlot(s[0], (s[1] / 1000, s[2] / 1000), s[3] / 1e6, s[4], bool(s[5]), bool(s[6]))
                for s in doc["slots"]],
-        parked=[ParkedVehicle(*p) for p in doc["parked"]])
+        parked=[ParkedVehicle(*p) for p in doc["parked"]],
+        dressing=_dressing_from_document(doc["dressing"]))
     pos = _from_mm(doc["fine_nodes"])
     fine = nx.DiGraph()
     fine.add_nodes_from(range(len(pos)))

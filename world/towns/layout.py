@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agos.world.towns.catalog import BODY_TYPES, NEUTRAL_COLOURS
+from agos.world.towns.dressing import Dressing
 from agos.world.towns.lanes import LaneNetwork
 from agos.world.towns.placement import Building, ParkingSlot, Tree
 from agos.world.towns.streets import Surface
@@ -45,6 +46,8 @@ class TownLayout:
     decks: list[Deck] = field(default_factory=list)
     slots: list[ParkingSlot] = field(default_factory=list)
     parked: list[ParkedVehicle] = field(default_factory=list)
+    dressing: Dressing | None = None
+    """The rich look's frozen choices (façades, lamps, street trees, sun); None for a hand-made layout."""
 
     @property
     def occupied_slots(self) -> set[int]:

@@ -22,6 +22,7 @@ import cv2
 import networkx as nx
 import numpy as np
 
+from agos.world.towns.decorate import dress
 from agos.world.towns.layout import Deck, TownLayout, park_background
 from agos.world.towns.placement import (
     ParkingSlot,
@@ -227,6 +228,7 @@ def furnish(layout: TownLayout, rng: np.random.Generator, *, parks: int = 0, pla
     layout.slots = lane_slots + plaza
     # plazas are parking lots seen from the air; the UGV cannot reach them
     layout.parked = park_background(lane_slots, parked_fraction, rng) + park_background(plaza, 0.6, rng)
+    layout.dressing = dress(layout)  # its own random stream: the layout above does not depend on it
 
 
 def _mark(occupied: np.ndarray, raster: Raster, area: np.ndarray) -> None:

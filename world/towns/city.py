@@ -1,0 +1,168 @@
+"""The rich look's static city, assembled from a town layout: what the scene turns into bodies.
+
+:func:`build_city` gathers the street level (:mod:`~agos.world.towns.streetdressing`), the buildings
+and the skyline (:mod:`~agos.world.towns.facades`), trees and lamp posts
+(:mod:`~agos.world.towns.furniture`) and the cast shadows (:mod:`~agos.world.towns.shadows`) into
+one :class:`CityPart` per material and semantic class, each a single merged mesh, so the number of
+bodies stays small whatever the size of the town (render cost grows with it). Textures are
+written once to ``texture_root`` (:func:`~agos.world.towns.textures.texture_file`).
+
+Everything random comes from the layout's :class:`~agos.world.towns.dressing.Dressing` (stored in
+the frozen asset) or is derived from it: two towns with the same asset hash build the same city.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from agos.world.towns.decorate import dress
+from agos.world.towns.dressing import Dressing
+from agos.world.towns.facades import ground_extent, skyline, skyline_meshes, town_buildings
+from agos.world.towns.furniture import crown_centre, lamp_meshes, tree_meshes
+from agos.world.towns.layout import TownLayout
+from agos.world.towns.shadows import SHADOW_LIFT_M, ShadowSet, building_shadow, mesh_shadow, project, tree_shadows
+from agos.world.towns.streetdressing import Layer, Z, convex_pieces_mesh, street_level
+from agos.world.towns.texmesh import TexMesh, flat_polygon, merge
+from agos.world.towns.textures import FACADES, GROUND_FLOORS, TILE_M, texture_file
+from agos.world.towns.vehicles import VehicleMesh
+
+SHADE_RGB = (0.52, 0.55, 0.64)
+"""A surface in shadow: its texture times this (lit by the blue sky only)."""
+VEHICLE_SHADE = 0.62
+"""A vehicle standing in a building's shadow: its colours times this."""
+VEHICLE_SHADOW_Z_M = Z["asphalt"] + 0.011
+VEHICLE_SHADOW_RGB = (0.13, 0.135, 0.15)
+PLAIN_RGB: dict[str, tuple[float, float, float]] = {
+    "marking_white": (0.90, 0.90, 0.88), "marking_yellow": (0.90, 0.70, 0.12), "bark": (0.34, 0.25, 0.17),
+    "pole": (0.24, 0.25, 0.27), "lamp_glass": (0.96, 0.94, 0.82)}
+"""Materials drawn in one colour, without a texture."""
+TEXTURED: tuple[str, ...] = ("asphalt", "lot", "paving", "grass", "kerb", "roof_gravel", "roof_membrane", "metal",
+                             "leaves_a", "leaves_b", *FACADES, *GROUND_FLOORS)
+
+
+@dataclass
+class CityPart:
+    material: str
+    mesh: TexMesh
+    rgb: tuple[float, float, float]
+    """Multiplies the texture (or is the colour of a plain material)."""
+    semantic: str
+    specular: float = 0.03
+
+
+@dataclass
+class City:
+    parts: list[CityPart]
+    texture_of: dict[str, str]
+    """Material -> texture name (plain materials are absent)."""
+    texture_files: dict[str, Path]
+    dressing: Dressing
+    building_shadows: ShadowSet
+    triangles: int = 0
+    """Triangles of the static city as built (``parts`` may be emptied once the scene has them)."""
+    vehicle_shade: float = VEHICLE_SHADE
+    vehicle_shadow_rgb: tuple[float, float, float] = VEHICLE_SHADOW_RGB
+    """Plain dark asphalt (a texture would be copied into each vehicle)."""
+
+    @property
+    def sun_direction(self) -> np.ndarray:
+        return self.dressing.sun_direction
+
+    def in_building_shadow(self, xy: tuple[float, float], height_m: float = 1.0) -> bool:
+        """Whether the sun is hidden by a building from a point ``height_m`` above the ground."""
+        ground = project(np.array([[xy[0], xy[1], height_m]]), self.sun_direction)[0]
+        return self.building_shadows.contains((float(ground[0]), float(ground[1])))
+
+
+def build_city(layout: TownLayout, *, texture_root: Path) -> City:
+    dressing = layout.dressing if layout.dressing is not None else dress(layout)
+    sun = dressing.sun_direction
+    level = street_level(layout)
+    sky = skyline(layout, dressing)
+    extent = ground_extent(layout)
+    x0, y0, x1, y1 = extent
+    # the ground: one quad under everything (cutting it to the lots between roads saves pixel tests
+    # in UAV views but costs more in triangles, which every render pays, on screen or not)
+    ground = Layer("lot", Z["ground"], "ground", [np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])])
+    sky_streets = Layer("asphalt", Z["asphalt"], "road", list(sky.streets))
+    clip_pieces = {id(layer): layer.pieces for layer in [ground, *level.layers, sky_streets]}
+    layers = [ground, *level.layers, sky_streets]
+    parts: list[CityPart] = []
+    grouped: dict[tuple[str, str], list[TexMesh]] = {}
+
+    def add(material: str, semantic: str, meshes: list[TexMesh]) -> None:
+        grouped.setdefault((material, semantic), []).extend(meshes)
+
+    for layer in layers:
+        add(layer.material, layer.semantic, [layer.mesh()])
+    add("kerb", "sidewalk", [level.kerbs])
+    for material, meshes in town_buildings(layout, dressing).items():
+        add(material, "building", meshes)
+    for material, meshes in skyline_meshes(sky).items():
+        add(material, "skyline", meshes)
+    trees = list(layout.trees) + list(dressing.street_trees)
+    for material, meshes in tree_meshes(trees, TILE_M["leaves_a"], dressing.texture_seed).items():
+        add(material, "vegetation", meshes)
+    for material, meshes in lamp_meshes(list(dressing.lamps)).items():
+        add(material, "furniture", meshes)
+    # shadows: buildings (town and skyline) and trees, on every layer, in its texture darkened
+    building_polys = [building_shadow(b, sun) for b in layout.buildings]
+    street_trees = list(dressing.street_trees)
+    casters = ShadowSet(building_polys  # not the skyline's: 4,000 triangles for views of the town's edge
+                        + tree_shadows(street_trees, np.array([crown_centre(t) for t in street_trees]).reshape(-1, 3), sun))
+    park_trees = list(layout.trees)  # inside parks (3 m from their edge): their shadows fall on the grass
+    on_grass = ShadowSet(tree_shadows(park_trees, np.array([crown_centre(t) for t in park_trees]).reshape(-1, 3), sun))
+    shadow_parts: list[CityPart] = []
+    for layer in layers:
+        own = clip_pieces[id(layer)]
+        pieces = casters.on(own) + (on_grass.on(own) if layer.material == "grass" else [])
+        if pieces:
+            mesh = convex_pieces_mesh(pieces, layer.z_m + SHADOW_LIFT_M, TILE_M.get(layer.material, 1.0))
+            rgb = tuple(c * s for c, s in zip(PLAIN_RGB.get(layer.material, (1.0, 1.0, 1.0)), SHADE_RGB, strict=True))
+            shadow_parts.append(CityPart(layer.material, mesh, rgb, layer.semantic))  # type: ignore[arg-type]
+    for (material, semantic), meshes in sorted(grouped.items()):
+        mesh = merge(meshes)
+        if mesh.triangle_count:
+            specular = 0.25 if material.startswith("glass") else 0.03
+            parts.append(CityPart(material, mesh, PLAIN_RGB.get(material, (1.0, 1.0, 1.0)), semantic, specular))
+    parts = sorted(parts + shadow_parts, key=_draw_rank)
+    materials = {p.material for p in parts} | {"asphalt"}
+    texture_of = {m: m for m in sorted(materials) if m in TEXTURED}
+    files = {name: texture_file(name, dressing.texture_seed, texture_root) for name in sorted(set(texture_of.values()))}
+    return City(parts, texture_of, files, dressing, ShadowSet(building_polys),
+                triangles=sum(p.mesh.triangle_count for p in parts))
+
+
+_LAYER_RANK = {"marking_white": 2, "marking_yellow": 2, "paving": 3, "kerb": 3, "asphalt": 4, "grass": 5, "lot": 6}
+
+
+def _draw_rank(part: CityPart) -> tuple[int, float, int]:
+    """Draw order, front to back as the cameras see them (TinyRenderer draws bodies in creation
+    order, and a pixel that fails the depth test costs a third of one that is shaded): buildings,
+    trees and lamps first, then the flat layers from the top down, each layer's shadows (a few
+    millimetres above it) before the layer."""
+    if part.semantic == "building":
+        return (0, 0.0, 0)
+    if part.semantic in ("vegetation", "furniture") and part.material != "grass":
+        return (1, 0.0, 0)
+    if part.semantic == "skyline":
+        return (1, 0.0, 1)
+    rank = _LAYER_RANK.get(part.material, 7)
+    is_shadow = (part.rgb[2] < 0.99 and part.material not in PLAIN_RGB) or (part.material in PLAIN_RGB and \
+        part.rgb != PLAIN_RGB[part.material])
+    top = float(part.mesh.vertices[:, 2].max()) if len(part.mesh.vertices) else 0.0
+    return (rank, -top, 0 if is_shadow else 1)
+
+
+def vehicle_shadow_mesh(city: City, mesh: VehicleMesh, yaw_rad: float) -> TexMesh:
+    """A vehicle's shadow on the road under it, in the vehicle's frame (the sun is fixed in the
+    world, so the outline depends on the vehicle's yaw, not on where it stands)."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    verts = np.concatenate([t.reshape(-1, 3) for t in mesh.triangles.values()])
+    world = np.column_stack([verts[:, 0] * c - verts[:, 1] * s, verts[:, 0] * s + verts[:, 1] * c, verts[:, 2]])
+    outline = mesh_shadow(world, city.sun_direction)
+    local = np.column_stack([outline[:, 0] * c + outline[:, 1] * s, -outline[:, 0] * s + outline[:, 1] * c])
+    return flat_polygon(local, VEHICLE_SHADOW_Z_M, TILE_M["asphalt"])
