@@ -4,8 +4,9 @@ repository root):
     .venv/bin/python docs/vehicle_figures.py
 
 Every vehicle is rendered alone, far from the town, from the UGV camera height (side, 3/4 front,
-3/4 rear), from above, and the flat look's box vehicle beside it where one exists. The last row
-shows the checkable attributes (contrasting roof, roof rack, stripe) on a sedan.
+3/4 rear, straight from behind), from above, and the flat look's box vehicle beside it where one
+exists. The last rows show the checkable attributes one at a time (a two-tone roof, a roof rack
+with its cargo box, a stripe), the roof white, the stripe in the colour that contrasts with the paint.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import numpy as np
 from agos.world.sim.scene import STUDIO_OFFSET_M, Scene
 from agos.world.towns.asset import open_town
 from agos.world.towns.catalog import BODY_TYPES
-from agos.world.towns.vehicles import RICH_BODY_TYPES, VehicleAttributes, vehicle_mesh
+from agos.world.towns.vehicles import RICH_BODY_TYPES, ROOF_COLOUR, VehicleAttributes, contrast_colour, vehicle_mesh
 
 OUT = Path("docs/images")
 TILE_PX = 256
@@ -55,15 +56,17 @@ def shot(scene: Scene, uid: int, length_m: float, azimuth_deg: float, *, top: bo
 
 def sheet(rich: Scene, flat: Scene) -> np.ndarray:
     rows = []
-    entries = [(name, VehicleAttributes(), name) for name in RICH_BODY_TYPES]
-    entries.append(("sedan", VehicleAttributes(roof="white", rack=True, stripe="white"), "sedan + roof, rack, stripe"))
-    for name, attrs, title in entries:
-        paint = PAINTS[name] if attrs == VehicleAttributes() else "blue"
+    entries = [(name, VehicleAttributes(), name, PAINTS[name]) for name in RICH_BODY_TYPES]
+    entries += [("sedan", VehicleAttributes(roof=ROOF_COLOUR), "sedan + two-tone roof", "blue"),
+                ("suv", VehicleAttributes(rack=True), "suv + roof rack", "green"),
+                ("hatchback", VehicleAttributes(stripe=contrast_colour("yellow")), "hatchback + stripe", "yellow")]
+    for name, attrs, title, paint in entries:
         length = vehicle_mesh(name, attrs).length_m
         uid = rich.add_vehicle(name, paint, tuple(STUDIO_OFFSET_M), 0.0, attributes=attrs)
         tiles = [label(shot(rich, uid, length, 90.0), f"{title}: left side"),
                  label(shot(rich, uid, length, 40.0), "3/4 front"),
                  label(shot(rich, uid, length, 215.0), "3/4 rear"),
+                 label(shot(rich, uid, length, 180.0), "rear"),
                  label(shot(rich, uid, length, 0.0, top=True), "top")]
         rich.remove(uid)
         if name in BODY_TYPES and attrs == VehicleAttributes():

@@ -111,9 +111,17 @@ def _as_map(value):
     """What a payload should hold, built independently of the codec: a struct as the map of its
     fields (its ``type`` tag too), tuples as lists."""
     if isinstance(value, msgspec.Struct):
-        tag = type(value).__struct_config__.tag
-        fields = {name: _as_map(getattr(value, name)) for name in value.__struct_fields__}
-        return {"type": tag, **fields} if tag is not None else fields
+        config = type(value).__struct_config__
+        names = value.__struct_fields__
+        defaults = dict(zip(names[len(names) - len(value.__struct_defaults__):], value.__struct_defaults__, strict=True))
+
+        def default(name: str) -> object:
+            d = defaults.get(name, msgspec.NODEFAULT)
+            return d.factory() if isinstance(d, msgspec._core.Factory) else d
+
+        fields = {name: _as_map(getattr(value, name)) for name in names  # omit_defaults: defaults are left out
+                  if not (config.omit_defaults and getattr(value, name) == default(name))}
+        return {"type": config.tag, **fields} if config.tag is not None else fields
     if isinstance(value, (list, tuple)):
         return [_as_map(v) for v in value]
     if isinstance(value, dict):
@@ -135,7 +143,8 @@ def test_payload_is_the_plain_map_of_the_fields(make) -> None:
 def test_payloads_keep_their_size_and_content() -> None:
     """The same bytes as the pydantic models wrote before the structs (msgpack-python's packing of
     ``model_dump``), but for the order of ``v`` and ``type``: lengths taken from that version."""
-    for make, size in ((_action, 202 + 9), (_observation, 1767 + 9)):  # + the attempt field (key and value)
+    # + the attempt field (key and value); the observation also + decision_timeout_s (20) and expert (8), keys and nil
+    for make, size in ((_action, 202 + 9), (_observation, 1767 + 9 + 20 + 8)):
         plain = msgpack.unpackb(encode(make()), raw=False)
         old_order = {"v": plain.pop("v"), "type": plain.pop("type"), **plain}
         assert len(encode(make())) == len(msgpack.packb(old_order, use_bin_type=True)) == size

@@ -71,7 +71,8 @@ exit, or back).
 - GO_TO_CANDIDATE: drive along the road network to a region the UAV reported (give its candidate_id).
 - STOP_OBSERVE: stop and take the six views.
 - CONFIRM: declare that the target is found. Only after STOP_OBSERVE, and only when one of the six views \
-clearly shows the target (same colour, same body type) nearby, not hidden. A wrong CONFIRM ends the task as \
+clearly shows the target (same colour, same body type, and a roof in another colour, a roof rack or a \
+stripe only if the reference has one) nearby, not hidden. A wrong CONFIRM ends the task as \
 a failure.
 - REJECT: declare that the candidate region does not contain the target; the UAV then searches again.
 - WAIT: hold still until something changes (for example a new candidate).
@@ -166,7 +167,8 @@ def _ugv_stage_text(stage: str, active: dict[str, Any] | None, rejected: list[li
         who = f" for candidate {active['id']}" if active else ""
         return (f"STAGE: six-view check{who}. Look at all six panels (front-left, front, front-right, back-left, "
                 "back, back-right). CONFIRM only if a car in them clearly is the target: same paint colour, same "
-                "body type, close to you and not hidden. Otherwise REJECT" + (f" with candidate_id {active['id']}" if active
+                "body type, a contrasting roof, roof rack or stripe exactly where the reference has one, close "
+                "to you and not hidden. Otherwise REJECT" + (f" with candidate_id {active['id']}" if active
                                                                                else "") + " and tell the UAV.")
     if stage == "arrival":
         assert active is not None, "ugv_stage gives this stage only with an active candidate"

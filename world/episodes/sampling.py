@@ -1,10 +1,21 @@
 """Episode sampling per difficulty (paper Table 1), solvability checks, and episode files.
 
 easy: 150 m x 150 m region, no distractors; mid: 300 m x 300 m, none; hard: 300 m x 300 m with
-2-3 look-alikes (the target's body type in a near colour, or its colour on another type).
+2-3 look-alikes, each differing from the target in one cue (world/episodes/lookalikes.py).
 Targets and look-alikes are parked on drivable roads (free parking slots inside the region, not
 under decks, not on plazas). Every episode is checked solvable by rendering
 (:mod:`agos.world.sim.evidence`); a region that fails is resampled.
+
+The vehicles follow the look of the scene that samples (and checks) the episode:
+
+* ``flat`` (the boxes): today's draws, unchanged for a seed: six body types, look-alikes of the
+  target's type in a near colour, or of its colour on another type, alternately;
+* ``rich`` (the meshes): seven body types (a bus only in a slot whose neighbours on the lane are
+  free), half of the cars among the targets with one attribute (two-tone roof, roof rack, stripe), and hard
+  episodes whose 2-3 look-alikes take distinct kinds (another body type, a near paint, one
+  attribute more or less) in a random order, each only from the pairs the cue bench found
+  separable from the ground. Their ids say ``rich`` (``grid-s7-hard-000-rich-v1``); the flat look
+  refuses them (agos.world.sim.episode_vehicles).
 """
 
 from __future__ import annotations
@@ -18,9 +29,12 @@ import numpy as np
 
 from agos.runtime.codec import field_path, to_json
 from agos.runtime.schemas import Difficulty, EpisodeSpec, TownRef, VehicleSpec
+from agos.world.episodes.lookalikes import ATTRIBUTES, KINDS, separable
 from agos.world.towns.asset import Town
 from agos.world.towns.catalog import BODY_TYPES, NEAR_COLOURS, VIVID_COLOURS
+from agos.world.towns.layout import TownLayout
 from agos.world.towns.placement import ParkingSlot
+from agos.world.towns.vehicles import ATTRIBUTE_BODY_TYPES, RICH_BODY_TYPES, ROOF_COLOUR, contrast_colour
 
 REGION_SIZE_M: dict[str, float] = {"easy": 150.0, "mid": 300.0, "hard": 300.0}
 DIFFICULTIES: tuple[Difficulty, ...] = ("easy", "mid", "hard")
@@ -29,6 +43,10 @@ MIN_START_DISTANCE_M = 40.0
 MIN_LOOKALIKE_SPACING_M = 30.0
 DECISION_BUDGET = 80
 MAX_ATTEMPTS = 40
+TARGET_ATTRIBUTE_P = 0.5
+"""Rich look: the share of targets that carry one attribute."""
+LONG_VEHICLE_CLEAR_M = 9.5
+"""Rich look: a bus (11 m) parks only where no parked vehicle's slot on its lane is nearer than this."""
 
 
 class EpisodeFileError(ValueError):
@@ -58,13 +76,14 @@ def sample_episode(town: Town, scene, difficulty: Difficulty, index: int, *, see
     stream). ``split`` (train, val, test) becomes part of the id, so ids are unique across splits."""
     for attempt in range(MAX_ATTEMPTS):
         ep_seed = int(np.random.SeedSequence([seed, stream, index, attempt]).generate_state(1)[0])
-        spec = _candidate(town, difficulty, index, ep_seed, split)
+        spec = _candidate(town, difficulty, index, ep_seed, split, scene.look)
         if spec is not None and _solvable(town, scene, spec):
             return spec
     raise Unsolvable(f"town {town.town_id}: no solvable {difficulty} episode in {MAX_ATTEMPTS} attempts")
 
 
-def _candidate(town: Town, difficulty: Difficulty, index: int, seed: int, split: str | None) -> EpisodeSpec | None:
+def _candidate(town: Town, difficulty: Difficulty, index: int, seed: int, split: str | None,
+               look: str) -> EpisodeSpec | None:
     rng = np.random.default_rng(seed)
     layout, roads = town.layout, town.roads
     size = REGION_SIZE_M[difficulty]
@@ -82,32 +101,21 @@ def _candidate(town: Town, difficulty: Difficulty, index: int, seed: int, split:
         return None
     order = rng.permutation(len(free))
     target_slot = free[int(order[0])]
-    model = str(rng.choice(sorted(BODY_TYPES)))
-    colour = str(rng.choice(VIVID_COLOURS))
-    target = _vehicle(model, colour, target_slot)
-    distractors: list[VehicleSpec] = []
-    if difficulty == "hard":
-        used = [target_slot.position_world_m]
-        for k in range(int(rng.integers(2, 4))):
-            if k % 2 == 0:
-                look = (model, str(rng.choice(NEAR_COLOURS[colour])))
-            else:
-                look = (str(rng.choice([m for m in sorted(BODY_TYPES) if m != model])), colour)
-            slot = next((free[int(i)] for i in order[1:]
-                         if all(math.dist(free[int(i)].position_world_m, u) >= MIN_LOOKALIKE_SPACING_M for u in used)),
-                        None)
-            if slot is None:
-                return None
-            used.append(slot.position_world_m)
-            distractors.append(_vehicle(*look, slot))
+    ordered = [free[int(i)] for i in order]
+    vehicles = _rich_vehicles(rng, difficulty, ordered, layout) if look == "rich" else \
+        _flat_vehicles(rng, difficulty, ordered)
+    if vehicles is None:
+        return None
+    target, distractors = vehicles
     ids, xy = roads.anchor_array()
     starts = [int(n) for n, p in zip(ids, xy, strict=True)
               if _inside((p[0], p[1]), region) and roads.anchors[int(n)] == "cruise" and not roads.covered[int(n)]
               and math.dist(p, target_slot.position_world_m) >= MIN_START_DISTANCE_M]
     if not starts:
         return None
+    rich = "rich-" if look == "rich" else ""
     return EpisodeSpec(
-        episode_id=f"{layout.town_id}-{split + '-' if split else ''}{difficulty}-{index:03d}-v{EPISODE_VERSION}",
+        episode_id=f"{layout.town_id}-{split + '-' if split else ''}{difficulty}-{index:03d}-{rich}v{EPISODE_VERSION}",
         town=town_ref(town),
         asset_sha256=town.sha256, difficulty=difficulty, region_world_m=region, target=target,
         distractors=distractors, uav_start_waypoint=str(rng.choice(active)),
@@ -115,11 +123,110 @@ def _candidate(town: Town, difficulty: Difficulty, index: int, seed: int, split:
         decision_budget=DECISION_BUDGET, seed=seed)
 
 
+def _flat_vehicles(rng: np.random.Generator, difficulty: Difficulty,
+                   slots: list[ParkingSlot]) -> tuple[VehicleSpec, list[VehicleSpec]] | None:
+    """The flat look's target and look-alikes: the draws every flat episode file was made with."""
+    model = str(rng.choice(sorted(BODY_TYPES)))
+    colour = str(rng.choice(VIVID_COLOURS))
+    target = _vehicle(model, colour, slots[0])
+    distractors: list[VehicleSpec] = []
+    if difficulty == "hard":
+        used = [slots[0].position_world_m]
+        for k in range(int(rng.integers(2, 4))):
+            if k % 2 == 0:
+                look = (model, str(rng.choice(NEAR_COLOURS[colour])))
+            else:
+                look = (str(rng.choice([m for m in sorted(BODY_TYPES) if m != model])), colour)
+            slot = next((s for s in slots[1:]
+                         if all(math.dist(s.position_world_m, u) >= MIN_LOOKALIKE_SPACING_M for u in used)), None)
+            if slot is None:
+                return None
+            used.append(slot.position_world_m)
+            distractors.append(_vehicle(*look, slot))
+    return target, distractors
+
+
+def _rich_vehicles(rng: np.random.Generator, difficulty: Difficulty, slots: list[ParkingSlot],
+                   layout: TownLayout) -> tuple[VehicleSpec, list[VehicleSpec]] | None:
+    """The rich look's target (sometimes with an attribute) and, when hard, look-alikes of distinct
+    kinds, each differing from the target in one cue a viewer can check from the ground."""
+    long_ok = _long_slots(layout)
+    types = [m for m in RICH_BODY_TYPES if m != "bus" or slots[0].slot_id in long_ok]
+    model, colour = str(rng.choice(types)), str(rng.choice(VIVID_COLOURS))
+    attrs: dict = {}
+    if model in ATTRIBUTE_BODY_TYPES and rng.random() < TARGET_ATTRIBUTE_P:
+        attrs = _with_attribute({}, str(rng.choice(ATTRIBUTES)), colour)
+    target = _vehicle(model, colour, slots[0], attrs)
+    distractors: list[VehicleSpec] = []
+    if difficulty != "hard":
+        return target, distractors
+    used = [slots[0].position_world_m]
+
+    def slot_for(kind_model: str) -> ParkingSlot | None:
+        return next((s for s in slots[1:] if (kind_model != "bus" or s.slot_id in long_ok)
+                     and all(math.dist(s.position_world_m, u) >= MIN_LOOKALIKE_SPACING_M for u in used)), None)
+
+    kinds = [str(k) for k in rng.permutation(list(KINDS))]
+    options = {kind: [o for o in _lookalikes(kind, model, colour, attrs) if slot_for(o[0]) is not None]
+               for kind in kinds}
+    kinds = [k for k in kinds if options[k]]
+    if not kinds:
+        return None
+    for k in range(int(rng.integers(2, 4))):
+        kind = kinds[k % len(kinds)]
+        fresh = [o for o in options[kind] if slot_for(o[0]) is not None]
+        if not fresh:
+            return None
+        look_model, look_colour, look_attrs = fresh[int(rng.integers(len(fresh)))]
+        slot = slot_for(look_model)
+        assert slot is not None, "fresh options have a slot"
+        used.append(slot.position_world_m)
+        distractors.append(_vehicle(look_model, look_colour, slot, look_attrs))
+    return target, distractors
+
+
+def _lookalikes(kind: str, model: str, colour: str, attrs: dict) -> list[tuple[str, str, dict]]:
+    """(model, colour, attributes) of every look-alike of one kind the table allows, in a fixed order."""
+    if kind == "type":  # a target with an attribute has look-alikes only among the types that carry one
+        types = ATTRIBUTE_BODY_TYPES if attrs else RICH_BODY_TYPES
+        return [(m, colour, attrs) for m in types if m != model and separable("type", model, m, look="rich")]
+    if kind == "paint":
+        return [(model, c, attrs) for c in NEAR_COLOURS[colour] if separable("paint", colour, c, look="rich")]
+    out: list[tuple[str, str, dict]] = []
+    if model not in ATTRIBUTE_BODY_TYPES:
+        return out
+    for name in ATTRIBUTES:  # one attribute taken away, or one added
+        if not separable("attribute", "plain", name, look="rich"):
+            continue
+        if name in attrs:
+            out.append((model, colour, {k: v for k, v in attrs.items() if k != name}))
+        else:
+            out.append((model, colour, _with_attribute(attrs, name, colour)))
+    return out
+
+
+def _with_attribute(attrs: dict, name: str, paint: str) -> dict:
+    """VehicleSpec attribute fields with ``name`` added (a white roof, a stripe in the paint's contrast colour)."""
+    value = {"roof": ROOF_COLOUR, "rack": True, "stripe": contrast_colour(paint)}[name]
+    return {**attrs, name: value}
+
+
+def _long_slots(layout: TownLayout) -> set[int]:
+    """Slots a bus fits in: no occupied slot on the same lane within LONG_VEHICLE_CLEAR_M."""
+    occupied = layout.occupied_slots
+    taken: dict[str, list[tuple[float, float]]] = {}
+    for slot in layout.slots:
+        if slot.slot_id in occupied:
+            taken.setdefault(slot.lane_id, []).append(slot.position_world_m)
+    return {s.slot_id for s in layout.slots
+            if all(math.dist(s.position_world_m, p) >= LONG_VEHICLE_CLEAR_M for p in taken.get(s.lane_id, []))}
+
+
 def _solvable(town: Town, scene, spec: EpisodeSpec) -> bool:
     from agos.world.episodes.solvability import check, reachable
+    from agos.world.sim.episode_vehicles import add_episode_vehicles
 
-    uid = scene.add_vehicle(spec.target.model, spec.target.colour, spec.target.position_world_m, spec.target.yaw_rad)
-    others = [scene.add_vehicle(d.model, d.colour, d.position_world_m, d.yaw_rad) for d in spec.distractors]
+    uid, *others = add_episode_vehicles(scene, spec)
     try:
         start = town.roads.parse_anchor_id(spec.ugv_start_waypoint)
         result = check(scene, town, uid, spec.target.position_world_m, spec.target.yaw_rad, spec.active_uav_waypoints,
@@ -130,9 +237,9 @@ def _solvable(town: Town, scene, spec: EpisodeSpec) -> bool:
             scene.remove(body)
 
 
-def _vehicle(model: str, colour: str, slot: ParkingSlot) -> VehicleSpec:
+def _vehicle(model: str, colour: str, slot: ParkingSlot, attrs: dict | None = None) -> VehicleSpec:
     x, y = slot.position_world_m
-    return VehicleSpec(model=model, colour=colour, position_world_m=(x, y, 0.0), yaw_rad=slot.yaw_rad)
+    return VehicleSpec(model=model, colour=colour, position_world_m=(x, y, 0.0), yaw_rad=slot.yaw_rad, **(attrs or {}))
 
 
 def _shrink(region: tuple[float, float, float, float], m: float) -> tuple[float, float, float, float]:

@@ -8,9 +8,11 @@ as thin faces a centimetre proud of the body. Every face has its own vertices an
 normal (PyBullet has no per-face colour), and triangles are grouped by *material*: the scene
 gives each material its colour, so one geometry serves every paint.
 
-Attributes a careful viewer can check (:class:`VehicleAttributes`): a roof in a contrasting
-colour, a roof rack, a stripe along the sides and over the top. The same inputs give the same
-vertices, byte for byte; :func:`vehicle_mesh` is cached.
+Attributes a careful viewer can check (:class:`VehicleAttributes`), each drawn so that it shows
+from the ground as well as from above (docs/WORLD.md, "Cues a viewer can check"): a two-tone roof
+(the greenhouse, pillars and roof in a contrasting colour), a roof rack carrying a cargo box, a
+stripe over the whole length (bumper, hood, roof, trunk, rear) and along both sides. The same
+inputs give the same vertices, byte for byte; :func:`vehicle_mesh` is cached.
 
 Collisions are not meshes: :attr:`VehicleMesh.collision_boxes` are a few boxes around the parts.
 """
@@ -23,7 +25,10 @@ from functools import lru_cache
 
 import numpy as np
 
-MATERIALS: tuple[str, ...] = ("paint", "roof", "stripe", "glass", "dark", "rim", "rack", "head", "tail", "plate")
+from agos.world.towns.catalog import colour_rgb
+
+MATERIALS: tuple[str, ...] = ("paint", "roof", "stripe", "glass", "dark", "rim", "rack", "cargo", "head", "tail",
+                              "plate")
 """Material groups of a vehicle mesh; ``paint``, ``roof`` and ``stripe`` take colours from the
 vehicle's paint and attributes, the others are fixed (:data:`FIXED_RGB`)."""
 FIXED_RGB: dict[str, tuple[float, float, float]] = {
@@ -31,13 +36,20 @@ FIXED_RGB: dict[str, tuple[float, float, float]] = {
     "dark": (0.05, 0.05, 0.05),
     "rim": (0.55, 0.56, 0.58),
     "rack": (0.16, 0.16, 0.17),
+    "cargo": (0.50, 0.51, 0.53),
     "head": (0.97, 0.95, 0.82),
     "tail": (0.78, 0.04, 0.04),
     "plate": (0.95, 0.95, 0.93),
 }
 RICH_BODY_TYPES: tuple[str, ...] = ("sedan", "hatchback", "suv", "pickup", "van", "box_truck", "bus")
+ATTRIBUTE_BODY_TYPES: tuple[str, ...] = ("sedan", "hatchback", "suv", "pickup")
+"""The cars, the body types that carry attributes: on a van, a box truck or a bus a roof box or a
+stripe is out of sight from a ground camera below their roof (bench/bench_cues.py)."""
+ROOF_COLOUR = "white"
+"""The two-tone roof's colour (a black one would pass for dark glass from above)."""
 DECAL_M = 0.012
-"""How far glass, lights, plates and stripes stand proud of the face they are drawn on."""
+"""How far glass, stripes and the side windows stand proud of the face they are drawn on; lights,
+plates, the grille and the bus's end glass stand twice as far (over a stripe)."""
 
 
 @dataclass(frozen=True)
@@ -45,11 +57,13 @@ class VehicleAttributes:
     """Checkable details; the default is a plain vehicle in one paint."""
 
     roof: str | None = None
-    """Colour name of a contrasting roof, or None (roof in the body's paint)."""
+    """Colour name of a two-tone roof: the greenhouse (pillars, window frames, roof) in that colour
+    (a bus: its roof and a band above the windows); None: all in the body's paint."""
     rack: bool = False
-    """A roof rack: two rails along the roof and two cross bars."""
+    """A roof rack carrying a closed cargo box: two dark rails, two cross bars and a grey box on them."""
     stripe: str | None = None
-    """Colour name of a stripe along both sides and over hood, roof and trunk, or None."""
+    """Colour name of a stripe over the whole length (front, hood, roof, trunk, rear) and along
+    both sides, or None."""
 
 
 @dataclass(frozen=True)
@@ -83,6 +97,13 @@ class _Spec:
     """Dark doors on the right (kerb) side, floor to window top (bus)."""
     roof_unit: tuple[float, float, float] | None = None
     """(x centre, length, height) of a box on the roof (bus air conditioning)."""
+    tail_lights: str = "wide"
+    """``wide``: low horizontal lamps at the rear corners; ``tall``: upright lamps up the rear corners
+    (the hatchback's end-on cue)."""
+    grille: str = "dark"
+    """Material of the grille: ``dark``, or ``rim`` for a tall bright grille (the pickup's front cue)."""
+    spare_wheel: tuple[float, float] | None = None
+    """(z centre, radius) of a spare wheel on the rear door (the SUV's end-on cue)."""
 
 
 @dataclass(frozen=True)
@@ -115,27 +136,27 @@ def _specs() -> dict[str, _Spec]:
         "sedan": _Spec(4.6, 1.8, (
             _Prism(((2.30, 0.32), (2.30, 0.62), (2.18, 0.75), (0.85, 0.92), (-1.45, 0.96), (-2.22, 0.91),
                     (-2.30, 0.78), (-2.30, 0.32), (-2.05, 0.22), (2.05, 0.22)), 0.90, 0.90, "lower"),
-            _Prism(((0.98, 0.90), (0.12, 1.41), (-0.98, 1.42), (-1.68, 0.94)), 0.84, 0.67, "cabin",
+            _Prism(((0.98, 0.90), (0.12, 1.37), (-0.98, 1.38), (-1.68, 0.94)), 0.84, 0.67, "cabin",
                    glass_edges=(0, 2), windows_x=((-0.32, 1.2), (-2.0, -0.44))),
         ), wheels_x=(1.38, -1.37), wheel_radius_m=0.32),
-        "hatchback": _Spec(3.9, 1.75, (
+        "hatchback": _Spec(3.9, 1.72, (
             _Prism(((1.95, 0.32), (1.95, 0.62), (1.84, 0.75), (1.00, 0.90), (-1.85, 0.97), (-1.95, 0.90),
-                    (-1.95, 0.32), (-1.75, 0.22), (1.75, 0.22)), 0.875, 0.875, "lower"),
-            _Prism(((1.08, 0.88), (0.22, 1.47), (-1.58, 1.49), (-1.90, 0.93)), 0.82, 0.66, "cabin",
+                    (-1.95, 0.32), (-1.75, 0.22), (1.75, 0.22)), 0.86, 0.86, "lower"),
+            _Prism(((1.08, 0.88), (0.26, 1.53), (-1.72, 1.55), (-1.91, 0.93)), 0.81, 0.69, "cabin",
                    glass_edges=(0, 2), windows_x=((-0.52, 1.2), (-1.38, -0.64))),
-        ), wheels_x=(1.25, -1.25), wheel_radius_m=0.30),
+        ), wheels_x=(1.25, -1.25), wheel_radius_m=0.30, tail_lights="tall"),
         "suv": _Spec(4.9, 2.0, (
             _Prism(((2.45, 0.44), (2.45, 0.86), (2.30, 0.99), (1.20, 1.08), (-2.40, 1.12), (-2.45, 1.05),
                     (-2.45, 0.44), (-2.25, 0.32), (2.25, 0.32)), 1.0, 1.0, "lower"),
             _Prism(((1.26, 1.06), (0.50, 1.80), (-2.22, 1.82), (-2.40, 1.10)), 0.95, 0.83, "cabin",
                    glass_edges=(0, 2), windows_x=((-0.32, 1.3), (-1.48, -0.44), (-2.6, -1.60))),
-        ), wheels_x=(1.50, -1.45), wheel_radius_m=0.38, wheel_width_m=0.26),
+        ), wheels_x=(1.50, -1.45), wheel_radius_m=0.38, wheel_width_m=0.26, spare_wheel=(0.84, 0.30)),
         "pickup": _Spec(5.3, 2.0, (
             _Prism(((2.65, 0.46), (2.65, 0.90), (2.50, 1.02), (1.05, 1.11), (-2.65, 1.12), (-2.65, 0.46),
                     (-2.45, 0.38), (2.45, 0.38)), 1.0, 1.0, "lower"),
             _Prism(((1.10, 1.09), (0.42, 1.84), (-0.86, 1.86), (-0.98, 1.10)), 0.95, 0.84, "cabin",
                    glass_edges=(0, 2), windows_x=((-0.20, 1.2), (-1.2, -0.32))),
-        ), wheels_x=(1.68, -1.75), wheel_radius_m=0.39, wheel_width_m=0.26),
+        ), wheels_x=(1.68, -1.75), wheel_radius_m=0.39, wheel_width_m=0.26, grille="rim"),
         "van": _Spec(5.2, 2.0, (
             _Prism(((2.60, 0.38), (2.60, 0.76), (2.45, 0.93), (1.85, 1.05), (-2.60, 1.05), (-2.60, 0.38),
                     (-2.45, 0.30), (2.45, 0.30)), 1.0, 1.0, "lower"),
@@ -266,8 +287,9 @@ class _Side:
 def _prism(b: _Builder, prism: _Prism, *, top_material: str, attrs: VehicleAttributes, stripe_sides: bool) -> None:
     prof = _ccw(np.asarray(prism.profile_xz, float))
     sides = (_Side(prism, 1.0), _Side(prism, -1.0))
+    body = "roof" if attrs.roof is not None and prism.role == "cabin" else "paint"
     for side in sides:
-        b.add("paint", side.lift(prof), side.outward())
+        b.add(body, side.lift(prof), side.outward())
     n = len(prof)
     for k in range(n):
         p, q = prof[k], prof[(k + 1) % n]
@@ -276,13 +298,12 @@ def _prism(b: _Builder, prism: _Prism, *, top_material: str, attrs: VehicleAttri
         out = np.array([normal_xz[0], 0.0, normal_xz[1]])
         corners = np.array([[p[0], sides[0].y(p[1]), p[1]], [q[0], sides[0].y(q[1]), q[1]],
                             [q[0], sides[1].y(q[1]), q[1]], [p[0], sides[1].y(p[1]), p[1]]])
-        is_top = normal_xz[1] > 0.6
-        b.add(top_material if normal_xz[1] > 0.9 else "paint", corners, out)
+        b.add(top_material if normal_xz[1] > 0.9 else body, corners, out)
         original = tuple(map(tuple, prof[[k, (k + 1) % n]]))
         if _edge_index(prism, original) in prism.glass_edges:
             _pane(b, corners, out, margin_m=0.07)
-        elif is_top and attrs.stripe is not None:
-            _band(b, "stripe", corners, out, half_m=0.13)
+        elif attrs.stripe is not None and normal_xz[1] > -0.6:  # every face but the underside
+            _band(b, "stripe", corners, out, half_m=0.20)
     for side in sides:
         if prism.windows_x:
             outline = _inset(prof, 0.07)
@@ -294,7 +315,7 @@ def _prism(b: _Builder, prism: _Prism, *, top_material: str, attrs: VehicleAttri
                     b.add("glass", side.lift(pane, DECAL_M), side.outward())
         if stripe_sides and attrs.stripe is not None:
             z_hi = max(z for _, z in prism.profile_xz)
-            band = _clip(_clip(_inset(prof, 0.06), 1, z_hi - 0.30, True), 1, z_hi - 0.20, False)
+            band = _clip(_clip(_inset(prof, 0.04), 1, z_hi - 0.28, True), 1, z_hi - 0.06, False)
             if len(band) >= 3:
                 b.add("stripe", side.lift(band, DECAL_M), side.outward())
 
@@ -319,7 +340,7 @@ def _pane(b: _Builder, quad: np.ndarray, out: np.ndarray, *, margin_m: float) ->
 
 
 def _band(b: _Builder, material: str, quad: np.ndarray, out: np.ndarray, *, half_m: float) -> None:
-    """A stripe of ``half_m`` either side of the centre line of a top face."""
+    """A stripe of ``half_m`` either side of the centre line of a face across the width."""
     lp, lq, rq, rp = quad
     mp, mq = (lp + rp) / 2, (lq + rq) / 2
     y = np.array([0.0, half_m, 0.0])
@@ -327,8 +348,8 @@ def _band(b: _Builder, material: str, quad: np.ndarray, out: np.ndarray, *, half
 
 
 def _rect_x(b: _Builder, material: str, x: float, y0: float, y1: float, z0: float, z1: float, facing: float) -> None:
-    """A rectangle on a face looking along +x (facing 1) or -x (facing -1)."""
-    x = x + facing * DECAL_M
+    """A rectangle on a face looking along +x (facing 1) or -x (facing -1), over any stripe."""
+    x = x + facing * 2 * DECAL_M
     b.add(material, np.array([[x, y0, z0], [x, y1, z0], [x, y1, z1], [x, y0, z1]]), np.array([facing, 0, 0]))
 
 
@@ -348,6 +369,20 @@ def _wheel(b: _Builder, x: float, y_centre: float, radius: float, width: float, 
     hub = 0.55 * ring
     y_hub = y_out + sign * 0.01
     b.add("rim", np.column_stack([x + hub[:, 0], np.full(segments, y_hub), radius + hub[:, 1]]), np.array([0, sign, 0]))
+
+
+def _spare_wheel(b: _Builder, x_rear: float, z: float, radius: float, depth: float = 0.22, segments: int = 16) -> None:
+    """A spare wheel on a rear face at ``x_rear`` (looking along -x): a dark tyre and a bright hub."""
+    a = 2 * math.pi * (np.arange(segments) + 0.5) / segments
+    ring = np.column_stack([radius * np.cos(a), radius * np.sin(a)])  # (y, z) around the hub
+    x0, x1 = x_rear, x_rear - depth
+    b.add("dark", np.column_stack([np.full(segments, x1), ring[:, 0], z + ring[:, 1]]), np.array([-1.0, 0, 0]))
+    for k in range(segments):
+        p, q = ring[k], ring[(k + 1) % segments]
+        quad = np.array([[x0, p[0], z + p[1]], [x0, q[0], z + q[1]], [x1, q[0], z + q[1]], [x1, p[0], z + p[1]]])
+        b.add("dark", quad, np.array([0.0, (p[0] + q[0]) / 2, (p[1] + q[1]) / 2]))
+    hub = 0.5 * ring
+    b.add("rim", np.column_stack([np.full(segments, x1 - 0.01), hub[:, 0], z + hub[:, 1]]), np.array([-1.0, 0, 0]))
 
 
 def _arch(b: _Builder, x: float, radius: float, y_side: float, segments: int = 12) -> None:
@@ -375,7 +410,7 @@ def _build(name: str, attrs: VehicleAttributes) -> VehicleMesh:
     b = _Builder()
     top = max(spec.prisms, key=lambda p: max(z for _, z in p.profile_xz))
     for prism in spec.prisms:
-        material = "roof" if prism is top and attrs.roof is not None else "paint"
+        material = "roof" if (prism is top or prism.role == "cabin") and attrs.roof is not None else "paint"
         _prism(b, prism, top_material=material, attrs=attrs,
                stripe_sides=prism is spec.prisms[-1 if name == "box_truck" else 0])
     hw = spec.width_m / 2
@@ -390,11 +425,21 @@ def _build(name: str, attrs: VehicleAttributes) -> VehicleMesh:
     h = min(fz1, fz0 + 0.55)
     for sign in (1.0, -1.0):  # headlights and tail lights near the corners
         _rect_x(b, "head", fx, sign * (fhw - 0.08), sign * (fhw - 0.40), h - 0.15, h - 0.03, 1.0)
-        t = min(rz1, rz0 + 0.60)
-        _rect_x(b, "tail", rx, sign * (rhw - 0.06), sign * (rhw - 0.30), t - 0.17, t - 0.04, -1.0)
-    _rect_x(b, "dark", fx, -(fhw - 0.46), fhw - 0.46, h - 0.13, h - 0.05, 1.0)  # grille
+        if spec.tail_lights == "tall":
+            _rect_x(b, "tail", rx, sign * (rhw - 0.05), sign * (rhw - 0.22), rz0 + 0.16, rz1 - 0.03, -1.0)
+        else:
+            t = min(rz1, rz0 + 0.60)
+            _rect_x(b, "tail", rx, sign * (rhw - 0.06), sign * (rhw - 0.30), t - 0.17, t - 0.04, -1.0)
+    if spec.grille == "rim":  # tall and bright
+        _rect_x(b, "rim", fx, -(fhw - 0.42), fhw - 0.42, h - 0.36, h - 0.02, 1.0)
+    else:
+        _rect_x(b, "dark", fx, -(fhw - 0.46), fhw - 0.46, h - 0.13, h - 0.05, 1.0)
     _rect_x(b, "plate", fx, -0.26, 0.26, fz0 + 0.05, fz0 + 0.16, 1.0)
-    _rect_x(b, "plate", rx, -0.26, 0.26, rz0 + 0.12, rz0 + 0.23, -1.0)
+    if spec.spare_wheel is not None:  # the plate goes under the wheel
+        _rect_x(b, "plate", rx, -0.26, 0.26, rz0 + 0.02, rz0 + 0.12, -1.0)
+        _spare_wheel(b, rx, *spec.spare_wheel)
+    else:
+        _rect_x(b, "plate", rx, -0.26, 0.26, rz0 + 0.12, rz0 + 0.23, -1.0)
     if spec.front_glass_z is not None:
         _rect_x(b, "glass", fx, -(fhw - 0.12), fhw - 0.12, *spec.front_glass_z, 1.0)
     if spec.rear_glass_z is not None:
@@ -409,6 +454,12 @@ def _build(name: str, attrs: VehicleAttributes) -> VehicleMesh:
     if spec.roof_unit is not None:
         cx, length, height = spec.roof_unit
         b.box("rim", (cx - length / 2, -0.8, roof_z - 0.01), (cx + length / 2, 0.8, roof_z + height))
+    if attrs.roof is not None and top.role == "box" and top.windows_z is not None:  # a bus: a band above the windows
+        z_hi = max(z for _, z in top.profile_xz)
+        for sign in (1.0, -1.0):
+            plane = _Side(top, sign)
+            band = _clip(_inset(_ccw(np.asarray(top.profile_xz, float)), 0.02), 1, top.windows_z[1] + 0.04, True)
+            b.add("roof", plane.lift(_clip(band, 1, z_hi - 0.02, False), DECAL_M / 2), plane.outward())
     if attrs.rack:
         rx0, rx1 = min(roof_xs) + 0.12, max(roof_xs) - 0.12
         ry = top.half_width_top_m - 0.10
@@ -418,6 +469,9 @@ def _build(name: str, attrs: VehicleAttributes) -> VehicleMesh:
                 b.box("rack", (x - 0.03, sign * ry - 0.03, roof_z - 0.01), (x + 0.06, sign * ry + 0.03, roof_z + 0.04))
         for x in (rx0 + 0.25 * (rx1 - rx0), rx0 + 0.75 * (rx1 - rx0)):
             b.box("rack", (x - 0.03, -ry, roof_z + 0.10), (x + 0.03, ry, roof_z + 0.14))
+        # the cargo box on the bars: what makes the rack show from the ground (a taller silhouette)
+        cx, half_len = (rx0 + rx1) / 2, min(1.0, 0.36 * (rx1 - rx0))
+        b.box("cargo", (cx - half_len, -(ry - 0.06), roof_z + 0.14), (cx + half_len, ry - 0.06, roof_z + 0.58))
     if name in ("suv", "pickup"):  # dark plastic cladding along the sills: the off-roader look
         lower = spec.prisms[0]
         for sign in (1.0, -1.0):
@@ -442,6 +496,13 @@ def _build(name: str, attrs: VehicleAttributes) -> VehicleMesh:
     triangles = b.result()
     height = max(float(t[:, :, 2].max()) for t in triangles.values())
     return VehicleMesh(name, spec.length_m, spec.width_m, height, triangles, tuple(boxes))
+
+
+def contrast_colour(paint: str) -> str:
+    """The stripe's colour on a paint: white on dark paints, black on light ones (relative
+    luminance 0.5 and over: yellow, orange)."""
+    rgb = colour_rgb(paint)
+    return "black" if 0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2] >= 0.5 else "white"
 
 
 @lru_cache(maxsize=256)
