@@ -73,9 +73,9 @@ def test_policy_names_and_tools() -> None:
     with pytest.raises(ValueError, match="unknown policy"):
         make_policy("gpt-9", "uav")
     assert tools_for({"uav": "heuristic", "ugv": "heuristic"}) == {"candidates": True, "e2a": True, "rgpp": True,
-                                                                   "oracle": False}
+                                                                   "oracle": False, "expert": False}
     assert tools_for({"uav": "heuristic:no_both", "ugv": "heuristic:no_both"}) == {
-        "candidates": True, "e2a": False, "rgpp": False, "oracle": False}
+        "candidates": True, "e2a": False, "rgpp": False, "oracle": False, "expert": False}
     assert tools_for({"uav": "oracle", "ugv": "oracle"})["oracle"] is True
     assert tools_for({"uav": "baseline", "ugv": "baseline"})["candidates"] is False
     assert tools_for({"uav": "agos-agent:no_rgpp", "ugv": "agos-agent:no_rgpp"})["rgpp"] is False
