@@ -1,0 +1,100 @@
+"""What full-resolution recording (``agos record --full``, docs/VIEWING.md) costs the world's decision thread.
+
+Per observation of a real heuristic episode on grid-s7 (UAV nadir view, UGV forward view, UGV six
+views): the ``watched()`` check alone when nobody asks, and ``full_frames()`` + ``publish_viz`` (what
+``BusDecisionSource.decide`` does) while a subscriber on ``viz/<ep>/full/<role>`` asks, through a
+real router on loopback. 200 observations of each kind, back to back (DROP may lose some of those
+bursts at the subscriber: the count received is printed).
+
+    .venv/bin/python bench/bench_record.py
+"""
+
+from __future__ import annotations
+
+import statistics
+import subprocess
+import sys
+import time
+
+from agos.deploy.launcher import free_port, wait_listening
+from agos.runtime import keys
+from agos.runtime.bus import Inbox, ZenohBus
+from agos.runtime.codec import encode
+from agos.runtime.schemas import Observation
+from agos.runtime.viz import full_frames
+
+
+def observations() -> list[Observation]:
+    """Every observation of one heuristic mid episode on grid-s7."""
+    from agos.agents.inprocess import InProcessAgents
+    from agos.agents.registry import make_policy
+    from agos.world.episodes.sampling import sample_episode
+    from agos.world.sim.engine import EpisodeRunner
+    from agos.world.sim.scene import Scene
+    from agos.world.towns.asset import open_town
+
+    town = open_town("grid-s7")
+    scene = Scene(town.layout)
+    spec = sample_episode(town, scene, "mid", 0, seed=1)
+    seen: list[Observation] = []
+    inner = InProcessAgents({r: make_policy("heuristic", r) for r in ("uav", "ugv")})
+
+    class Spy:
+        def decide(self, obs):
+            seen.extend(obs.values())
+            return inner.decide(obs)
+
+    EpisodeRunner(scene, town, spec, run_id="bench", worker_id="bench").run(Spy())
+    scene.close()
+    return seen
+
+
+def cost_us(world: ZenohBus, key: str, sample: list[Observation], n: int = 200) -> tuple[float, float]:
+    """(median, mean) microseconds of what the world does per observation."""
+    times = []
+    for k in range(n):
+        obs = sample[k % len(sample)]
+        start = time.perf_counter()
+        if world.watched(key):
+            for frame in full_frames(obs):
+                world.publish_viz(key, frame)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times) * 1e6, statistics.mean(times) * 1e6
+
+
+def main() -> None:
+    obs = observations()
+    kinds = {"UAV nadir": [o for o in obs if o.role == "uav"],
+             "UGV six views": [o for o in obs if o.mode == "stop_6view"],
+             "UGV forward": [o for o in obs if o.role == "ugv" and o.mode != "stop_6view"]}
+    port = free_port(17900)
+    router = subprocess.Popen([sys.executable, "-m", "agos.deploy.cli", "router", "--listen", f"tcp/127.0.0.1:{port}"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        assert wait_listening("127.0.0.1", port, 15)
+        world = ZenohBus.connect(f"tcp/127.0.0.1:{port}")
+        key = keys.viz_full("bench", "e0", "uav")
+        world.watched(key)
+        time.sleep(0.5)
+        for name, sample in kinds.items():
+            print(f"nobody asks, {name}: median {cost_us(world, key, sample)[0]:.1f} us per observation")
+        recorder = ZenohBus.connect(f"tcp/127.0.0.1:{port}")
+        got = Inbox()
+        recorder.subscribe(key, got)
+        time.sleep(1.0)
+        for name, sample in kinds.items():
+            size = sum(len(encode(f)) for f in full_frames(sample[0]))
+            median, mean = cost_us(world, key, sample)
+            print(f"a recorder asks, {name} ({size / 1024:.0f} KiB per observation): median {median:.0f} us, "
+                  f"mean {mean:.0f} us per observation")
+        time.sleep(1.0)
+        print(f"frames received by the subscriber: {len(got.drain())}")
+        recorder.close()
+        world.close()
+    finally:
+        router.terminate()
+        router.wait(timeout=10)
+
+
+if __name__ == "__main__":
+    main()

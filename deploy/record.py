@@ -1,0 +1,248 @@
+"""``agos record``: the recorder process: a run's visualisation stream -> one rerun file per episode.
+
+    agos record --connect EP --run RUN --out DIR [--full]
+
+(``agos eval --record DIR`` and ``agos demo --record DIR`` start it for their run.)
+
+Contract: the recorder only subscribes, and only to ``agos/<run>/viz/...`` (on a secured bus it is
+the ``observer`` identity, which may hear nothing else), so it is never in the world's decision
+path: the world publishes the stream with congestion control DROP whoever listens. Its zenoh
+callbacks only put samples into a bounded queue (:class:`BoundedInbox`: at most ``QUEUE_SAMPLES``
+samples and ``QUEUE_BYTES`` bytes), which drops and counts what does not fit; decoding and writing
+happen on the recorder's own thread (:class:`EpisodeRecording`, deploy/recording.py). A recorder
+that falls behind therefore loses visualisation samples, and says how many at exit, in its log and
+in ``DIR/recorder.json``; it never slows the run.
+
+``--full`` subscribes to ``viz/<ep>/full/<role>`` instead of the thumbnails (``frame/<role>``), which
+makes the worlds send every view at full resolution (runtime/viz.py); without it the recording holds
+the stream's thumbnails.
+
+An episode's file is finished ``LATE_S`` seconds after the copy of its record arrives on
+``viz/<ep>/result`` (frames are made on the world's frame thread and may arrive after it); at exit
+(SIGTERM, SIGINT) what is queued is written for at most ``DRAIN_S`` seconds and every open
+recording is closed (its outcome then says no record arrived).
+
+Test hook: ``AGOS_RECORDER_STALL_S=N`` makes the handler sleep N seconds at the first sample, as a
+recorder stuck in its work would (tests/test_e2e_record.py).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from agos.deploy.episode_map import EpisodeMap, episode_map
+from agos.deploy.recording import MAP_PX, EpisodeRecording
+from agos.runtime import keys
+from agos.runtime.bus import Inbox, Sample, ZenohBus
+from agos.runtime.codec import DecodeError, decode
+from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
+from agos.runtime.rejections import Rejections
+from agos.runtime.schemas import CoordinationState, EpisodeRecord, EpisodeSpec, EpisodeStarted, StepEvent, VizFrame
+from agos.runtime.settings import AgosConfig
+
+log = logging.getLogger("agos.record")
+QUEUE_SAMPLES = 4096
+QUEUE_BYTES = 128 * 2**20
+DRAIN_S = 5.0
+LATE_S = 2.0
+STATUS_FILE = "recorder.json"
+STALL_ENV = "AGOS_RECORDER_STALL_S"
+
+
+def _kind(key: str) -> tuple[str, str]:
+    """(episode, kind) of ``agos/<run>/viz/<ep>/<kind>[/<role>]``."""
+    parts = key.split("/")
+    return (parts[3], parts[4]) if len(parts) > 4 else ("?", "?")
+
+
+class BoundedInbox(Inbox):
+    """An inbox that never blocks its producer (zenoh's callback thread): a sample that would take
+    it past ``max_samples`` or ``max_bytes`` is dropped and counted by (episode, kind)."""
+
+    def __init__(self, max_samples: int = QUEUE_SAMPLES, max_bytes: int = QUEUE_BYTES) -> None:
+        super().__init__()
+        self.max_samples, self.max_bytes = max_samples, max_bytes
+        self.queued_bytes = 0
+        self.dropped: Counter[tuple[str, str]] = Counter()
+        self._lock = threading.Lock()
+
+    def put(self, sample: Sample) -> None:
+        with self._lock:
+            if self._queue.qsize() >= self.max_samples or self.queued_bytes + len(sample.payload) > self.max_bytes:
+                self.dropped[_kind(sample.key)] += 1
+                return
+            self.queued_bytes += len(sample.payload)
+        self._queue.put(sample)
+
+    def get(self, timeout_s: float | None = None) -> Sample | None:
+        sample = super().get(timeout_s)
+        if sample is not None:
+            with self._lock:
+                self.queued_bytes -= len(sample.payload)
+        return sample
+
+
+class Recorder:
+    """Subscribes to one run's visualisation stream and keeps one :class:`EpisodeRecording` per episode."""
+
+    def __init__(self, bus: ZenohBus, run_id: str, out_dir: Path, *, full: bool = False,
+                 map_source: Callable[[EpisodeSpec], EpisodeMap] | None = None, inbox: BoundedInbox | None = None) -> None:
+        self.bus, self.run_id, self.out_dir, self.full = bus, run_id, out_dir, full
+        self.map_source = map_source
+        self.inbox = inbox or BoundedInbox()
+        self.open: dict[str, EpisodeRecording] = {}
+        self.closing: dict[str, float] = {}
+        """Episode -> when (monotonic) to close its recording: its record has arrived."""
+        self.finished: dict[str, dict[str, Any]] = {}
+        """Episode -> what its recording holds (written to recorder.json)."""
+        self.rejections = Rejections(log)
+        self.stall_s = float(os.environ.get(STALL_ENV, "0") or 0)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self._handles = [bus.subscribe(k, self.inbox) for k in keys.viz_light(run_id, full=full)]
+
+    def serve(self, stop: StopFlag) -> int:
+        log.info("recording run %s to %s (%s)", self.run_id, self.out_dir,
+                 "full resolution" if self.full else "thumbnails")
+        self._status("recording")
+        while not stop.is_set():
+            sample = self.inbox.get(timeout_s=0.2)
+            if sample is not None:
+                self.handle(sample, stop)
+            for episode in [e for e, at in self.closing.items() if at <= time.monotonic()]:
+                self._close(episode)
+        deadline = time.monotonic() + DRAIN_S
+        while time.monotonic() < deadline and (sample := self.inbox.get(timeout_s=0)) is not None:
+            self.handle(sample, None)
+        left = len(self.inbox.drain())
+        self.finish()
+        self._status("stopped", not_written=left)
+        dropped = sum(self.inbox.dropped.values()) + left
+        by_kind = Counter[str]()
+        for (_, kind), n in self.inbox.dropped.items():
+            by_kind[kind] += n
+        log.info("recorder stops: %d episodes written to %s; %d samples dropped by its queue%s%s",
+                 len(self.finished), self.out_dir, dropped,
+                 f" ({', '.join(f'{k}={n}' for k, n in sorted(by_kind.items()))})" if by_kind else "",
+                 f", {left} queued at exit not written" if left else "")
+        self.rejections.log_summary()
+        return 0
+
+    def finish(self) -> None:
+        """Close every open recording and stop listening."""
+        for episode in list(self.open):
+            self._close(episode)
+        for handle in self._handles:
+            self.bus.unsubscribe(handle)
+        self._handles = []
+
+    def handle(self, sample: Sample, stop: StopFlag | None = None) -> None:
+        """One sample of the stream, on the recorder's thread."""
+        if self.stall_s > 0 and stop is not None:
+            log.warning("test hook %s: the handler sleeps %.0f s", STALL_ENV, self.stall_s)
+            started = time.monotonic()
+            stopped = stop.wait(self.stall_s)
+            log.warning("test hook %s: %s after %.1f s of the stall", STALL_ENV,
+                        "stopped while stuck" if stopped else "the handler goes on", time.monotonic() - started)
+            self.stall_s = 0.0
+        episode, kind = _kind(sample.key)
+        try:
+            message = decode(sample.payload)
+        except DecodeError as exc:
+            self.rejections.reject(sample.key, "unreadable", exc)
+            return
+        if getattr(message, "run_id", self.run_id) != self.run_id or getattr(message, "episode_id", episode) != episode:
+            self.rejections.reject(sample.key, "names another run or episode than its key")
+            return
+        try:
+            self._dispatch(episode, kind, message, sample.key)
+        except Exception as exc:  # one bad sample (or a bug) costs that sample, never the other recordings
+            log.debug("sample on %s not recorded", sample.key, exc_info=True)
+            self.rejections.reject(sample.key, "could not be recorded", f"{type(exc).__name__}: {exc}")
+
+    def _dispatch(self, episode: str, kind: str, message: object, key: str) -> None:
+        if isinstance(message, EpisodeStarted):
+            if episode in self.closing:
+                self._close(episode)
+            if episode in self.finished:  # the episode again (a resumed run): a new file
+                self.finished.pop(episode)
+            self._recording(episode).started(message)
+            return
+        if episode in self.finished:
+            return  # late samples of an episode already written
+        recording = self._recording(episode)
+        if isinstance(message, EpisodeSpec) and kind == "spec":
+            recording.episode_spec(message)
+        elif isinstance(message, StepEvent):
+            recording.step(message)
+        elif isinstance(message, CoordinationState):
+            recording.coordination(message)
+        elif isinstance(message, VizFrame):
+            recording.frame(message)
+        elif isinstance(message, EpisodeRecord):
+            recording.result(message)
+            self.closing[episode] = time.monotonic() + LATE_S
+        else:
+            self.rejections.reject(key, f"a {type(message).__name__} where none is expected")
+
+    def _recording(self, episode: str) -> EpisodeRecording:
+        if episode not in self.open:
+            keys.check_chunk(episode, what="episode id")  # a file name: nothing outside out_dir
+            self.open[episode] = EpisodeRecording(self.out_dir, self.run_id, episode, full=self.full,
+                                                  map_source=self.map_source)
+        return self.open[episode]
+
+    def _close(self, episode: str) -> None:
+        self.closing.pop(episode, None)
+        recording = self.open.pop(episode)
+        recording.seen.dropped_before = sum(n for (ep, _), n in self.inbox.dropped.items() if ep == episode)
+        seen = recording.close()
+        self.finished[episode] = {"file": recording.path.name, "record": recording.record is not None,
+                                  "steps": seen.steps, "frames": dict(seen.frames), "coordination_states": seen.coords,
+                                  "dropped_by_queue": seen.dropped_before}
+        log.info("%s: %s (%d steps, frames %s)", episode, recording.path, seen.steps, dict(seen.frames))
+
+    def _status(self, status: str, **extra: Any) -> None:
+        """``DIR/recorder.json``: what the recorder is doing and, at exit, what it wrote and lost."""
+        dropped: dict[str, int] = {}
+        for (_, kind), n in self.inbox.dropped.items():
+            dropped[kind] = dropped.get(kind, 0) + n
+        doc = {"run_id": self.run_id, "status": status, "full_resolution": self.full, "pid": os.getpid(),
+               "episodes": self.finished, "dropped_by_queue": dropped, **extra}
+        tmp = self.out_dir / f".{STATUS_FILE}.tmp"
+        tmp.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
+        tmp.replace(self.out_dir / STATUS_FILE)
+
+
+def main(cfg: AgosConfig, out_dir: Path, *, full: bool = False) -> int:
+    setup_logging("record")
+    stop = install_stop_handlers()
+    bus = ZenohBus.from_settings(cfg.zenoh)
+    try:
+        recorder = Recorder(bus, cfg.run.run_id, out_dir, full=full,
+                            map_source=lambda spec: episode_map(spec, size_px=MAP_PX))
+        return recorder.serve(stop)
+    finally:
+        bus.close()
+
+
+def wait_ready(out_dir: Path, timeout_s: float, since: float, alive: Callable[[], bool] = lambda: True) -> bool:
+    """Whether a recorder started at ``since`` (epoch seconds) has subscribed and says so in
+    ``DIR/recorder.json`` within ``timeout_s`` (False at once when ``alive()`` says it exited)."""
+    deadline = time.monotonic() + timeout_s
+    path = out_dir / STATUS_FILE
+    while time.monotonic() < deadline and alive():
+        try:
+            if path.stat().st_mtime >= since - 1 and json.loads(path.read_text()).get("status") == "recording":
+                return True
+        except (OSError, ValueError):
+            pass
+        time.sleep(0.1)
+    return False
