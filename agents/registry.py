@@ -31,6 +31,13 @@ def make_policy(name: str, role: Role, *, vlm: VlmOptions | None = None) -> Poli
         from agos.agents.oracle import OracleUav, OracleUgv
 
         return OracleUav() if role == "uav" else OracleUgv()
+    if base == "expert":
+        from agos.agents.expert import ExpertPolicy
+
+        return ExpertPolicy(role)
+    if base == "human":
+        raise ValueError("the human policy is a person at a browser: serve the role with `agos human --role ROLE "
+                         "--connect EP --run RUN` instead of `agos agent` (docs/HUMAN.md)")
     if base == "random":
         from agos.agents.random_policy import RandomPolicy
 

@@ -4,6 +4,7 @@
     agos router --listen EP         the zenoh router
     agos world --connect EP --run R world worker
     agos agent --role uav|ugv ...   agent service
+    agos human --role uav|ugv|both  a person plays in the browser (the Human reference); --spectate: watch
     agos evaluator --connect EP     result store and metrics
     agos episodes sample|split|check  episode files
     agos map import|build|info|render town assets
@@ -12,6 +13,9 @@
     agos report RUN... --out DIR    paper-style tables and the stage-wise plot
     agos vlm-standin [--port 8000]  OpenAI-compatible stand-in VLM server (latency, injected faults)
     agos health KIND                is that process's liveliness token on the bus? (healthchecks)
+    agos record --out DIR ...       the recorder: one rerun file per episode (eval/demo --record DIR)
+    agos view FILE.rrd              the rerun viewer on a recording
+    agos plot episode|compare ...   trajectory figures from a run's records
     agos certs --out DIR            a CA and one certificate per identity of a secured bus
 """
 
@@ -23,6 +27,8 @@ import os
 import sys
 from pathlib import Path
 
+from agos.deploy.cli_look import add_parsers as add_look_parsers
+from agos.deploy.cli_look import add_record_flags, recording_of
 from agos.runtime.bus import RouterUnreachable
 from agos.runtime.health import HEALTH_KINDS
 from agos.runtime.settings import AgosConfig, ConfigError, load_config
@@ -49,6 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--run", dest="run_id", help="run id of the hand-started processes (with --connect)")
     demo.add_argument("--secure", action="store_true",
                       help="mutual TLS and default-deny access control on the bus, with a CA made for this run")
+    add_record_flags(demo)
 
     ev = sub.add_parser("eval", help="evaluate policies on an episode file: leases, fault tolerance, resume")
     ev.add_argument("--config", type=Path)
@@ -73,6 +80,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="mutual TLS and default-deny access control on the bus, with a CA made for this run "
                          "(with --connect: use your AGOS_ZENOH__* credentials and a tls/ endpoint instead)")
     ev.add_argument("--stuck-after", type=float, default=180.0, help="re-lease an episode without progress for this long (s)")
+    add_record_flags(ev)
+    ev.add_argument("--decision-timeout", type=_duration, metavar="DURATION",
+                    help="how long the world waits for each decision before it applies WAIT: 90, 30m, 2h "
+                         "(default [world] decision_timeout_s, 60 s; a person playing needs minutes or hours)")
     _vlm_flags(ev)
     ev.add_argument("--vlm-standin", nargs="?", const="", metavar="FAULTS",
                     help="start the offline stand-in VLM server for this run (optionally with faults, "
@@ -99,6 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     watch.add_argument("--connect", help="zenoh router endpoint (default tcp/127.0.0.1:7447, or from settings)")
     watch.add_argument("--config", type=Path)
     watch.add_argument("--key", help="key expression to watch instead of the visualisation stream, e.g. 'agos/**'")
+    add_look_parsers(sub)
 
     router = sub.add_parser("router", help="zenoh router")
     router.add_argument("--config", type=Path)
@@ -115,6 +127,18 @@ def build_parser() -> argparse.ArgumentParser:
     agent.add_argument("--policy", help="policy name (default from config: heuristic)")
     agent.add_argument("--concurrency", type=int, default=32, help="decisions answered at once (default 32)")
     _vlm_flags(agent)
+
+    human = sub.add_parser("human", help="a person plays a role in the browser (the Human reference), or --spectate "
+                                         "a run read-only (docs/HUMAN.md)")
+    _common(human)
+    play = human.add_mutually_exclusive_group(required=True)
+    play.add_argument("--role", choices=["uav", "ugv", "both"], help="the role(s) the person plays")
+    play.add_argument("--spectate", action="store_true", help="a read-only view of the run's visualisation stream")
+    human.add_argument("--host", default="127.0.0.1",
+                       help="interface the page is served on (default loopback; 0.0.0.0: every interface)")
+    human.add_argument("--port", type=int, help="port of the page (default 8765; spectating 8766)")
+    human.add_argument("--player", default="person", help="the player's name, stored in every decision trace")
+    human.add_argument("--trace", type=Path, help="also append every decision (what was shown, the choice) to this JSONL file")
 
     evaluator = sub.add_parser("evaluator", help="stores episode records of every run and reports metrics")
     evaluator.add_argument("--config", type=Path)
@@ -192,6 +216,15 @@ def _vlm_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vlm-trace", type=Path, help="also append every decision trace to this JSONL file")
 
 
+def _duration(value: str) -> float:
+    from agos.deploy.human import parse_duration
+
+    try:
+        return parse_duration(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _workers(value: str) -> int | str:
     """``--workers``: a number, or ``auto``."""
     if value == "auto":
@@ -214,6 +247,7 @@ def _config(args: argparse.Namespace) -> AgosConfig:
                 "structured": False if getattr(args, "vlm_no_structured", False) else None,
                 "trace_file": getattr(args, "vlm_trace", None)},
         "zenoh": {"connect": getattr(args, "connect", None), "listen": getattr(args, "listen", None)},
+        "world": {"decision_timeout_s": getattr(args, "decision_timeout", None)},
         "run": {"run_id": getattr(args, "run_id", None), "runs_dir": getattr(args, "runs_dir", None),
                 "workers": _int_or_none(getattr(args, "workers", None)), "agent_wait_s": getattr(args, "agent_wait", None),
                 "episodes_file": getattr(args, "episodes", None) or getattr(args, "split", None),
@@ -224,7 +258,8 @@ def _config(args: argparse.Namespace) -> AgosConfig:
     return load_config(getattr(args, "config", None), overrides=overrides)
 
 
-CONFIG_COMMANDS = ("demo", "eval", "sweep", "router", "world", "agent", "evaluator", "check", "health", "watch")
+CONFIG_COMMANDS = ("demo", "eval", "sweep", "router", "world", "agent", "human", "evaluator", "check", "health", "watch",
+                   "record")
 """The commands that read the settings (``--config`` and the flags that override it)."""
 
 
@@ -267,7 +302,7 @@ def _run_configured(args: argparse.Namespace, cfg: AgosConfig) -> int:
 
         try:
             return demo.main(cfg, config_path=args.config, port=args.port, attach=args.connect is not None,
-                             secure=args.secure)
+                             secure=args.secure, recording=recording_of(args))
         except ValueError as exc:  # a policy or profile name, a run directory: before any process starts
             print(f"demo error: {exc}", file=sys.stderr)
             return 2
@@ -280,8 +315,10 @@ def _run_configured(args: argparse.Namespace, cfg: AgosConfig) -> int:
 
         return router.main(cfg.zenoh)
     if args.command == "world":
+        from agos.world import expert
         from agos.world.sim import worker
 
+        expert.install()  # episodes of runs whose policy is `expert` carry its plan (world/expert/)
         return worker.main(cfg, worker_id=args.worker_id)
     if args.command == "agent":
         from agos.agents import service
@@ -294,6 +331,8 @@ def _run_configured(args: argparse.Namespace, cfg: AgosConfig) -> int:
             print(f"agent error: {exc}", file=sys.stderr)
             return 2
         return service.main(cfg, role=args.role, policy_name=args.policy, concurrency=args.concurrency)
+    if args.command == "human":
+        return _human(args, cfg)
     if args.command == "check":
         from agos.deploy.check import run_check
 
@@ -302,6 +341,10 @@ def _run_configured(args: argparse.Namespace, cfg: AgosConfig) -> int:
         from agos.evaluator import service as evaluator_service
 
         return evaluator_service.main(cfg)
+    if args.command == "record":
+        from agos.deploy.cli_look import run_record
+
+        return run_record(args, cfg)
     if args.command == "watch":
         from agos.runtime import observer
 
@@ -319,6 +362,10 @@ def _run_unconfigured(args: argparse.Namespace) -> int:
         from agos.world import cli as world_cli
 
         return world_cli.run(args)
+    if args.command in ("view", "plot"):
+        from agos.deploy import cli_look
+
+        return cli_look.run(args)
     if args.command in ("metrics", "compare", "report"):
         from agos.evaluator import cli as evaluator_cli
 
@@ -332,6 +379,18 @@ def _run_unconfigured(args: argparse.Namespace) -> int:
 
         return certs_main(args.out, router_hosts=args.router_hosts, days=args.days, force=args.force)
     raise AssertionError(args.command)
+
+
+def _human(args: argparse.Namespace, cfg: AgosConfig) -> int:
+    from agos.agents.human import service as human_service
+    from agos.deploy.human import CONSOLE_PORT, SPECTATOR_PORT
+    from agos.runtime.schemas import Role
+
+    if args.spectate:
+        return human_service.spectate(cfg, run_id=args.run_id, host=args.host, port=args.port or SPECTATOR_PORT)
+    roles: tuple[Role, ...] = ("uav", "ugv") if args.role == "both" else (args.role,)
+    return human_service.main(cfg, roles=roles, host=args.host, port=args.port or CONSOLE_PORT, player=args.player,
+                              trace_file=args.trace)
 
 
 def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
@@ -364,6 +423,7 @@ def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
     from agos.deploy import evaluate
     from agos.runtime.links import ProfileError
 
+    recording = recording_of(args)  # a bad flag fails before a run directory is made
     try:
         if args.resume:
             plan = evaluate.resume_plan(args.resume)
@@ -390,7 +450,8 @@ def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
         workers = choice.workers
         print(f"world workers: {workers} ({choice.why})")
     return evaluate.run(cfg, plan, workers=workers, attach=args.connect is not None, port=args.port,
-                        config_path=args.config, stuck_after_s=args.stuck_after, secure=args.secure)
+                        config_path=args.config, stuck_after_s=args.stuck_after, secure=args.secure,
+                        recording=recording)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,9 @@ from agos.runtime.settings import AgosConfig
 
 
 def main(cfg: AgosConfig, *, config_path: Path | None = None, port: int | None = None, attach: bool = False,
-         console: Console | None = None, comm: str = "ideal", timing_mode: str = "lockstep", secure: bool = False) -> int:
+         console: Console | None = None, comm: str = "ideal", timing_mode: str = "lockstep", secure: bool = False,
+         recording: evaluate.Recording | None = None) -> int:
+    """``recording``: ``--record DIR``, a recorder writes each episode as a rerun file (deploy/record.py)."""
     plan = evaluate.new_plan(cfg, run_dir=None, comm=comm, timing_mode=timing_mode, stamp=not attach)
     return evaluate.run(cfg, plan, workers=cfg.run.workers, attach=attach, port=port, config_path=config_path,
-                        console=console, secure=secure)
+                        console=console, secure=secure, recording=recording)

@@ -24,6 +24,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from agos.agents.names import needs_vlm
 from agos.deploy.certs import RunCredentials
 from agos.deploy.configure import episode_config
+from agos.deploy.human import CONSOLE_NAMES, start_console
 from agos.deploy.launcher import Launcher, free_port, wait_listening
 from agos.deploy.orchestrator import Orchestrator
 from agos.deploy.presence import LOST_IN_A_ROW, PRESENCE_EVERY_S, LossStreak, Stall, look, missing_lines
@@ -156,8 +157,40 @@ def stored_episodes(run_dir: Path) -> set[str]:
         store.close()
 
 
+@dataclass(frozen=True)
+class Recording:
+    """``--record DIR [--record-full]``: a recorder process writes one rerun file per episode to ``out_dir``."""
+
+    out_dir: Path
+    full: bool = False
+
+
+def _start_recorder(launcher: Launcher, recording: Recording, endpoint: str, run_id: str, config_path: Path | None,
+                    env: dict[str, str] | None) -> float:
+    """Start ``agos record`` (its own process and zenoh session, the observer identity on a secured
+    bus); returns when it started (epoch seconds), for :func:`agos.deploy.record.wait_ready`."""
+    since = time.time()
+    launcher.start("recorder", ["record", "--connect", endpoint, "--run", run_id, "--out", str(recording.out_dir),
+                                *(["--full"] if recording.full else []),
+                                *(["--config", str(config_path)] if config_path else [])], env=env)
+    return since
+
+
+def _recorder_ready(recording: Recording, since: float, launcher: Launcher, console: Console) -> None:
+    """Wait (at most 30 s) until the recorder has subscribed, so it sees the first episode start;
+    a recorder that does not come up is reported and the run goes on without it."""
+    from agos.deploy.record import wait_ready
+
+    if wait_ready(recording.out_dir, 30.0, since, alive=lambda: "recorder" not in launcher.dead()):
+        console.print(f"recording to {recording.out_dir} ({'full resolution' if recording.full else 'thumbnails'})",
+                      highlight=False)
+    else:
+        console.print(f"[yellow]the recorder did not come up; the run goes on; see {launcher.log_dir / 'recorder.log'}")
+
+
 def _launch_all(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, endpoint: str, port: int, workers: int,
-                config_path: Path | None, console: Console, creds: RunCredentials | None = None) -> bool:
+                config_path: Path | None, console: Console, creds: RunCredentials | None = None,
+                recording: Recording | None = None) -> bool:
     def env(identity: str) -> dict[str, str] | None:
         return creds.env(identity) if creds is not None else None
 
@@ -167,6 +200,8 @@ def _launch_all(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, endpoint: st
         console.print(f"[red]router did not listen on {endpoint}; see {launcher.log_dir / 'router.log'}")
         return False
     console.print(f"zenoh endpoint: {endpoint}" + (" (mutual TLS, access control)" if creds else ""), highlight=False)
+    recorder_since = None if recording is None else _start_recorder(launcher, recording, endpoint, plan.run_id,
+                                                                     config_path, env("observer"))
     launcher.start("evaluator", ["evaluator", "--connect", endpoint, "--runs-dir", str(plan.run_dir.parent)]
                    + (["--config", str(config_path)] if config_path else []), env=env("evaluator"))
     vlm_args = _start_vlm(cfg, plan, launcher, console)
@@ -174,10 +209,14 @@ def _launch_all(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, endpoint: st
         return False
     # Every episode in flight may wait on an agent at once: decisions answered at once >= workers.
     at_once = ["--concurrency", str(max(32, workers))]
-    launcher.start("agent-uav", ["agent", "--role", "uav", "--policy", plan.policies["uav"], *common, *vlm_args,
-                                 *at_once], env=env("agent-uav"))
-    launcher.start("agent-ugv", ["agent", "--role", "ugv", "--policy", plan.policies["ugv"], *common, *vlm_args,
-                                 *at_once], env=env("agent-ugv"))
+    people = start_console(launcher, plan.policies, common, plan.config, console, env)  # roles a person plays
+    if people is None:
+        return False
+    for role in (r for r in ("uav", "ugv") if r not in people):
+        launcher.start(f"agent-{role}", ["agent", "--role", role, "--policy", plan.policies[role], *common, *vlm_args,
+                                         *at_once], env=env(f"agent-{role}"))
+    if recording is not None and recorder_since is not None:
+        _recorder_ready(recording, recorder_since, launcher, console)
     for k in range(workers):
         launcher.start(f"world-{k}", ["world", *common, "--worker-id", f"w{k}"], env=env("world"))
     return True
@@ -218,13 +257,16 @@ def _start_vlm(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, console: Cons
 
 def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, port: int | None = None,
         config_path: Path | None = None, console: Console | None = None, stuck_after_s: float = 180.0,
-        secure: bool = False) -> int:
+        secure: bool = False, recording: Recording | None = None) -> int:
     """Run ``plan`` to the end. ``secure``: the processes it starts talk mutual TLS through a router
-    enforcing access control, with a throwaway CA made for this run (deploy/certs.py)."""
+    enforcing access control, with a throwaway CA made for this run (deploy/certs.py). ``recording``:
+    a recorder process writes the run's episodes as rerun files (deploy/record.py); an attached run
+    starts one too, connected as this command's settings say."""
     console = console or Console()
     stop = install_stop_handlers()
     done_before = stored_episodes(plan.run_dir)
     launcher = Launcher(None if attach else plan.run_dir / "logs")
+    side = Launcher(plan.run_dir / "logs") if attach and recording is not None else None  # an attached run's recorder
     started = time.monotonic()
     bus = None
     orch = None
@@ -234,12 +276,15 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
         if attach:
             own = cfg.zenoh
             console.print(f"zenoh endpoint: {own.connect} (attached; run {plan.run_id})", highlight=False)
+            if side is not None and recording is not None:
+                since = _start_recorder(side, recording, own.connect, plan.run_id, config_path, None)
+                _recorder_ready(recording, since, side, console)
         else:
             port = port or free_port(7447)
             endpoint = f"{'tls' if creds else 'tcp'}/127.0.0.1:{port}"
             own = creds.settings(cfg.zenoh, "orchestrator", endpoint) if creds else cfg.zenoh.model_copy(
                 update={"connect": endpoint})
-            if not _launch_all(cfg, plan, launcher, endpoint, port, workers, config_path, console, creds):
+            if not _launch_all(cfg, plan, launcher, endpoint, port, workers, config_path, console, creds, recording):
                 return 1
         bus = ZenohBus.from_settings(own)
         orch = Orchestrator(bus, plan.run_id, plan.episodes, policies=plan.policies,
@@ -301,7 +346,8 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
                                       f"`agos eval --resume {plan.run_dir}`", highlight=False)
                         orch.publish_manifest("interrupted")
                         return 3
-                dead = {n: c for n, c in launcher.dead().items() if not n.startswith("world")}
+                # A recorder that dies loses the recording, never the run (nothing waits for it).
+                dead = {n: c for n, c in launcher.dead().items() if not n.startswith("world") and n != "recorder"}
                 if dead:
                     names = ", ".join(f"{n} (exit {c})" for n, c in dead.items())
                     console.print(f"[red]process exited early: {names}; logs in {plan.run_dir / 'logs'}")
@@ -316,12 +362,16 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
     finally:
         if launcher.children:
             launcher.stop_all(order=[n for n in launcher.children if n.startswith("world")]
-                              + ["agent-uav", "agent-ugv", "vlm-standin", "evaluator", "router"])
+                              + ["agent-uav", "agent-ugv", *CONSOLE_NAMES, "vlm-standin", "evaluator", "recorder", "router"])
+        if side is not None:
+            side.stop_all()
         if bus is not None:
             bus.close()
         if creds is not None:
             creds.close()
     _summary(console, plan, orch, attach, len(launcher.children) + 1, time.monotonic() - started)
+    if recording is not None:
+        _recording_summary(console, recording)
     if interrupted:
         console.print(f"[yellow]interrupted: every process stopped; resume with: agos eval --resume {plan.run_dir}")
         return 130  # as a shell reports a command stopped by Ctrl-C: scripts must not take it for a finished run
@@ -356,3 +406,21 @@ def _summary(console: Console, plan: RunPlan, orch: Orchestrator | None, attach:
         if rate is not None:
             console.print(f"throughput: {rate:.1f} episodes/min (first lease to last stored episode)", highlight=False)
     console.print(f"wall time: {wall_s:.1f} s", highlight=False)
+
+
+def _recording_summary(console: Console, recording: Recording) -> None:
+    """What the recorder wrote and lost (its ``recorder.json``), and how to look at it."""
+    from agos.deploy.record import STATUS_FILE
+
+    try:
+        status = json.loads((recording.out_dir / STATUS_FILE).read_text())
+    except (OSError, ValueError):
+        console.print(f"[yellow]recordings: the recorder left no {STATUS_FILE} in {recording.out_dir}", highlight=False)
+        return
+    files = sorted(e["file"] for e in status.get("episodes", {}).values())
+    dropped = sum(status.get("dropped_by_queue", {}).values()) + status.get("not_written", 0)
+    console.print(f"recordings: {len(files)} episodes in {recording.out_dir}"
+                  + (f"; the recorder fell behind and dropped {dropped} visualisation samples" if dropped else ""),
+                  highlight=False)
+    if files:
+        console.print(f"look at one: agos view {recording.out_dir / files[0]}", highlight=False)

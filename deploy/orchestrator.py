@@ -49,6 +49,8 @@ log = logging.getLogger("agos.orchestrator")
 LEASE_REPEAT_S = 5.0
 """How often current lease notices (and unacknowledged failure records) are published again, for an
 evaluator that started, or restarted, after they were first sent."""
+STUCK_MARGIN_S = 60.0
+"""An episode counts as stuck only after its decision timeout and this much more without progress."""
 
 
 @dataclass
@@ -69,6 +71,9 @@ class Orchestrator:
         self.policies = policies
         self.config = config or EpisodeConfig()
         self._config_map = self.config.model_dump(mode="json")  # sent whole in every grant
+        # A world waiting for a decision shows no progress for up to the decision timeout (a person may
+        # be given hours: docs/HUMAN.md), so it is stuck only after that and a margin.
+        stuck_after_s = max(stuck_after_s, self.config.decision_timeout_s + STUCK_MARGIN_S)
         self.stuck_after_s, self.max_attempts, self.resumed = stuck_after_s, max_attempts, resumed
         self._clock = clock
         done = already_stored or set()

@@ -12,6 +12,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+from agos.agents.names import is_human
 from agos.runtime import keys
 from agos.runtime.bus import Bus
 from agos.runtime.schemas import EpisodeRecord
@@ -51,7 +52,10 @@ def missing_lines(p: Presence, run_id: str, endpoint: str, policies: dict[str, s
         lines.append(f"no evaluator stores run {run_id}: start one with `agos evaluator --connect {endpoint} --run {run_id}` "
                      "(where this run directory's runs folder is)")
     for role, n in p.agents.items():
-        if not n:
+        if not n and is_human(policies.get(role, "heuristic")):
+            lines.append(f"no person plays the {role.upper()} of run {run_id}: start a console with `agos human --role "
+                         f"{role} --connect {endpoint} --run {run_id}` and open the page it names")
+        elif not n:
             lines.append(f"no {role.upper()} agent serves run {run_id}: start one with `agos agent --role {role} "
                          f"--policy {policies.get(role, 'heuristic')} --connect {endpoint} --run {run_id}`")
     if any(not n for n in p.agents.values()) and (line := elsewhere_line(p, run_id)):

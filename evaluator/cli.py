@@ -10,6 +10,8 @@ from pathlib import Path
 
 from rich.console import Console
 
+from agos.evaluator import human_row
+from agos.evaluator.human_row import is_human_run
 from agos.evaluator.metrics import aggregate, as_json
 from agos.evaluator.pooling import require_one_configuration
 from agos.evaluator.reports import RunResults, write_report
@@ -59,11 +61,14 @@ def run(args: argparse.Namespace) -> int:
                               f"{'n/a' if result.sign_test_p is None else f'{result.sign_test_p:.4f}'}")
             return 0
         if args.command == "report":
-            labels = args.labels or [p.name for p in args.runs]
+            human = [is_human_run(p) for p in args.runs]
+            labels = args.labels or [(human_row.LABEL if sum(human) == 1 else f"{human_row.LABEL} ({p.name})") if h
+                                     else p.name for p, h in zip(args.runs, human, strict=True)]
             if len(labels) != len(args.runs):
                 print(f"report error: {len(labels)} labels for {len(args.runs)} runs", file=sys.stderr)
                 return 2
-            runs = [RunResults(label, _read(path, args.allow_mixed)) for label, path in zip(labels, args.runs, strict=True)]
+            runs = [RunResults(label, _read(path, args.allow_mixed), human=h)
+                    for label, path, h in zip(labels, args.runs, human, strict=True)]
             for path in write_report(runs, args.out):
                 print(path)
             return 0

@@ -2,7 +2,8 @@
 
 Main table (like the paper's): one row per run, columns Easy / Mid / Hard x SR, OSR, SPL, NE,
 DS; a run labelled with a leading ``+`` (e.g. ``+AGOS-Agent``) is an agent variant of the row
-above and is indented. Ablation table: one row per run and difficulty with every metric and
+above and is indented. Runs of the human policy (the Human reference, evaluator/human_row.py)
+come first, as in the paper, set off by a rule in LaTeX. Ablation table: one row per run and difficulty with every metric and
 CErr (and the overall row of each run). Rates are printed in %, distances in metres, DS in decisions; undefined is ``-``.
 """
 
@@ -27,6 +28,8 @@ PERCENT = {"SR", "OSR", "SPL", "ASE", "ACG", "GVA"}
 class RunResults:
     label: str
     episodes: list[EpisodeSummary]
+    human: bool = False
+    """A person played both roles (the Human reference row)."""
 
     @property
     def indented(self) -> bool:
@@ -100,9 +103,11 @@ def main_table_latex(runs: Sequence[RunResults]) -> str:
            " ".join(rf"\cmidrule(lr){{{2 + k * len(MAIN_METRICS)}-{1 + (k + 1) * len(MAIN_METRICS)}}}"
                     for k in range(len(DIFFICULTY_ORDER))),
            "Method & " + " & ".join(list(MAIN_METRICS) * len(DIFFICULTY_ORDER)) + r" \\", r"\midrule"]
-    for run, row in zip(runs, rows, strict=True):
+    for k, (run, row) in enumerate(zip(runs, rows, strict=True)):
         name = (r"\quad " if run.indented else "") + _tex_escape(run.name)
         out.append(name + " & " + " & ".join(row[1:]) + r" \\")
+        if run.human and k + 1 < len(runs) and not runs[k + 1].human:
+            out.append(r"\midrule")
     out += [r"\bottomrule", r"\end{tabular}"]
     return "\n".join(out) + "\n"
 
@@ -193,6 +198,7 @@ def stage_chart(runs: Sequence[RunResults], path: Path) -> None:
 def write_report(runs: Sequence[RunResults], out_dir: Path) -> list[Path]:
     """Write every table (md, csv, tex), the outcome counts and the stage-wise PNG to ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
+    runs = [r for r in runs if r.human] + [r for r in runs if not r.human]  # the Human reference first
     written: list[Path] = []
 
     def put(name: str, text: str) -> None:

@@ -74,6 +74,8 @@ class ToolConfig(_Part):
     """Road-graph path planning: GO_TO_CANDIDATE exists (off: distance hints on road waypoints)."""
     oracle: bool = False
     """Ground-truth hints in observations (the oracle policy only)."""
+    expert: bool = False
+    """The expert's plan in observations (the expert policy only, agos.world.expert)."""
 
 
 class EpisodeConfig(_Part):
@@ -149,10 +151,13 @@ def read_config(data: Any, *, where: str) -> EpisodeConfig:
 
 def config_hash(data: dict[str, Any]) -> str:
     """Short hash of a configuration as stored (a map): the same for an object and its stored copy.
-    ``look`` counts only when it is not the default ``flat``, so configurations stored before the
-    field existed keep their hash."""
+    ``look`` counts only when it is not the default ``flat``, and ``tools.expert`` only when it is
+    on, so configurations stored before those fields existed keep their hash."""
     if data.get("look") == "flat":
         data = {k: v for k, v in data.items() if k != "look"}
+    tools = data.get("tools")
+    if isinstance(tools, dict) and tools.get("expert") is False:
+        data = {**data, "tools": {k: v for k, v in tools.items() if k != "expert"}}
     canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=False)
     return hashlib.sha256(canonical.encode()).hexdigest()[:12]
 

@@ -20,7 +20,11 @@ Layout::
     agos/<run>/live/<kind>/<id>              liveliness tokens
     agos/<run>/viz/<ep>/events               visualisation (lossy): episode start, step records
     agos/<run>/viz/<ep>/coord                visualisation (lossy): coordination truth
-    agos/<run>/viz/<ep>/frame/<role>         visualisation (lossy): a small JPEG of the role's view
+    agos/<run>/viz/<ep>/frame/<role>         visualisation (lossy): a small JPEG of each of the role's views
+    agos/<run>/viz/<ep>/spec                 visualisation (lossy): the episode spec (region, target), at its start
+    agos/<run>/viz/<ep>/result               visualisation (lossy): a copy of the episode record, at its end
+    agos/<run>/viz/<ep>/full/<role>          visualisation (lossy): the role's views at full resolution, made
+                                             only while someone subscribes there (``agos record --full``)
     agos/assets/<sha256>                     queryable: frozen town assets
     agos/routers/<zid>                       liveliness: a router agos started is up (``agos health router``)
 
@@ -158,6 +162,27 @@ def viz_coord(run: str, episode: str) -> str:
 
 def viz_frame(run: str, episode: str, role: str) -> str:
     return f"{_viz(run, episode)}/frame/{role}"
+
+
+def viz_spec(run: str, episode: str) -> str:
+    return f"{_viz(run, episode)}/spec"
+
+
+def viz_result(run: str, episode: str) -> str:
+    return f"{_viz(run, episode)}/result"
+
+
+def viz_full(run: str, episode: str, role: str) -> str:
+    """Full-resolution views: the world makes them only while something subscribes to this key."""
+    return f"{_viz(run, episode)}/full/{role}"
+
+
+def viz_light(run: str = "*", *, full: bool = False) -> tuple[str, ...]:
+    """The visualisation stream with its thumbnails (``frame/*``) or, ``full``, with its full-resolution
+    frames (``full/*``) instead: what ``agos watch`` and ``agos record [--full]`` subscribe to.
+    (``viz_all`` matches both, and a subscriber on ``full/<role>`` makes every world send them.)"""
+    frames = "full/*" if full else "frame/*"
+    return tuple(f"{_run(run)}/viz/*/{leaf}" for leaf in ("events", "coord", frames, "spec", "result"))
 
 
 def viz_prefix(run: str, episode: str) -> str:

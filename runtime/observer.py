@@ -1,7 +1,8 @@
 """Read-only observers of a run: ``agos watch`` and the base for recorders and consoles.
 
-An :class:`Observer` watches the visualisation stream by default (``agos/*/viz/**``: step events,
-coordination truth, small frames; runtime/viz.py), which the world publishes with congestion
+An :class:`Observer` watches the visualisation stream by default (``keys.viz_light()``: step events,
+coordination truth, small frames, episode specs and records; runtime/viz.py; not the full-resolution
+frames, which worlds make only while someone subscribes to them), which the world publishes with congestion
 control DROP: a slow observer loses samples there and the world never waits for it. It may also
 watch control traffic (``key_expr="agos/**"``), which is reliable with congestion control BLOCK:
 a subscriber that stops reading back-pressures the router and slows every process. So an
@@ -27,10 +28,10 @@ class Observer:
     def __init__(self, endpoint: str | ZenohSettings, handle: Callable[[str, bytes], None], *, key_expr: str | None = None,
                  capacity: int = 256) -> None:
         """``endpoint``: a router endpoint, or whole ``[zenoh]`` settings (a secured bus's credentials)."""
-        key_expr = key_expr or keys.viz_all()
+        key_exprs = (key_expr,) if key_expr else keys.viz_light()
         z = endpoint if isinstance(endpoint, ZenohSettings) else ZenohSettings(connect=endpoint)
         self.session = open_session(session_config(z))
-        self.subscriber = self.session.declare_subscriber(key_expr, zenoh.handlers.RingChannel(capacity))
+        self.subscribers = [self.session.declare_subscriber(k, zenoh.handlers.RingChannel(capacity)) for k in key_exprs]
         self.handle = handle
         self.seen = 0
         self._stop = threading.Event()
@@ -39,20 +40,24 @@ class Observer:
 
     def _loop(self) -> None:
         while not self._stop.is_set():
-            try:
-                sample = self.subscriber.handler.try_recv()
-            except zenoh.ZError:
-                sample = None
-            if sample is None:
+            idle = True
+            for subscriber in self.subscribers:
+                try:
+                    sample = subscriber.handler.try_recv()
+                except zenoh.ZError:
+                    sample = None
+                if sample is not None:
+                    idle = False
+                    self.seen += 1
+                    self.handle(str(sample.key_expr), sample.payload.to_bytes())
+            if idle:
                 self._stop.wait(0.005)
-                continue
-            self.seen += 1
-            self.handle(str(sample.key_expr), sample.payload.to_bytes())
 
     def close(self) -> None:
         self._stop.set()
         self._thread.join(timeout=2.0)
-        self.subscriber.undeclare()
+        for subscriber in self.subscribers:
+            subscriber.undeclare()
         self.session.close()
 
 

@@ -163,6 +163,27 @@ class OracleHints(Part, kw_only=True):
     """A CONFIRM now would pass the checker (UGV after STOP_OBSERVE)."""
 
 
+class ExpertStep(Part, kw_only=True):
+    """One decision of the expert's plan (agos.world.expert): the action it takes and when the
+    world will ask for it."""
+
+    sim_time_s: float
+    """When the world asks for this decision (the plan's timeline, the world's own timing)."""
+    action: ActionName
+    waypoint_id: str | None = None
+    cell: str | None = None
+    candidate_id: str | None = None
+    message: str | None = None
+
+
+class ExpertHints(Part, kw_only=True):
+    """The expert's plan for one role, computed by the world (which holds the ground truth) and
+    given only when the run's policy is ``expert``: its whole decision script, one step per
+    decision, in order (step k answers the role's decision k + 1)."""
+
+    steps: list[ExpertStep]
+
+
 class Observation(Message, tag="observation", kw_only=True):
     """World -> agent: everything a role may know at its decision ``decision_index``."""
 
@@ -174,6 +195,10 @@ class Observation(Message, tag="observation", kw_only=True):
     attempt: int = 1
     """Which lease of the episode this is (re-leased after a dead or stuck world: 2, 3): every attempt is
     a fresh episode, so an agent forgets earlier attempts and answers with this number."""
+    decision_timeout_s: float | None = None
+    """Wall seconds the world waits for the answer before it applies a WAIT fallback (the run's
+    ``decision_timeout_s``, stamped by the world worker; None where no world said). What a human
+    console counts down (agents/human/)."""
     sim_time_s: float
     pose: Pose
     mode: Literal["aerial", "driving", "stop_6view"]
@@ -193,6 +218,8 @@ class Observation(Message, tag="observation", kw_only=True):
     """True right after STOP_OBSERVE, before any movement (UGV)."""
     oracle: OracleHints | None = None
     """Only when the run's policy is ``oracle``; never for other policies."""
+    expert: ExpertHints | None = None
+    """Only when the run's policy is ``expert``; never for other policies."""
 
 
 class DecisionTrace(Part, kw_only=True):
@@ -257,12 +284,23 @@ class AgentMessage(Message, tag="agent_message", kw_only=True):
     delivered_sim_time_s: float
 
 
-class VehicleSpec(Part, kw_only=True):
+class VehicleSpec(Part, kw_only=True, omit_defaults=True):
+    """A target or look-alike of an episode. The attributes (``roof``, ``rack``, ``stripe``) are
+    drawn only by the rich look, which refuses none of them; the flat look refuses a vehicle that
+    has any (agos.world.sim.episode_vehicles). Fields at their defaults are not written, so
+    episodes without attributes encode exactly as before the attributes existed."""
+
     model: str
-    """Body type from the catalog (``sedan``, ``suv`` ...)."""
+    """Body type from the catalog (``sedan``, ``suv`` ...; ``bus`` only in the rich look)."""
     colour: str
     position_world_m: Vec3
     yaw_rad: float
+    roof: str | None = None
+    """Colour name of a two-tone roof (greenhouse and roof in that colour), or None."""
+    rack: bool = False
+    """A roof rack carrying a cargo box."""
+    stripe: str | None = None
+    """Colour name of a stripe over the whole length and along both sides, or None."""
 
 
 class TownRef(Part, kw_only=True):
@@ -337,6 +375,27 @@ class LinkStats(Part, kw_only=True):
     """Candidates the UGV never learned of."""
 
 
+class LoggedStep(Part, kw_only=True, omit_defaults=True):
+    """One applied decision as the record keeps it: where the role was after it. The record's step
+    log is what trajectory figures are drawn from (``agos plot``). Fields at their defaults are not
+    written."""
+
+    role: Role
+    decision_index: int
+    """The role's own 1-based decision index."""
+    sim_time_s: float
+    applied: ActionName
+    position_world_m: Vec2
+    """Where the role is after the decision (x, y)."""
+    road_path_world_m: list[Vec2] = []
+    """UGV drives only: the road polyline driven to ``position_world_m``, from the previous position
+    (road-graph nodes, simplified to stay within 0.25 m of them)."""
+    candidate_id: str | None = None
+    """The candidate the action annotated, went to, confirmed or rejected."""
+    candidate_polygon_world_m: list[Vec2] = []
+    """ANNOTATE_CANDIDATE only: the new candidate's ground polygon."""
+
+
 class StoredTrace(DecisionTrace, kw_only=True):
     """A decision trace as stored with the episode: which role and decision it belongs to."""
 
@@ -405,6 +464,8 @@ class EpisodeRecord(Message, tag="episode_record", kw_only=True):
     """Per role, totals of its decision traces (empty for scripted policies)."""
     decision_traces: list[StoredTrace] = []
     """Every decision of model-backed policies, in the order the world applied them."""
+    step_log: list[LoggedStep] = []
+    """Every applied decision of both roles, in order: the trajectories (empty in failure records)."""
     config: dict[str, Any] = {}
     """The episode configuration it ran with (``EpisodeConfig`` as a map; ``comm_profile``,
     ``timing_mode``, ``tools`` and ``renderer`` above repeat parts of it for readers)."""
@@ -449,7 +510,10 @@ class VizFrame(Message, tag="viz_frame", kw_only=True):
     sim_time_s: float
     pose: Pose
     image: ImageFrame
-    """JPEG, at most ``runtime.viz.THUMB_PX`` a side; the camera pose as in the observation, no intrinsics."""
+    """On ``viz/<ep>/frame/<role>``: a JPEG of at most ``runtime.viz.THUMB_PX`` a side, the camera pose
+    as in the observation, no intrinsics. On ``viz/<ep>/full/<role>`` (only while a recorder asks for
+    full resolution): the observation's own image, as the agent got it. One frame per RGB view (six at
+    a STOP_OBSERVE); ``image.name`` says which."""
 
 
 class EpisodeStarted(Message, tag="episode_started", kw_only=True):

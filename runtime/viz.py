@@ -2,11 +2,13 @@
 
 The world worker mirrors what a viewer needs under ``agos/<run>/viz/<ep>/`` (runtime/keys.py):
 ``events`` (``EpisodeStarted`` and every ``StepEvent``: applied action, pose, oracle flags),
-``coord`` (the coordination truth: candidates, poses, budget) and ``frame/<role>`` (a
-:class:`VizFrame`: the role's camera view as a JPEG of at most ``THUMB_PX`` pixels a side, a few
-KB). All of it goes out with congestion control DROP, express and low priority
-(``ZenohBus.publish_viz``): a slow or stuck observer loses samples, the world never waits for
-it. Control traffic (``ep/<ep>/...``) stays reliable with BLOCK for those that must not miss
+``coord`` (the coordination truth: candidates, poses, budget), ``frame/<role>`` (one
+:class:`VizFrame` per RGB view of an observation: a JPEG of at most ``THUMB_PX`` pixels a side, a few
+KB), ``spec`` (the episode spec, at its start) and ``result`` (a copy of the record, at its end).
+``full/<role>`` carries the views at full resolution (:func:`full_frames`), made only while
+something subscribes to that key (``agos record --full``). All of it goes out with congestion
+control DROP, express and low priority (``ZenohBus.publish_viz``): a slow or stuck observer loses
+samples, the world never waits for it. Control traffic (``ep/<ep>/...``) stays reliable with BLOCK for those that must not miss
 anything (evaluator, orchestrator, agents).
 
 Frames are made on a background thread from the latest observation only (:class:`FrameStream`;
@@ -42,8 +44,23 @@ def decode_viz(payload: bytes) -> Any:
 def thumbnail(obs: Observation, size_px: int = THUMB_PX) -> VizFrame | None:
     """The observation's first RGB view (UAV nadir, UGV forward or first of six), scaled down."""
     frame = next((f for f in obs.images if f.kind == "rgb"), None)
-    if frame is None:
-        return None
+    return None if frame is None else _thumbnail(obs, frame, size_px)
+
+
+def thumbnails(obs: Observation, size_px: int = THUMB_PX) -> list[VizFrame]:
+    """Every RGB view of the observation (the six views at a STOP_OBSERVE), scaled down."""
+    frames = (_thumbnail(obs, f, size_px) for f in obs.images if f.kind == "rgb")
+    return [f for f in frames if f is not None]
+
+
+def full_frames(obs: Observation) -> list[VizFrame]:
+    """Every RGB view of the observation as the agent got it (``viz/<ep>/full/<role>``): no decoding,
+    the frames share the observation's bytes."""
+    return [VizFrame(run_id=obs.run_id, episode_id=obs.episode_id, role=obs.role, decision_index=obs.decision_index,
+                     sim_time_s=obs.sim_time_s, pose=obs.pose, image=f) for f in obs.images if f.kind == "rgb"]
+
+
+def _thumbnail(obs: Observation, frame: ImageFrame, size_px: int) -> VizFrame | None:
     side = max(frame.intrinsics.width_px, frame.intrinsics.height_px) if frame.intrinsics else 0
     reduce = next((n for n in (8, 4, 2) if side // n >= size_px), 1)  # JPEG decodes at 1/n for nearly free
     flag = {8: cv2.IMREAD_REDUCED_COLOR_8, 4: cv2.IMREAD_REDUCED_COLOR_4, 2: cv2.IMREAD_REDUCED_COLOR_2}.get(
@@ -116,8 +133,7 @@ class FrameStream:
                 key, obs = self._pending.popitem()
                 self._busy = True
             try:
-                frame = thumbnail(obs)
-                if frame is not None:
+                for frame in thumbnails(obs):
                     self.bus.publish_viz(key, frame)
             except Exception:  # a visualisation problem must never touch the episode
                 log.debug("frame for %s not published", key, exc_info=True)

@@ -49,8 +49,9 @@ from agos.runtime.schemas import (
 )
 from agos.world.sim import rules, sensors
 from agos.world.sim.comms import Channel
+from agos.world.sim.episode_vehicles import add_episode_vehicles
 from agos.world.sim.observations import coordination, observe, uav_waypoint
-from agos.world.sim.record import episode_record, shortest_confirmable_path
+from agos.world.sim.record import episode_record, logged_step, shortest_confirmable_path
 from agos.world.sim.rules import IllegalAction
 from agos.world.sim.scene import Scene
 from agos.world.sim.state import EpisodeState, UavState, UgvState
@@ -109,10 +110,8 @@ class EpisodeRunner:
     def _setup(self) -> None:
         st = self.state
         spec, scene, cfg = st.spec, st.scene, st.cfg
-        st.target_uid = scene.add_vehicle(spec.target.model, spec.target.colour,
-                                          spec.target.position_world_m, spec.target.yaw_rad)
-        st.added = [st.target_uid] + [
-            scene.add_vehicle(d.model, d.colour, d.position_world_m, d.yaw_rad) for d in spec.distractors]
+        st.added = add_episode_vehicles(scene, spec)  # LookMismatch for what this look cannot draw
+        st.target_uid = st.added[0]
         st.target_xy = (spec.target.position_world_m[0], spec.target.position_world_m[1])
         st.region_map = RegionMap(st.town.layout, spec.region_world_m, size_px=cfg.cameras.map_px) \
             if cfg.cameras.map_px else None
@@ -219,6 +218,7 @@ class EpisodeRunner:
         its message and a sync of the role's knowledge sent through the link, and its step reported."""
         st = self.state
         st.decisions_used += 1
+        route_before = len(st.ugv.route)
         if st.cfg.timing_mode == "realtime" and action is not None and action.agent_wall_latency_s:
             # A slow decision takes effect late; the teammate's schedule is unaffected.
             st.sim_time_s += max(0.0, action.agent_wall_latency_s)
@@ -239,6 +239,7 @@ class EpisodeRunner:
         if action is not None and action.message and fallback is None:
             st.channel.message(role, st.sim_time_s, action.message, st.link_geometry())
         st.channel.sync(role, st.sim_time_s, st.pose(role), st.link_geometry())
+        st.step_log.append(logged_step(st, role, obs.decision_index, applied, candidate_id, route_before))
         self.sink.step(StepEvent(
             run_id=st.run_id, episode_id=st.spec.episode_id, role=role, decision_index=obs.decision_index,
             episode_step=st.decisions_used, sim_time_s=st.sim_time_s, requested=action, applied=applied,

@@ -4,7 +4,9 @@ Contract: :func:`observe` is one decision's sensing for one role: it counts the 
 renders its cameras (the UAV's nadir view with the grid, or the UGV's forward view, or the six
 views of its last STOP_OBSERVE), and builds the :class:`Observation` from the role's own view of
 the coordination state (never the truth), its waypoint options and the legal actions of
-:mod:`agos.world.sim.rules`, plus the oracle's ground-truth hints when the oracle tool is on.
+:mod:`agos.world.sim.rules`, plus the oracle's ground-truth hints when the oracle tool is on, and the expert's plan when the
+expert tool is on (made once per episode by the planner :func:`use_expert_planner` installed:
+``agos.world.expert``, a layer above, installs it; this module only delivers it).
 It notes in the state what the UAV's camera saw (``uav_target_px``, the oracle-visible step
 ``tau``) and the role's information age; it moves nothing and sends nothing.
 :func:`coordination` builds the truth or a role's view as a :class:`CoordinationState`.
@@ -14,9 +16,20 @@ from __future__ import annotations
 
 import copy
 import math
+import weakref
+from collections.abc import Callable
 
 from agos.runtime.codec import encode_png
-from agos.runtime.schemas import CoordinationState, ImageFrame, Observation, OracleHints, Role, Waypoint
+from agos.runtime.schemas import (
+    CoordinationState,
+    ExpertHints,
+    ExpertStep,
+    ImageFrame,
+    Observation,
+    OracleHints,
+    Role,
+    Waypoint,
+)
 from agos.world.sim import rules, sensors
 from agos.world.sim.confirm import check_confirm
 from agos.world.sim.options import uav_options, ugv_options
@@ -46,7 +59,7 @@ def observe(st: EpisodeState, role: Role) -> Observation:
             region_world_m=st.spec.region_world_m,
             active_uav_waypoints=st.searchable_area,
             coordination=coordination(st, "uav"), grid_rows=sensors.GRID_ROWS, grid_cols=sensors.GRID_COLS,
-            oracle=_oracle(st, "uav", st.uav_target_px >= st.cfg.uav_visible_min_px()))
+            oracle=_oracle(st, "uav", st.uav_target_px >= st.cfg.uav_visible_min_px()), expert=_expert(st, "uav"))
     st.ugv.decisions += 1
     if st.ugv.mode == "stop_6view":
         images = [f for shot in st.ugv.six for f in sensors.frames_of(shot, st.scene, cam)] + _map_frame(st, "ugv")
@@ -60,7 +73,8 @@ def observe(st: EpisodeState, role: Role) -> Observation:
         mode="stop_6view" if st.ugv.mode == "stop_6view" else "driving", images=images,
         references=st.references, legal_actions=rules.ugv_legal(st, road_options), waypoint_options=road_options,
         region_world_m=st.spec.region_world_m, coordination=coordination(st, "ugv"),
-        fresh_stop_observe=st.ugv.fresh_stop, oracle=_oracle(st, "ugv", bool(st.ground_visible)))
+        fresh_stop_observe=st.ugv.fresh_stop, oracle=_oracle(st, "ugv", bool(st.ground_visible)),
+        expert=_expert(st, "ugv"))
 
 
 def uav_waypoint(town: Town, node_id: str) -> Waypoint:
@@ -125,3 +139,29 @@ def _oracle(st: EpisodeState, role: Role, target_in_view: bool) -> OracleHints |
     would = role == "ugv" and st.ugv.mode == "stop_6view" and not check_confirm(
         rules.confirm_evidence(st), st.cfg.confirm_at_view_size())
     return OracleHints(target_world_m=st.target_xy, target_in_view=target_in_view, confirm_would_succeed=would)
+
+
+ExpertPlanner = Callable[[EpisodeState], dict[Role, list[ExpertStep]]]
+"""Makes the expert's decision script of an episode from its state (ground truth and scene)."""
+
+_expert_planner: ExpertPlanner | None = None
+_expert_plans: weakref.WeakKeyDictionary[EpisodeState, dict[Role, ExpertHints]] = weakref.WeakKeyDictionary()
+
+
+def use_expert_planner(planner: ExpertPlanner | None) -> None:
+    """Install the planner whose plan observations carry when the expert tool is on (the expert's
+    package, agos.world.expert, sits above this one and installs itself: ``agos.world.expert.install``)."""
+    global _expert_planner
+    _expert_planner = planner
+
+
+def _expert(st: EpisodeState, role: Role) -> ExpertHints | None:
+    """The expert's script for ``role``, planned at the episode's first observation."""
+    if not st.cfg.tools.expert:
+        return None
+    if st not in _expert_plans:
+        if _expert_planner is None:
+            raise RuntimeError("the expert tool is on but this process has no expert planner: "
+                               "call agos.world.expert.install() before running episodes")
+        _expert_plans[st] = {r: ExpertHints(steps=steps) for r, steps in _expert_planner(st).items()}
+    return _expert_plans[st][role]

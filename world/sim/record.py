@@ -14,7 +14,7 @@ import math
 
 from agos.runtime.episode_config import CameraConfig, ConfirmConfig
 from agos.runtime.geometry import distance_to_polygon
-from agos.runtime.schemas import CandidateOutcome, EpisodeRecord, VehicleSpec
+from agos.runtime.schemas import ActionName, CandidateOutcome, EpisodeRecord, LoggedStep, Role, VehicleSpec
 from agos.runtime.traces import trace_stats
 from agos.world.sim.evidence import nearest_verifying_anchor
 from agos.world.sim.scene import Scene
@@ -55,4 +55,44 @@ def episode_record(st: EpisodeState, wall_time_s: float) -> EpisodeRecord:
         link=st.channel.stats(st.candidates), ledger=st.channel.ledger, confirm_rejection=st.confirm_failure,
         tools=cfg.tools.model_dump(),
         config=cfg.model_dump(mode="json"), config_hash=cfg.config_hash(),
-        agent_stats=trace_stats(st.traces), decision_traces=st.traces)
+        agent_stats=trace_stats(st.traces), decision_traces=st.traces, step_log=st.step_log)
+
+
+def logged_step(st: EpisodeState, role: Role, decision_index: int, applied: ActionName, candidate_id: str | None,
+                route_before: int) -> LoggedStep:
+    """The step log's entry for a decision just applied: where ``role`` is now, and for a UGV that
+    drove, the road it drove (its route had ``route_before`` nodes before the decision)."""
+    x, y = st.uav.position[:2] if role == "uav" else st.ugv_xy()
+    road: list[tuple[float, float]] = []
+    if role == "ugv" and len(st.ugv.route) > route_before:
+        nodes = st.ugv.route[max(0, route_before - 1):]
+        road = _simplified([(float(p[0]), float(p[1])) for p in st.roads.positions_world_m[nodes]])
+    polygon: list[tuple[float, float]] = []
+    if applied == "ANNOTATE_CANDIDATE" and candidate_id is not None:
+        polygon = next(([(round(px, 3), round(py, 3)) for px, py in c.polygon_world_m]
+                        for c in st.candidates if c.candidate_id == candidate_id), [])
+    return LoggedStep(role=role, decision_index=decision_index, sim_time_s=round(st.sim_time_s, 3), applied=applied,
+                      position_world_m=(round(float(x), 3), round(float(y), 3)), road_path_world_m=road,
+                      candidate_id=candidate_id, candidate_polygon_world_m=polygon)
+
+
+def _simplified(points: list[tuple[float, float]], tolerance_m: float = 0.25) -> list[tuple[float, float]]:
+    """``points`` as a polyline that stays within ``tolerance_m`` of them (Douglas-Peucker; the ends
+    always kept), rounded to millimetres."""
+    keep = [False] * len(points)
+    keep[0] = keep[-1] = True
+    spans = [(0, len(points) - 1)]
+    while spans:
+        a, c = spans.pop()
+        (ax, ay), (cx, cy) = points[a], points[c]
+        span = math.hypot(cx - ax, cy - ay)
+        worst, where = 0.0, -1
+        for b in range(a + 1, c):
+            bx, by = points[b]
+            off = (abs((cx - ax) * (by - ay) - (cy - ay) * (bx - ax)) / span) if span > 1e-9 else math.hypot(bx - ax, by - ay)
+            if off > worst:
+                worst, where = off, b
+        if worst > tolerance_m:
+            keep[where] = True
+            spans += [(a, where), (where, c)]
+    return [(round(x, 3), round(y, 3)) for (x, y), k in zip(points, keep, strict=True) if k]

@@ -213,12 +213,17 @@ def _project_cell(st: EpisodeState, cell: str) -> tuple[list[tuple[float, float]
     return polygon, (float(uav.position[0]), float(uav.position[1]))
 
 
-def _approach_anchor(st: EpisodeState, centre: tuple[float, float], radius_m: float = 20.0) -> int | None:
-    """Road-graph path planning: the reachable decision anchor that best trades closeness to
-    the candidate centre against road distance from the UGV (1 m closer is worth 20 m of
-    driving); the nearest reachable anchor if none lies within ``radius_m``."""
-    lengths = nx.single_source_dijkstra_path_length(st.roads.fine, st.ugv.node, weight="length_m")
-    ids, xy = st.roads.anchor_array()
+def _approach_anchor(st: EpisodeState, centre: tuple[float, float]) -> int | None:
+    return approach_anchor(st.roads, st.ugv.node, centre)
+
+
+def approach_anchor(roads: RoadGraphs, node: int, centre: tuple[float, float], radius_m: float = 20.0) -> int | None:
+    """Road-graph path planning from a UGV at ``node``: the reachable decision anchor that best
+    trades closeness to the candidate centre against road distance (1 m closer is worth 20 m of
+    driving); the nearest reachable anchor if none lies within ``radius_m``. Public so that a plan
+    can tell where GO_TO_CANDIDATE will drive (agos.world.expert)."""
+    lengths = nx.single_source_dijkstra_path_length(roads.fine, node, weight="length_m")
+    ids, xy = roads.anchor_array()
     dist = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1])
     near = [(float(d) + 0.05 * lengths[int(n)], int(n)) for n, d in zip(ids, dist, strict=True)
             if d <= radius_m and int(n) in lengths]

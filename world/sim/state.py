@@ -7,7 +7,7 @@ a link; the modules that change it are named on each field group.
 Who changes what:
 
 * :mod:`agos.world.sim.engine` creates the state, sets it up in the scene, advances
-  ``sim_time_s`` and the budget, and counts fallbacks and traces;
+  ``sim_time_s`` and the budget, counts fallbacks and traces, and logs each applied step;
 * :mod:`agos.world.sim.rules` applies actions: poses, readiness, candidates and their status,
   CONFIRM outcome and termination;
 * :mod:`agos.world.sim.observations` counts each role's decisions and notes what its cameras saw
@@ -26,6 +26,7 @@ from agos.runtime.schemas import (
     Candidate,
     EpisodeSpec,
     ImageFrame,
+    LoggedStep,
     MessageRecord,
     Pose,
     Role,
@@ -97,6 +98,7 @@ class EpisodeState:
         self.decisions_used = 0
         self.fallbacks = 0
         self.traces: list[StoredTrace] = []
+        self.step_log: list[LoggedStep] = []
         self.n_confirm = 0
         self.tau: int | None = None
         self.ground_observed = False

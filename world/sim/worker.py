@@ -39,8 +39,9 @@ from agos.runtime.schemas import (
     StepEvent,
 )
 from agos.runtime.settings import AgosConfig
-from agos.runtime.viz import FrameStream
+from agos.runtime.viz import FrameStream, full_frames
 from agos.world.sim.engine import EpisodeRunner
+from agos.world.sim.episode_vehicles import LookMismatch
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import AssetError, AssetMismatch, Town, town_for
 
@@ -116,6 +117,11 @@ class BusDecisionSource:
         self.buffers = {role: bytearray() for role in keys.ROLES}  # each role's last observation, reused
         self.obs_keys = {role: keys.obs(run_id, episode_id, role) for role in keys.ROLES}
         self.viz_keys = {role: keys.viz_frame(run_id, episode_id, role) for role in keys.ROLES}
+        # Full-resolution views go out only while something subscribes to them (agos record --full);
+        # asked now, so that the matching flag is current by the first decision.
+        self.full_keys = {role: keys.viz_full(run_id, episode_id, role) for role in keys.ROLES}
+        for key in self.full_keys.values():
+            bus.watched(key)
         self._ready: dict[str, set[str]] = {role: set() for role in keys.ROLES}  # role -> agents subscribed
         self._served: set[str] = set()  # roles whose agents answered this episode
         self._ready_changes = Inbox()
@@ -176,10 +182,14 @@ class BusDecisionSource:
         self._watch_agents()
         for role, obs in observations.items():
             obs.attempt = self.attempt
+            obs.decision_timeout_s = self.timeout_s
             encode_into(obs, self.buffers[role])  # zenoh copies it on put; kept for a resend
             self.bus.publish(self.obs_keys[role], self.buffers[role])
             if self.frames is not None:
                 self.frames.offer(self.viz_keys[role], obs)
+            if self.bus.watched(self.full_keys[role]):
+                for frame in full_frames(obs):
+                    self.bus.publish_viz(self.full_keys[role], frame)
         pending = {role: obs.decision_index for role, obs in observations.items()}
         actions: dict[Role, Action | None] = dict.fromkeys(observations)
         deadline = time.monotonic() + self.timeout_s
@@ -338,6 +348,7 @@ class WorldWorker:
                 worker_id=self.worker_id, town_id=town.town_id, asset_sha256=town.sha256))
             self.bus.publish(keys.events(self.run_id, spec.episode_id), started_msg)
             self.bus.publish_viz(keys.viz_events(self.run_id, spec.episode_id), started_msg)
+            self.bus.publish_viz(keys.viz_spec(self.run_id, spec.episode_id), spec)
             source = BusDecisionSource(self.bus, self.run_id, spec.episode_id, worker_id=self.worker_id,
                                        timeout_s=config.decision_timeout_s, stop=self.stop,
                                        agent_wait_s=self.cfg.run.agent_wait_s, frames=self.frames,
@@ -349,7 +360,7 @@ class WorldWorker:
             if self.stop.is_set():
                 log.info("episode %s interrupted; not submitted", spec.episode_id)
                 return
-        except (AssetMismatch, AssetError, StoredConfigError) as exc:
+        except (AssetMismatch, AssetError, StoredConfigError, LookMismatch) as exc:
             record = self._failed(spec, "invalid", str(exc), started, config)
         except MissingAgent as exc:
             log.error("episode %s: %s", spec.episode_id, exc)
@@ -367,6 +378,8 @@ class WorldWorker:
             self.frames.forget(keys.viz_prefix(self.run_id, spec.episode_id))
             self.bus.forget(keys.episode_prefix(self.run_id, spec.episode_id))
             self.bus.forget(keys.viz_prefix(self.run_id, spec.episode_id))
+        self.bus.publish_viz(keys.viz_result(self.run_id, spec.episode_id), record)  # for viewers (lossy)
+        self.bus.forget(keys.viz_result(self.run_id, spec.episode_id))
         self.submit(record)
         log.info("episode %s: %s (%s) in %.1f s", spec.episode_id, record.termination,
                  "success" if record.success else "failure", time.monotonic() - started)
