@@ -102,7 +102,7 @@ class Point:
     seed: int
 
 
-_CACHE: dict[str, Any] = {}
+_CACHE: dict[tuple[str, str], Any] = {}
 
 
 def _run_point_episode(args: tuple[str, str, list[str], str, str]) -> tuple[int, str]:
@@ -113,17 +113,19 @@ def _run_point_episode(args: tuple[str, str, list[str], str, str]) -> tuple[int,
     from agos.runtime.episode_config import EpisodeConfig
     from agos.runtime.schemas import EpisodeSpec
     from agos.runtime.settings import VlmOptions
+    from agos.world.expert import install
     from agos.world.sim.engine import EpisodeRunner
     from agos.world.sim.scene import Scene
     from agos.world.towns.asset import town_for
 
+    install()  # expert runs carry the world's plan in their observations
     spec = from_json(episode_json, EpisodeSpec)
-    key = spec.asset_sha256
+    config = EpisodeConfig.model_validate_json(config_json)
+    key = (spec.asset_sha256, config.look)
     if key not in _CACHE:
         town = town_for(spec.town.generator, spec.town.seed, spec.asset_sha256, town_id=spec.town.town_id)
-        _CACHE[key] = (town, Scene(town.layout))
+        _CACHE[key] = (town, Scene(town.layout, look=config.look))
     town, scene = _CACHE[key]
-    config = EpisodeConfig.model_validate_json(config_json)
     vlm = VlmOptions.model_validate_json(vlm_json) if vlm_json else None
     agents = InProcessAgents({"uav": make_policy(policies[0], "uav", vlm=vlm),
                               "ugv": make_policy(policies[1], "ugv", vlm=vlm)})
