@@ -46,6 +46,9 @@ def add_parsers(sub: Any) -> None:
 
     view = sub.add_parser("view", help="open a recording (.rrd) in the rerun viewer, or say how to")
     view.add_argument("file", type=Path)
+    view.add_argument("--web", action="store_true",
+                      help="serve rerun's web viewer on loopback instead of opening a window (no display needed)")
+    view.add_argument("--web-port", type=int, default=9090, help="port of the web viewer (with --web)")
 
     plot = sub.add_parser("plot", help="trajectory figures of episodes from a run's records")
     what = plot.add_subparsers(dest="plot_what", required=True)
@@ -75,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     if args.command == "view":
         from agos.deploy.view import main as view_main
 
-        return view_main(args.file)
+        return view_main(args.file, web=args.web, web_port=args.web_port)
     from agos.deploy.plot import PlotError, plot_compare, plot_episode
 
     try:
