@@ -189,6 +189,12 @@ class Orchestrator:
                 self._announce(lease)
             for record in self.gave_up.values():
                 self.bus.publish(keys.result(self.run_id, record.episode_id), record)
+            # A holder's record whose ack came first (a small ack can overtake a large record: the two
+            # travel on different keys) had that ack refused above; publishing the record again makes
+            # the evaluator acknowledge it once more (as a duplicate), now in the right order.
+            for episode_id in self.unacknowledged():
+                if episode_id not in self.gave_up:
+                    self.bus.publish(keys.result(self.run_id, episode_id), self.records[episode_id])
         self._answer_queries()
         return newly
 
