@@ -384,11 +384,12 @@ def _run_unconfigured(args: argparse.Namespace) -> int:
 def _human(args: argparse.Namespace, cfg: AgosConfig) -> int:
     from agos.agents.human import service as human_service
     from agos.deploy.human import CONSOLE_PORT, SPECTATOR_PORT
+    from agos.runtime.keys import ROLES
     from agos.runtime.schemas import Role
 
     if args.spectate:
         return human_service.spectate(cfg, run_id=args.run_id, host=args.host, port=args.port or SPECTATOR_PORT)
-    roles: tuple[Role, ...] = ("uav", "ugv") if args.role == "both" else (args.role,)
+    roles: tuple[Role, ...] = ROLES if args.role == "both" else (args.role,)
     return human_service.main(cfg, roles=roles, host=args.host, port=args.port or CONSOLE_PORT, player=args.player,
                               trace_file=args.trace)
 

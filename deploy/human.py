@@ -21,6 +21,8 @@ from agos.runtime.schemas import Role
 CONSOLE_PORT = 8765
 """Where ``agos human`` serves its page unless told (or the next free port, in ``agos eval``)."""
 SPECTATOR_PORT = 8766
+CONSOLE_NAMES = ("human", "human-uav", "human-ugv")
+"""The names the consoles run under in ``agos eval``'s launcher (stopped with the agents)."""
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(h|m|min|s)?\s*$")
 _UNIT_S = {"h": 3600.0, "m": 60.0, "min": 60.0, "s": 1.0, None: 1.0}
 
@@ -61,6 +63,3 @@ def start_console(launcher: Launcher, policies: dict[str, str], common: list[str
                       highlight=False, soft_wrap=True)
     return roles
 
-
-CONSOLE_NAMES = ("human", "human-uav", "human-ugv")
-"""The names the consoles run under in ``agos eval``'s launcher (stopped with the agents)."""

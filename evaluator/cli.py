@@ -10,7 +10,7 @@ from pathlib import Path
 
 from rich.console import Console
 
-from agos.evaluator import human_row
+from agos.evaluator.human_row import LABEL as HUMAN_LABEL
 from agos.evaluator.human_row import is_human_run
 from agos.evaluator.metrics import aggregate, as_json
 from agos.evaluator.pooling import require_one_configuration
@@ -62,8 +62,8 @@ def run(args: argparse.Namespace) -> int:
             return 0
         if args.command == "report":
             human = [is_human_run(p) for p in args.runs]
-            labels = args.labels or [(human_row.LABEL if sum(human) == 1 else f"{human_row.LABEL} ({p.name})") if h
-                                     else p.name for p, h in zip(args.runs, human, strict=True)]
+            labels = args.labels or [(HUMAN_LABEL if sum(human) == 1 else f"{HUMAN_LABEL} ({p.name})") if h else p.name
+                                     for p, h in zip(args.runs, human, strict=True)]
             if len(labels) != len(args.runs):
                 print(f"report error: {len(labels)} labels for {len(args.runs)} runs", file=sys.stderr)
                 return 2

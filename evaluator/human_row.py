@@ -40,7 +40,7 @@ def run_policies(path: Path) -> dict[str, str]:
 def is_human_run(path: Path) -> bool:
     """A person played both roles of the run at ``path``."""
     policies = run_policies(path)
-    return bool(policies) and all(p.partition(":")[0] == HUMAN for p in policies.values()) and len(policies) == 2
+    return len(policies) == 2 and all(p.partition(":")[0] == HUMAN for p in policies.values())
 
 
 def _first_record(path: Path) -> Any:

@@ -89,7 +89,6 @@ def _feedback(page: Any) -> str:
 
 
 def test_a_person_plays_a_whole_episode_through_the_page(tmp_path: Path, browser) -> None:
-    started = time.monotonic()
     episodes = tmp_path / "eps.jsonl"
     subprocess.run([*AGOS, "episodes", "sample", "--town", "grid-s7", "--difficulty", "easy", "-n", "1", "--seed", "3",
                     "--out", str(episodes)], check=True, capture_output=True, timeout=120)
@@ -211,4 +210,3 @@ def test_a_person_plays_a_whole_episode_through_the_page(tmp_path: Path, browser
                             text=True, timeout=60)
     assert report.returncode == 0, report.stderr
     assert "| Human |" in (tmp_path / "report" / "main.md").read_text()
-    assert time.monotonic() - started < 90, f"took {time.monotonic() - started:.0f} s"

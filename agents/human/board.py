@@ -35,7 +35,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from agos.agents.human.view import Shown, shown
+from agos.agents.human.view import Shown, active_candidates, shown
 from agos.agents.vlm.parse import to_action
 from agos.runtime.schemas import Action, DecisionTrace, Observation, Role
 
@@ -92,16 +92,60 @@ def describe(action: Action) -> str:
     return action.action + (f" {arg}" if arg else "")
 
 
-class DecisionBoard:
-    def __init__(self, roles: Iterable[Role], *, player: str = "person", trace_file: Path | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
-        self.roles: tuple[Role, ...] = tuple(roles)
-        self.player, self.trace_file, self._clock = player, trace_file, clock
+class PageBoard:
+    """What the console's server (server.py) serves a page from: the state as JSON, a ``version``
+    bumped on every change, and the latest ``images_kept`` images by digest; one condition guards it
+    all. The decision board (play) and the spectator's (read-only) say what :meth:`snapshot` holds
+    and what :meth:`submit` takes."""
+
+    def __init__(self, images_kept: int) -> None:
         self._cond = threading.Condition()
         self.version = 0
+        self._images: OrderedDict[str, tuple[bytes, str]] = OrderedDict()
+        self._images_kept = images_kept
+
+    def snapshot(self) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def submit(self, body: Any) -> Verdict:
+        raise NotImplementedError
+
+    def snapshot_json(self) -> str:
+        """:meth:`snapshot` as JSON, made under the lock (nothing changes while it is written)."""
+        with self._cond:
+            return json.dumps(self.snapshot(), separators=(",", ":"))
+
+    def image(self, digest: str) -> tuple[bytes, str] | None:
+        with self._cond:
+            return self._images.get(digest)
+
+    def wait_change(self, version: int, timeout_s: float) -> int:
+        """Block until the board differs from ``version`` or ``timeout_s`` passes; the version now."""
+        with self._cond:
+            self._cond.wait_for(lambda: self.version != version, timeout=timeout_s)
+            return self.version
+
+    def _changed(self) -> None:
+        """Under the lock: a new version, and every page waiting is woken."""
+        self.version += 1
+        self._cond.notify_all()
+
+    def _keep_image(self, digest: str, data: bytes, mime: str) -> None:
+        """Under the lock: keep an image, dropping the least recently kept beyond ``images_kept``."""
+        self._images[digest] = (data, mime)
+        self._images.move_to_end(digest)
+        while len(self._images) > self._images_kept:
+            self._images.popitem(last=False)
+
+
+class DecisionBoard(PageBoard):
+    def __init__(self, roles: Iterable[Role], *, player: str = "person", trace_file: Path | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__(IMAGES_KEPT)
+        self.roles: tuple[Role, ...] = tuple(roles)
+        self.player, self.trace_file, self._clock = player, trace_file, clock
         self._pending: dict[Key, _Pending] = {}
         self._decided: OrderedDict[Key, Action] = OrderedDict()
-        self._images: OrderedDict[str, tuple[bytes, str]] = OrderedDict()
         self._last: dict[str, dict[str, Any]] = {}  # role -> the latest view shown, for when nothing is asked
         self.history: deque[dict[str, Any]] = deque(maxlen=HISTORY_KEPT)
         self.notices: deque[dict[str, Any]] = deque(maxlen=HISTORY_KEPT)
@@ -125,10 +169,7 @@ class DecisionBoard:
                     return Asked("pending")  # an older decision arriving late: the newer one stands
             view = shown(obs)
             for image in view.images:
-                self._images[image.digest] = (image.data, image.mime)
-                self._images.move_to_end(image.digest)
-            while len(self._images) > IMAGES_KEPT:
-                self._images.popitem(last=False)
+                self._keep_image(image.digest, image.data, image.mime)
             future: Future[Action] = Future()
             self._pending[key] = _Pending(obs, view, future, self._clock())
             self._changed()
@@ -228,15 +269,6 @@ class DecisionBoard:
         return Verdict(False, 422, f"Not sent: {reason}. {p.obs.role.upper()} decision {p.obs.decision_index} is "
                                    "still yours.")
 
-    def snapshot_json(self) -> str:
-        """:meth:`snapshot` as JSON, made under the lock (nothing changes while it is written)."""
-        with self._cond:
-            return json.dumps(self.snapshot(), separators=(",", ":"))
-
-    def image(self, digest: str) -> tuple[bytes, str] | None:
-        with self._cond:
-            return self._images.get(digest)
-
     def snapshot(self) -> dict[str, Any]:
         """The page's state: per role the decision asked (the oldest, if several episodes ask at
         once) or the last one shown, the history and notices. Marks the decisions it shows as seen."""
@@ -261,16 +293,6 @@ class DecisionBoard:
         return {"state": p.shown.state, "choices": p.shown.choices, "waited_s": round(now - p.received_s, 2),
                 "refusals": len(p.refusals),
                 "images": [{"label": i.label, "caption": i.caption, "url": f"/img/{i.digest}"} for i in p.shown.images]}
-
-    def wait_change(self, version: int, timeout_s: float) -> int:
-        """Block until the board differs from ``version`` or ``timeout_s`` passes; the version now."""
-        with self._cond:
-            self._cond.wait_for(lambda: self.version != version, timeout=timeout_s)
-            return self.version
-
-    def _changed(self) -> None:
-        self.version += 1
-        self._cond.notify_all()
 
     def _notice(self, level: str, text: str) -> None:
         self.notices.append({"level": level, "text": text, "utc": datetime.now(UTC).isoformat(timespec="seconds")})
@@ -297,8 +319,7 @@ def _explained(reason: str, obs: Observation) -> str:
     if reason.startswith("waypoint"):
         return f"{reason} (options now: {', '.join(w.waypoint_id for w in obs.waypoint_options) or 'none'})"
     if reason.startswith("candidate"):
-        known = [c.candidate_id for c in obs.coordination.candidates if c.status in ("pending", "arrived")]
-        return f"{reason} (active now: {', '.join(known) or 'none'})"
+        return f"{reason} (active now: {', '.join(active_candidates(obs)) or 'none'})"
     if reason.startswith("cell"):
         return f"{reason} (rows {obs.grid_rows}, columns 1-{obs.grid_cols})"
     return f"{reason} (legal now: {', '.join(obs.legal_actions)})"

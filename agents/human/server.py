@@ -25,9 +25,9 @@ import threading
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
-from typing import Any, Protocol
+from typing import Any
 
-from agos.agents.human.board import Verdict
+from agos.agents.human.board import PageBoard
 
 log = logging.getLogger("agos.human.server")
 STATIC = {"index.html": "text/html; charset=utf-8", "console.js": "text/javascript; charset=utf-8",
@@ -38,27 +38,13 @@ MIN_EVENT_INTERVAL_S = 0.1
 """Fastest rate of state events per page (a spectator's stream changes many times a second)."""
 
 
-class PageSource(Protocol):
-    """What the page is served from: a decision board (play) or a spectator board (read-only)."""
-
-    version: int
-
-    def snapshot_json(self) -> str: ...
-
-    def wait_change(self, version: int, timeout_s: float) -> int: ...
-
-    def image(self, digest: str) -> tuple[bytes, str] | None: ...
-
-    def submit(self, body: Any) -> Verdict: ...
-
-
 def static_file(name: str) -> bytes:
     """A file of the page, from the installed package."""
     return (resources.files("agos.agents.human") / "static" / name).read_bytes()
 
 
 class _Handler(BaseHTTPRequestHandler):
-    source: PageSource
+    source: PageBoard
     closing: threading.Event
     server_version = "agos-human"
 
@@ -146,7 +132,7 @@ class _Handler(BaseHTTPRequestHandler):
 class ConsoleServer:
     """Serves ``source`` on ``host:port`` from a background thread (one more thread per request)."""
 
-    def __init__(self, source: PageSource, host: str = "127.0.0.1", port: int = 8765) -> None:
+    def __init__(self, source: PageBoard, host: str = "127.0.0.1", port: int = 8765) -> None:
         self.closing = threading.Event()
         handler = type("ConsoleHandler", (_Handler,), {"source": source, "closing": self.closing})
         self.httpd = ThreadingHTTPServer((host, port), handler)

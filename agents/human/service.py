@@ -26,8 +26,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from agos.agents.human.board import DecisionBoard
-from agos.agents.human.server import ConsoleServer, PageSource
+from agos.agents.human.board import DecisionBoard, PageBoard
+from agos.agents.human.server import ConsoleServer
 from agos.agents.human.spectator import SpectatorBoard
 from agos.agents.service import _Dispatch, _EpisodeSubscriptions, publish_action
 from agos.runtime import keys
@@ -101,7 +101,7 @@ async def serve_async(bus: ZenohBus, board: DecisionBoard, run_id: str, stop: St
     return 0
 
 
-def _serve_page(source: PageSource, host: str, port: int, what: str) -> ConsoleServer | None:
+def _serve_page(source: PageBoard, host: str, port: int, what: str) -> ConsoleServer | None:
     try:
         server = ConsoleServer(source, host, port).start()
     except OSError as exc:
@@ -144,13 +144,11 @@ def spectate(cfg: AgosConfig, *, run_id: str | None, host: str = "127.0.0.1", po
         # The observer's own key expressions (the light visualisation stream of every run); the board
         # keeps only ``run_id``'s samples.
         observer = Observer(cfg.zenoh, board.take)
-    except Exception:
-        server.close()
-        raise
-    try:
-        while not stop.wait(0.25):
-            pass
+        try:
+            while not stop.wait(0.25):
+                pass
+        finally:
+            observer.close()
     finally:
-        observer.close()
         server.close()
     return 0

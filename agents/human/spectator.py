@@ -13,12 +13,10 @@ without giving the search away.
 from __future__ import annotations
 
 import hashlib
-import json
-import threading
 from collections import OrderedDict, deque
 from typing import Any
 
-from agos.agents.human.board import Verdict
+from agos.agents.human.board import PageBoard, Verdict
 from agos.runtime.codec import DecodeError, decode
 from agos.runtime.schemas import (
     CoordinationState,
@@ -35,14 +33,12 @@ IMAGES_KEPT = 300
 TRAJECTORY_KEPT = 400
 
 
-class SpectatorBoard:
+class SpectatorBoard(PageBoard):
     def __init__(self, run_id: str | None = None) -> None:
         """``run_id``: shown on the page (the observer decides which runs are heard)."""
+        super().__init__(IMAGES_KEPT)
         self.run_id = run_id
-        self._cond = threading.Condition()
-        self.version = 0
         self._episodes: OrderedDict[tuple[str, str], dict[str, Any]] = OrderedDict()
-        self._images: OrderedDict[str, tuple[bytes, str]] = OrderedDict()
         self.unreadable = 0
 
     def take(self, key: str, payload: bytes) -> None:
@@ -84,8 +80,7 @@ class SpectatorBoard:
                                  "final_distance_m": round(message.final_distance_m, 1)}
             else:
                 return
-            self.version += 1
-            self._cond.notify_all()
+            self._changed()
 
     @staticmethod
     def _run_of(key: str) -> str:
@@ -119,9 +114,7 @@ class SpectatorBoard:
     def _frame(self, frame: VizFrame) -> None:
         ep = self._episode(frame.run_id, frame.episode_id)
         digest = hashlib.sha256(frame.image.data).hexdigest()[:16]
-        self._images[digest] = (frame.image.data, "image/jpeg" if frame.image.encoding == "jpeg" else "image/png")
-        while len(self._images) > IMAGES_KEPT:
-            self._images.popitem(last=False)
+        self._keep_image(digest, frame.image.data, "image/jpeg" if frame.image.encoding == "jpeg" else "image/png")
         seen = ep["frames"].get(frame.role)
         if seen is None or seen["decision_index"] != frame.decision_index:
             seen = ep["frames"][frame.role] = {"decision_index": frame.decision_index, "views": {}}
@@ -132,20 +125,6 @@ class SpectatorBoard:
         with self._cond:
             episodes = [{**ep, "steps": list(ep["steps"])[::-1]} for ep in reversed(self._episodes.values())]
             return {"mode": "spectate", "run_id": self.run_id, "version": self.version, "episodes": episodes}
-
-    def snapshot_json(self) -> str:
-        """:meth:`snapshot` as JSON, made under the lock (nothing changes while it is written)."""
-        with self._cond:
-            return json.dumps(self.snapshot(), separators=(",", ":"))
-
-    def image(self, digest: str) -> tuple[bytes, str] | None:
-        with self._cond:
-            return self._images.get(digest)
-
-    def wait_change(self, version: int, timeout_s: float) -> int:
-        with self._cond:
-            self._cond.wait_for(lambda: self.version != version, timeout=timeout_s)
-            return self.version
 
     def submit(self, body: Any) -> Verdict:
         return Verdict(False, 403, "This is a read-only spectator view: it cannot decide.")

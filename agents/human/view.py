@@ -22,12 +22,11 @@ import struct
 from dataclasses import dataclass
 from typing import Any
 
-from agos.runtime.schemas import Candidate, ImageFrame, Observation, Waypoint
+from agos.agents.vlm import protocol
+from agos.agents.vlm.agos_prompts import ugv_stage
+from agos.agents.vlm.request import PANEL_NOTES, REFERENCE_NOTES, budget, candidate_facts, frame, xy
+from agos.runtime.schemas import ImageFrame, Observation, Waypoint
 
-PANELS = ("front_left", "front", "front_right", "back_left", "back", "back_right")
-"""The six views in the order the page lays them out (two rows of three), as the VLM prompt numbers them."""
-REFERENCE_CAPTIONS = {"ref_top": "from above", "ref_front": "front", "ref_front_left": "front-left",
-                      "ref_side": "side", "ref_rear": "rear"}
 OPTION_KEYS = "123456789"
 """Keyboard keys of the waypoint options, in order."""
 ACTION_KEYS = {"ANNOTATE_CANDIDATE": "a", "NO_RELIABLE_CANDIDATE": "n", "GO_TO_CANDIDATE": "g", "STOP_OBSERVE": "s",
@@ -61,36 +60,39 @@ class Shown:
 
 def shown(obs: Observation) -> Shown:
     """The page's model of ``obs`` (see the module docstring)."""
-    images = _images(obs)
     map_frame = next((f for f in obs.images if f.kind == "map"), None)
+    images = _images(obs, map_frame)
     to_px = _MapPixels(obs.region_world_m, _png_side(map_frame.data) if map_frame is not None else None)
     here = obs.pose.position_world_m[:2]
     c = obs.coordination
     mate_role = "ugv" if obs.role == "uav" else "uav"
     mate = c.poses.get(mate_role)
     options = [_option(n, w, here, to_px) for n, w in enumerate(obs.waypoint_options)]
+    active, candidates, rejected = candidate_facts(obs)
+    for row, k in zip(candidates, c.candidates, strict=True):  # the prompt's facts, and where to draw them
+        row.update(created_s=round(k.created_sim_time_s, 1), approach=k.approach_waypoint_id, map_px=to_px(k.center_world_m),
+                   polygon_px=[p for v in k.polygon_world_m if (p := to_px(v)) is not None])
     state: dict[str, Any] = {
         "run_id": obs.run_id, "episode_id": obs.episode_id, "role": obs.role, "attempt": obs.attempt,
         "decision_index": obs.decision_index, "sim_time_s": round(obs.sim_time_s, 1), "mode": obs.mode,
         "fresh_stop_observe": obs.fresh_stop_observe, "decision_timeout_s": obs.decision_timeout_s,
-        "pose": {"position_m": _xy(here), "altitude_m": round(obs.pose.position_world_m[2], 1),
+        "pose": {"position_m": xy(here), "altitude_m": round(obs.pose.position_world_m[2], 1),
                  "heading_deg": round(math.degrees(obs.pose.yaw_rad) % 360.0, 1), "map_px": to_px(here)},
-        "teammate": None if mate is None else {"role": mate_role, "position_m": _xy(mate.position_world_m[:2]),
+        "teammate": None if mate is None else {"role": mate_role, "position_m": xy(mate.position_world_m[:2]),
                                                "heading_deg": round(math.degrees(mate.yaw_rad) % 360.0, 1),
                                                "map_px": to_px(mate.position_world_m[:2])},
-        "budget": {"used": c.decisions_used, "total": c.decision_budget,
-                   "left": max(0, c.decision_budget - c.decisions_used)},
+        "budget": budget(obs),
         "annotations": {"used": c.annotations_used, "max": c.max_annotations},
         "legal_actions": list(obs.legal_actions),
         "options": options,
-        "candidates": [_candidate(k, here, to_px) for k in c.candidates],
+        "candidates": candidates,
         "messages": [{"from": m.sender, "to": m.receiver, "text": m.text, "sent_s": round(m.sent_sim_time_s, 1),
                       "delivered_s": round(m.delivered_sim_time_s, 1)} for m in c.messages],
         "region_m": [round(v, 1) for v in obs.region_world_m],
         "grid": {"rows": obs.grid_rows, "cols": obs.grid_cols},
         "map": None if to_px.side_px is None else {"side_px": to_px.side_px},
         "searchable_px": [p for w in obs.active_uav_waypoints if (p := to_px(w.position_world_m[:2])) is not None],
-        "hint": _hint(obs),
+        "hint": _hint(obs, active, rejected),
     }
     digest = hashlib.sha256(json.dumps(state, sort_keys=True).encode())
     for image in images:
@@ -98,33 +100,29 @@ def shown(obs: Observation) -> Shown:
     return Shown(state=state, images=images, choices=_choices(obs, options), sha256=digest.hexdigest())
 
 
-def _images(obs: Observation) -> list[ShownImage]:
+def _images(obs: Observation, map_frame: ImageFrame | None) -> list[ShownImage]:
+    """The images the role's AGOS-Agent prompt carries, under its labels and notes (agents/vlm/request.py)."""
     out: list[ShownImage] = []
 
-    def add(label: str, caption: str, frame: ImageFrame | None) -> None:
-        if frame is not None:
-            out.append(ShownImage(label, caption, frame.data, MIME.get(frame.encoding, "application/octet-stream"),
-                                  hashlib.sha256(frame.data).hexdigest()[:16]))
+    def add(label: str, caption: str, f: ImageFrame | None) -> None:
+        if f is not None:
+            out.append(ShownImage(label, caption, f.data, MIME.get(f.encoding, "application/octet-stream"),
+                                  hashlib.sha256(f.data).hexdigest()[:16]))
 
     if obs.role == "uav":
-        add("aerial_grid", "Your downward camera with the A1-E5 grid",
-            _frame(obs, "nadir", "rgb_grid") or _frame(obs, "nadir", "rgb"))
+        add(protocol.AERIAL, "Your downward camera with the A1-E5 grid", frame(obs, "nadir", "rgb_grid") or frame(obs, "nadir"))
     elif obs.mode == "stop_6view":
-        for k, name in enumerate(PANELS, start=1):
-            add(name, f"Panel {k} of 6: {name.replace('_', '-')}", _frame(obs, name, "rgb"))
+        for name, note in PANEL_NOTES.items():
+            add(name, note, frame(obs, name))
     else:
-        add("forward", "Your forward camera", _frame(obs, "forward", "rgb"))
-    add("topdown_map", "Map M of the search region, north up", next((f for f in obs.images if f.kind == "map"), None))
+        add(protocol.FORWARD, "Your forward camera", frame(obs, "forward"))
+    add(protocol.MAP, "Map M of the search region, north up", map_frame)
     for ref in obs.references:
-        caption = f"Target, {REFERENCE_CAPTIONS.get(ref.name, ref.name)}"
-        if ref.name == "ref_top" and ref.metres_per_px:
-            caption += f" ({ref.metres_per_px * 100:.1f} cm per pixel)"
-        add("target_ref_" + ref.name.removeprefix("ref_"), caption, ref)
+        note = REFERENCE_NOTES.get(ref.name, "Target reference")
+        if ref.metres_per_px:
+            note += f" ({ref.metres_per_px * 100:.1f} cm per pixel)"
+        add(protocol.REFERENCE_PREFIX + ref.name.removeprefix("ref_"), note, ref)
     return out
-
-
-def _frame(obs: Observation, name: str, kind: str) -> ImageFrame | None:
-    return next((f for f in obs.images if f.name == name and f.kind == kind), None)
 
 
 class _MapPixels:
@@ -149,26 +147,15 @@ def _png_side(data: bytes) -> int | None:
     return int(struct.unpack(">I", data[16:20])[0])
 
 
-def _xy(v: Any) -> list[float]:
-    return [round(float(v[0]), 1), round(float(v[1]), 1)]
-
-
 def _option(n: int, w: Waypoint, here: Any, to_px: _MapPixels) -> dict[str, Any]:
     row: dict[str, Any] = {"n": n + 1, "id": w.waypoint_id, "kind": w.kind, "option": w.option,
-                           "position_m": _xy(w.position_world_m), "map_px": to_px(w.position_world_m[:2]),
+                           "position_m": xy(w.position_world_m), "map_px": to_px(w.position_world_m[:2]),
                            "distance_m": round(math.dist(here, w.position_world_m[:2]), 1)}
     if w.path_length_m is not None:
         row["path_length_m"] = round(w.path_length_m, 1)
     if w.distance_to_candidate_m is not None:
         row["distance_to_candidate_m"] = round(w.distance_to_candidate_m, 1)
     return row
-
-
-def _candidate(c: Candidate, here: Any, to_px: _MapPixels) -> dict[str, Any]:
-    return {"id": c.candidate_id, "cell": c.cell, "status": c.status, "center_m": _xy(c.center_world_m),
-            "distance_m": round(math.dist(here, c.center_world_m), 1), "created_s": round(c.created_sim_time_s, 1),
-            "approach": c.approach_waypoint_id, "map_px": to_px(c.center_world_m),
-            "polygon_px": [p for v in c.polygon_world_m if (p := to_px(v)) is not None]}
 
 
 def active_candidates(obs: Observation) -> list[str]:
@@ -202,21 +189,26 @@ def _choices(obs: Observation, options: list[dict[str, Any]]) -> list[dict[str, 
     return out
 
 
-def _hint(obs: Observation) -> str:
-    """One line on where the task stands for this role (what the prompt's stage says to a model)."""
-    active = active_candidates(obs)
+UGV_HINTS = {
+    "six_view": "Six views around the UGV: CONFIRM only if the target is clearly visible and near; else REJECT or move on.",
+    "arrival": "You are at the candidate: STOP_OBSERVE for the six views, or drive closer.",
+    "candidate_reminder": "A candidate is known: GO_TO_CANDIDATE drives there by road; then STOP_OBSERVE to look around.",
+    "post_rejection": "The candidate was rejected: drive other roads, or wait for the UAV's next candidate.",
+    "free_exploration": "No candidate yet: drive the roads, or wait for the UAV's candidate.",
+}
+"""The UGV's line for each stage of its AGOS-Agent prompt (agents/vlm/agos_prompts.py)."""
+
+
+def _hint(obs: Observation, active: dict[str, Any] | None, rejected: list[list[float]]) -> str:
+    """One line on where the task stands for this role: the stage AGOS-Agent's prompt is in, said to a
+    person. ``active``, ``rejected``: :func:`~agos.agents.vlm.request.candidate_facts`."""
     if obs.role == "uav":
-        if active:
-            return (f"Candidate {active[0]} is with the UGV: annotating is off until it is confirmed or rejected. "
+        if active is not None:
+            return (f"Candidate {active['id']} is with the UGV: annotating is off until it is confirmed or rejected. "
                     "Keep searching or wait.")
-        if any(c.status == "rejected" for c in obs.coordination.candidates):
+        if rejected:
             return "A candidate was rejected: search on, elsewhere. Annotate one cell only when colour and body type match."
         return ("Search: fly over the searchable area (grey dots on the map) and annotate the one cell where the "
                 "target is, when colour and body type match the references.")
-    if obs.mode == "stop_6view":
-        return "Six views around the UGV: CONFIRM only if the target is clearly visible and near; else REJECT or move on."
-    if any(c.status == "arrived" for c in obs.coordination.candidates):
-        return "You are at the candidate: STOP_OBSERVE for the six views, or drive closer."
-    if active:
-        return "A candidate is known: GO_TO_CANDIDATE drives there by road; then STOP_OBSERVE to look around."
-    return "No candidate yet: drive the roads, or wait for the UAV's candidate."
+    rgpp = "GO_TO_CANDIDATE" in obs.legal_actions or active is None  # as agos_prompts.ugv_prompt has it
+    return UGV_HINTS[ugv_stage(obs, active, rejected, rgpp=rgpp)]
