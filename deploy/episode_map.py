@@ -75,9 +75,9 @@ def episode_map(spec: EpisodeSpec, size_px: int = 768,
     if town is None:
         return EpisodeMap(frame, None, {}, [], missing)
     from agos.world.towns.roadgraph import RoadGraphs
-    from agos.world.towns.topdown import RegionMap
+    from agos.world.towns.topdown import region_map
 
-    rgb = RegionMap(town.layout, frame.extent_world_m, size_px=size_px).render(uav_xy=None, ugv_xy=None)
+    rgb, _ = region_map(town.layout, frame.extent_world_m, size_px=size_px)
     nodes = town.uav_grid.nodes
     starts: dict[Role, tuple[float, float]] = {}
     if spec.uav_start_waypoint in nodes:

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from agos.evaluator.store import ResultStore
+from agos.runtime.codec import from_json
 from agos.runtime.schemas import EpisodeRecord, EpisodeSpec
 
 Point = tuple[float, float]
@@ -115,13 +116,13 @@ def first_finished(runs: list[Path]) -> str:
 def _record(run_dir: Path, episode_id: str) -> EpisodeRecord:
     store = ResultStore(run_dir / "results.sqlite", create=False)
     try:
-        records = {r.episode_id: r for r in store.records()}
+        stored = dict(store.raw_records())  # episode id -> JSON: only the one drawn is decoded
     finally:
         store.close()
-    if episode_id not in records:
-        known = ", ".join(sorted(records)[:5]) + (" ..." if len(records) > 5 else "")
+    if episode_id not in stored:
+        known = ", ".join(sorted(stored)[:5]) + (" ..." if len(stored) > 5 else "")
         raise PlotError(f"{run_dir.name}: no record of episode {episode_id!r} (stored: {known or 'none'})")
-    return records[episode_id]
+    return from_json(stored[episode_id], EpisodeRecord)
 
 
 def _spec(run_dir: Path, episode_id: str) -> EpisodeSpec:

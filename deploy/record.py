@@ -125,9 +125,7 @@ class Recorder:
         self.finish()
         self._status("stopped", not_written=left)
         dropped = sum(self.inbox.dropped.values()) + left
-        by_kind = Counter[str]()
-        for (_, kind), n in self.inbox.dropped.items():
-            by_kind[kind] += n
+        by_kind = self._dropped_by_kind()
         log.info("recorder stops: %d episodes written to %s; %d samples dropped by its queue%s%s",
                  len(self.finished), self.out_dir, dropped,
                  f" ({', '.join(f'{k}={n}' for k, n in sorted(by_kind.items()))})" if by_kind else "",
@@ -209,13 +207,17 @@ class Recorder:
                                   "dropped_by_queue": seen.dropped_before}
         log.info("%s: %s (%d steps, frames %s)", episode, recording.path, seen.steps, dict(seen.frames))
 
+    def _dropped_by_kind(self) -> Counter[str]:
+        """Samples the queue dropped, by kind (``frame``, ``events``, ...), over all episodes."""
+        by_kind = Counter[str]()
+        for (_, kind), n in self.inbox.dropped.items():
+            by_kind[kind] += n
+        return by_kind
+
     def _status(self, status: str, **extra: Any) -> None:
         """``DIR/recorder.json``: what the recorder is doing and, at exit, what it wrote and lost."""
-        dropped: dict[str, int] = {}
-        for (_, kind), n in self.inbox.dropped.items():
-            dropped[kind] = dropped.get(kind, 0) + n
         doc = {"run_id": self.run_id, "status": status, "full_resolution": self.full, "pid": os.getpid(),
-               "episodes": self.finished, "dropped_by_queue": dropped, **extra}
+               "episodes": self.finished, "dropped_by_queue": dict(self._dropped_by_kind()), **extra}
         tmp = self.out_dir / f".{STATUS_FILE}.tmp"
         tmp.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
         tmp.replace(self.out_dir / STATUS_FILE)

@@ -181,8 +181,8 @@ def viz_light(run: str = "*", *, full: bool = False) -> tuple[str, ...]:
     """The visualisation stream with its thumbnails (``frame/*``) or, ``full``, with its full-resolution
     frames (``full/*``) instead: what ``agos watch`` and ``agos record [--full]`` subscribe to.
     (``viz_all`` matches both, and a subscriber on ``full/<role>`` makes every world send them.)"""
-    frames = "full/*" if full else "frame/*"
-    return tuple(f"{_run(run)}/viz/*/{leaf}" for leaf in ("events", "coord", frames, "spec", "result"))
+    frames = viz_full(run, "*", "*") if full else viz_frame(run, "*", "*")
+    return (viz_events(run, "*"), viz_coord(run, "*"), frames, viz_spec(run, "*"), viz_result(run, "*"))
 
 
 def viz_prefix(run: str, episode: str) -> str:

@@ -56,8 +56,12 @@ def thumbnails(obs: Observation, size_px: int = THUMB_PX) -> list[VizFrame]:
 def full_frames(obs: Observation) -> list[VizFrame]:
     """Every RGB view of the observation as the agent got it (``viz/<ep>/full/<role>``): no decoding,
     the frames share the observation's bytes."""
-    return [VizFrame(run_id=obs.run_id, episode_id=obs.episode_id, role=obs.role, decision_index=obs.decision_index,
-                     sim_time_s=obs.sim_time_s, pose=obs.pose, image=f) for f in obs.images if f.kind == "rgb"]
+    return [_viz_frame(obs, f) for f in obs.images if f.kind == "rgb"]
+
+
+def _viz_frame(obs: Observation, image: ImageFrame) -> VizFrame:
+    return VizFrame(run_id=obs.run_id, episode_id=obs.episode_id, role=obs.role, decision_index=obs.decision_index,
+                    sim_time_s=obs.sim_time_s, pose=obs.pose, image=image)
 
 
 def _thumbnail(obs: Observation, frame: ImageFrame, size_px: int) -> VizFrame | None:
@@ -75,10 +79,8 @@ def _thumbnail(obs: Observation, frame: ImageFrame, size_px: int) -> VizFrame | 
     ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
     if not ok:
         return None
-    image = ImageFrame(name=frame.name, kind="rgb", encoding="jpeg", data=jpeg.tobytes(),
-                       world_from_camera=frame.world_from_camera)
-    return VizFrame(run_id=obs.run_id, episode_id=obs.episode_id, role=obs.role, decision_index=obs.decision_index,
-                    sim_time_s=obs.sim_time_s, pose=obs.pose, image=image)
+    return _viz_frame(obs, ImageFrame(name=frame.name, kind="rgb", encoding="jpeg", data=jpeg.tobytes(),
+                                      world_from_camera=frame.world_from_camera))
 
 
 class FrameStream:
