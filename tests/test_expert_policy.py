@@ -91,6 +91,7 @@ def test_the_expert_succeeds_and_its_decisions_are_the_plan(town_name: str) -> N
             assert sum(entry.kind == "message" for entry in record.ledger) == 3 + requests - joined
             assert record.n_confirm == 1
             rejected = [c for c in record.candidates if c.status == "rejected"]
+            assert len(rejected) == sum(s.action == "REJECT" for s in steps["ugv"])  # each staged wrong candidate
             assert all(c.distance_to_polygon_m > 0 for c in rejected)  # a wrong candidate holds no target
     finally:
         scene.close()

@@ -52,7 +52,7 @@ class MtspSolution:
     ugv_route: list[int]
     makespan_s: float
     solver: str
-    """``milp`` (HiGHS, the paper's model) or ``routing`` (OR-Tools)."""
+    """``milp`` (HiGHS, the paper's model) or ``cp-sat`` (OR-Tools' CP-SAT)."""
     optimal: bool
     """Proven optimal (the MILP within its gap), or not known."""
     solve_wall_s: float

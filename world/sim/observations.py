@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import copy
 import math
-import weakref
 from collections.abc import Callable
 
 from agos.runtime.codec import encode_png
@@ -145,7 +144,6 @@ ExpertPlanner = Callable[[EpisodeState], dict[Role, list[ExpertStep]]]
 """Makes the expert's decision script of an episode from its state (ground truth and scene)."""
 
 _expert_planner: ExpertPlanner | None = None
-_expert_plans: weakref.WeakKeyDictionary[EpisodeState, dict[Role, ExpertHints]] = weakref.WeakKeyDictionary()
 
 
 def use_expert_planner(planner: ExpertPlanner | None) -> None:
@@ -159,9 +157,9 @@ def _expert(st: EpisodeState, role: Role) -> ExpertHints | None:
     """The expert's script for ``role``, planned at the episode's first observation."""
     if not st.cfg.tools.expert:
         return None
-    if st not in _expert_plans:
+    if st.expert_plan is None:
         if _expert_planner is None:
             raise RuntimeError("the expert tool is on but this process has no expert planner: "
                                "call agos.world.expert.install() before running episodes")
-        _expert_plans[st] = {r: ExpertHints(steps=steps) for r, steps in _expert_planner(st).items()}
-    return _expert_plans[st][role]
+        st.expert_plan = {r: ExpertHints(steps=steps) for r, steps in _expert_planner(st).items()}
+    return st.expert_plan[role]

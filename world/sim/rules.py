@@ -11,7 +11,7 @@ the engine's.
 
 The two tools the paper ablates live here: E2A (Ego-to-Allo projection, :func:`_project_cell`:
 an annotated grid cell becomes a polygon on the ground) and RGPP (road-graph path planning,
-:func:`_approach_anchor`: a candidate gets the road anchor GO_TO_CANDIDATE drives to). In runs
+:func:`approach_anchor`: a candidate gets the road anchor GO_TO_CANDIDATE drives to). In runs
 with the oracle's hints a candidate that contains the target is approached where the CONFIRM
 checker would accept (:func:`_oracle_approach`): the oracle's shortest road path.
 """
@@ -102,7 +102,7 @@ def _apply_uav(st: EpisodeState, action: Action, obs: Observation) -> str | None
         polygon, centre = _project_cell(st, cell)
         approach = _oracle_approach(st, polygon) if st.cfg.tools.oracle else None
         if approach is None:
-            approach = _approach_anchor(st, centre)
+            approach = approach_anchor(st.roads, st.ugv.node, centre)
         cand = Candidate(candidate_id=f"C{len(st.candidates) + 1:03d}", cell=cell,
                          polygon_world_m=[(round(x, 3), round(y, 3)) for x, y in polygon],
                          center_world_m=(round(centre[0], 3), round(centre[1], 3)), status="pending",
@@ -211,10 +211,6 @@ def _project_cell(st: EpisodeState, cell: str) -> tuple[list[tuple[float, float]
         return polygon, centroid(polygon)
     polygon = sensors.footprint_world(uav.last_nadir.world_from_camera, uav.last_nadir.intrinsics)
     return polygon, (float(uav.position[0]), float(uav.position[1]))
-
-
-def _approach_anchor(st: EpisodeState, centre: tuple[float, float]) -> int | None:
-    return approach_anchor(st.roads, st.ugv.node, centre)
 
 
 def approach_anchor(roads: RoadGraphs, node: int, centre: tuple[float, float], radius_m: float = 20.0) -> int | None:

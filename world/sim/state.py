@@ -11,7 +11,8 @@ Who changes what:
 * :mod:`agos.world.sim.rules` applies actions: poses, readiness, candidates and their status,
   CONFIRM outcome and termination;
 * :mod:`agos.world.sim.observations` counts each role's decisions and notes what its cameras saw
-  (the UAV's last nadir shot, target pixels, the oracle-visible step ``tau``, information age).
+  (the UAV's last nadir shot, target pixels, the oracle-visible step ``tau``, information age)
+  and keeps the expert's plan.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.schemas import (
     Candidate,
     EpisodeSpec,
+    ExpertHints,
     ImageFrame,
     LoggedStep,
     MessageRecord,
@@ -108,6 +110,8 @@ class EpisodeState:
         self.uav_target_px = 0
         self.ground_visible: bool | None = None
         self.added: list[int] = []
+        self.expert_plan: dict[Role, ExpertHints] | None = None
+        """The expert's script per role, planned at the first observation (runs with the expert tool)."""
 
     # ----- views ----------------------------------------------------------------------------
     def ugv_xy(self) -> tuple[float, float]:
