@@ -56,6 +56,7 @@ from agos.runtime.codec import decode_image, encode_jpeg
 from agos.runtime.episode_config import CameraConfig
 from agos.runtime.process import interruptible_imap
 from agos.world.episodes.lookalikes import ATTRIBUTES, MIN_CUE_PCT, PLAIN, pair_key, pairs
+from agos.world.episodes.sampling import long_slots
 from agos.world.sim import sensors
 from agos.world.sim.evidence import target_points
 from agos.world.sim.scene import Scene
@@ -171,21 +172,11 @@ def vehicle_of(kind: str, cls: str, pose: Pose) -> tuple[str, str, VehicleAttrib
 
 
 # ----- poses --------------------------------------------------------------------------------------
-def long_slots(town: Town) -> list[tuple[float, float, float]]:
-    """Free, open parking slots whose neighbours on the lane are free too: (x, y, yaw)."""
-    occupied = town.layout.occupied_slots
-    by_lane: dict[str, list] = defaultdict(list)
-    for slot in town.layout.slots:
-        by_lane[slot.lane_id].append(slot)
-    out = []
-    for slot in town.layout.slots:
-        if slot.slot_id in occupied or slot.covered or slot.plaza:
-            continue
-        near = [s for s in by_lane[slot.lane_id] if s.slot_id != slot.slot_id
-                and math.dist(s.position_world_m, slot.position_world_m) < 9.5]
-        if all(s.slot_id not in occupied for s in near):
-            out.append((*slot.position_world_m, slot.yaw_rad))
-    return out
+def open_slots(town: Town) -> list[tuple[float, float, float]]:
+    """Uncovered, off-plaza slots a bus fits in (sampling.long_slots): (x, y, yaw)."""
+    fits = long_slots(town.layout)
+    return [(*s.position_world_m, s.yaw_rad) for s in town.layout.slots
+            if s.slot_id in fits and not s.covered and not s.plaza]
 
 
 def draw_pose(index: int, s: Settings, look: str, town: Town, scene: Scene, slots: list) -> Pose:
@@ -315,7 +306,7 @@ def _scene(s: Settings, look: str) -> tuple[Town, Scene, list]:
         for scene in _WORKER.get("scenes", {}).values():
             scene.close()
         town = open_town(s.town)
-        _WORKER.update(town_name=s.town, town=town, scenes={}, slots=long_slots(town))
+        _WORKER.update(town_name=s.town, town=town, scenes={}, slots=open_slots(town))
     scenes = _WORKER["scenes"]
     if look not in scenes:
         scenes[look] = Scene(_WORKER["town"].layout, look=look)

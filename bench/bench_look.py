@@ -32,6 +32,7 @@ from agos.runtime.codec import encode_png
 from agos.runtime.episode_config import CameraConfig
 from agos.world.episodes.sampling import sample_episode
 from agos.world.sim import sensors
+from agos.world.sim.episode_vehicles import add_episode_vehicles
 from agos.world.sim.scene import Scene, pb
 from agos.world.towns.asset import Town, open_town
 from agos.world.towns.topdown import RegionMap
@@ -54,8 +55,7 @@ def observation_costs(town: Town, repeats: int) -> None:
         build_s[look] = time.perf_counter() - start
     spec = sample_episode(town, scenes["flat"], "hard", 0, seed=5)
     for scene in scenes.values():
-        for v in (spec.target, *spec.distractors):
-            scene.add_vehicle(v.model, v.colour, v.position_world_m, v.yaw_rad)
+        add_episode_vehicles(scene, spec)
     tx, ty = spec.target.position_world_m[:2]
     ids, xy = town.roads.anchor_array()
     nearest = np.argsort(np.hypot(xy[:, 0] - tx, xy[:, 1] - ty))[:3]

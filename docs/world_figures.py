@@ -19,6 +19,7 @@ import numpy as np
 from agos.runtime.codec import decode_image
 from agos.world.episodes.sampling import sample_episode
 from agos.world.sim import sensors
+from agos.world.sim.episode_vehicles import add_episode_vehicles
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import Town, freeze, open_town
 from agos.world.towns.topdown import debug_map, region_map
@@ -54,9 +55,7 @@ def figures(town: Town, tag: str) -> None:
     for look, scene in (("flat", flat), ("rich", None)):
         scene = scene or Scene(town.layout, look=look)
         suffix = "" if look == "flat" else f"_{look}"
-        uid = scene.add_vehicle(t.model, t.colour, t.position_world_m, t.yaw_rad)
-        for d in spec.distractors:
-            scene.add_vehicle(d.model, d.colour, d.position_world_m, d.yaw_rad)
+        uid, *_ = add_episode_vehicles(scene, spec)
         shot = sensors.nadir(scene, pos[:2], pos[2], cam)
         save(f"{tag}_uav_grid{suffix}.png", sensors.grid_overlay(shot.render.rgb))
         six = sensors.six_views(scene, (float(p[0]), float(p[1])), town.roads.heading_at(anchor), cam)

@@ -161,7 +161,7 @@ def test_the_table_holds_every_rich_pair_and_the_sampler_uses_only_those_at_the_
 
 
 def test_a_bus_parks_only_where_its_neighbours_are_free(town):
-    long_ok = sampling._long_slots(town.layout)
+    long_ok = sampling.long_slots(town.layout)
     taken = {s.slot_id: s for s in town.layout.slots if s.slot_id in town.layout.occupied_slots}
     assert 0 < len(long_ok) < len(town.layout.slots)
     for slot in town.layout.slots:

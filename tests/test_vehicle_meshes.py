@@ -3,6 +3,7 @@ default (flat) look must render exactly as before."""
 
 from __future__ import annotations
 
+import hashlib
 import math
 
 import numpy as np
@@ -16,6 +17,9 @@ from agos.world.towns.asset import open_town
 from agos.world.towns.vehicles import RICH_BODY_TYPES, VehicleAttributes, vehicle_mesh
 
 PX = 128
+FLAT_RENDER_SHA = "505b6f23c0c01294"
+"""sha256 (16 hex) of the flat look's renders and decoded reference views in
+test_default_look_renders_as_before, as the scene drew them before the rich look existed."""
 # name -> (eye offset from the vehicle centre, up vector); the vehicle looks along +x
 DIRECTIONS = {
     "front": ((1.0, 0.0, 0.15), (0, 0, 1)), "back": ((-1.0, 0.0, 0.15), (0, 0, 1)),
@@ -150,7 +154,8 @@ def test_rays_hit_rich_vehicles(rich):
 
 
 def test_default_look_renders_as_before(layout):
-    """No look given and look='flat' build the same scene: same bodies, same bytes."""
+    """No look given and look='flat' build the same scene, and it renders the bytes it did before
+    the rich look (FLAT_RENDER_SHA)."""
     cam = CameraConfig()
     town = open_town("grid-s7")
     anchor = int(town.roads.anchor_array()[0][0])
@@ -162,9 +167,13 @@ def test_default_look_renders_as_before(layout):
         refs = sensors.reference_views(scene, uid, (xy[0] + 6.0, xy[1], 0.0), 0.0, cam)
         out.append([s.render.rgb.tobytes() + s.render.instance.tobytes() + s.render.depth_m.tobytes()
                     for s in shots] + [f.data for f in refs])
+        digest = hashlib.sha256(b"".join(out[-1][:len(shots)] + [decode_image(f.data).tobytes() for f in refs]))
         scene.close()
     assert out[0] == out[1]
+    assert digest.hexdigest()[:16] == FLAT_RENDER_SHA
+    flat = Scene(layout)
     with pytest.raises(ValueError, match="look='rich'"):
-        Scene(layout).add_vehicle("sedan", "red", (0.0, 0.0, 0.0), 0.0, attributes=VehicleAttributes(rack=True))
+        flat.add_vehicle("sedan", "red", (0.0, 0.0, 0.0), 0.0, attributes=VehicleAttributes(rack=True))
+    flat.close()
     with pytest.raises(ValueError, match="unknown look"):
         Scene(layout, look="photoreal")

@@ -150,7 +150,7 @@ def _rich_vehicles(rng: np.random.Generator, difficulty: Difficulty, slots: list
                    layout: TownLayout) -> tuple[VehicleSpec, list[VehicleSpec]] | None:
     """The rich look's target (sometimes with an attribute) and, when hard, look-alikes of distinct
     kinds, each differing from the target in one cue a viewer can check from the ground."""
-    long_ok = _long_slots(layout)
+    long_ok = long_slots(layout)
     types = [m for m in RICH_BODY_TYPES if m != "bus" or slots[0].slot_id in long_ok]
     model, colour = str(rng.choice(types)), str(rng.choice(VIVID_COLOURS))
     attrs: dict = {}
@@ -211,8 +211,8 @@ def _with_attribute(attrs: dict, name: str, paint: str) -> dict:
     return {**attrs, name: value}
 
 
-def _long_slots(layout: TownLayout) -> set[int]:
-    """Slots a bus fits in: no occupied slot on the same lane within LONG_VEHICLE_CLEAR_M."""
+def long_slots(layout: TownLayout) -> set[int]:
+    """Slots a bus fits in: free, and no occupied slot on the same lane within LONG_VEHICLE_CLEAR_M."""
     occupied = layout.occupied_slots
     taken: dict[str, list[tuple[float, float]]] = {}
     for slot in layout.slots:

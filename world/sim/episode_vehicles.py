@@ -45,9 +45,8 @@ def check_look(spec: EpisodeSpec, look: str) -> None:
 
 def add_vehicle(scene: Scene, vehicle: VehicleSpec) -> int:
     """Add one episode vehicle with its attributes; return its body id."""
-    attrs = attributes_of(vehicle)
     return scene.add_vehicle(vehicle.model, vehicle.colour, vehicle.position_world_m, vehicle.yaw_rad,
-                             attributes=None if attrs == VehicleAttributes() else attrs)
+                             attributes=attributes_of(vehicle))
 
 
 def add_episode_vehicles(scene: Scene, spec: EpisodeSpec) -> list[int]:

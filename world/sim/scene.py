@@ -140,14 +140,9 @@ class Scene:
         return self._shape_cache[key]
 
     def _collision_box(self, half_extents: tuple[float, float, float],
-                       centre: tuple[float, float, float] | None = None) -> int:
-        if centre is None:  # the flat look's boxes, centred on their link
-            key: tuple = ("c", *(round(h, 4) for h in half_extents))
-            if key not in self._shape_cache:
-                self._shape_cache[key] = pb.createCollisionShape(
-                    pb.GEOM_BOX, halfExtents=list(half_extents), physicsClientId=self.client)
-            return self._shape_cache[key]
-        key = ("c", *(round(h, 4) for h in half_extents), "at", *(round(c, 4) for c in centre))
+                       centre: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> int:
+        """A box shape centred ``centre`` in its link's frame (made once per scene)."""
+        key = ("c", *(round(h, 4) for h in half_extents), *(round(c, 4) for c in centre))
         if key not in self._shape_cache:
             self._shape_cache[key] = pb.createCollisionShape(
                 pb.GEOM_BOX, halfExtents=list(half_extents), collisionFramePosition=list(centre),
@@ -347,11 +342,14 @@ class Scene:
                     rgbaColor=[*rgb, 1.0], specularColor=[specular] * 3, physicsClientId=self.client)
             visuals.append(self._shape_cache[key])
         if self._city is not None:  # the rich city: the vehicle's shadow as its last link, in its frame
-            shadow = vehicle_shadow_mesh(self._city, mesh, yaw_rad)
-            visuals.append(pb.createVisualShape(
-                pb.GEOM_MESH, vertices=shadow.vertices.tolist(), indices=shadow.indices.tolist(),
-                normals=shadow.normals.tolist(), rgbaColor=[*self._city.vehicle_shadow_rgb, 1.0],
-                specularColor=[0.0] * 3, physicsClientId=self.client))
+            key = ("shadow", model, attributes, yaw_rad)  # its outline turns with the yaw (slots repeat)
+            if key not in self._shape_cache:
+                shadow = vehicle_shadow_mesh(self._city, mesh, yaw_rad)
+                self._shape_cache[key] = pb.createVisualShape(
+                    pb.GEOM_MESH, vertices=shadow.vertices.tolist(), indices=shadow.indices.tolist(),
+                    normals=shadow.normals.tolist(), rgbaColor=[*self._city.vehicle_shadow_rgb, 1.0],
+                    specularColor=[0.0] * 3, physicsClientId=self.client)
+            visuals.append(self._shape_cache[key])
         # Every link carries a mesh, the first ones also a collision box (a link with a collision box
         # and no visual shape would be drawn as that box).
         collisions = [self._collision_box(half, centre) for centre, half in mesh.collision_boxes]

@@ -24,8 +24,8 @@ from agos.world.towns.facades import ground_extent, skyline, skyline_meshes, tow
 from agos.world.towns.furniture import crown_centre, lamp_meshes, tree_meshes
 from agos.world.towns.layout import TownLayout
 from agos.world.towns.shadows import SHADOW_LIFT_M, ShadowSet, building_shadow, mesh_shadow, project, tree_shadows
-from agos.world.towns.streetdressing import Layer, Z, convex_pieces_mesh, street_level
-from agos.world.towns.texmesh import TexMesh, flat_polygon, merge
+from agos.world.towns.streetdressing import Layer, Z, street_level
+from agos.world.towns.texmesh import TexMesh, convex_pieces_mesh, flat_polygon, merge
 from agos.world.towns.textures import FACADES, GROUND_FLOORS, TILE_M, texture_file
 from agos.world.towns.vehicles import VehicleMesh
 
@@ -51,6 +51,8 @@ class CityPart:
     """Multiplies the texture (or is the colour of a plain material)."""
     semantic: str
     specular: float = 0.03
+    shadow: bool = False
+    """Cast shadows on a layer (its texture darkened), drawn just above it."""
 
 
 @dataclass
@@ -88,7 +90,6 @@ def build_city(layout: TownLayout, *, texture_root: Path) -> City:
     # in UAV views but costs more in triangles, which every render pays, on screen or not)
     ground = Layer("lot", Z["ground"], "ground", [np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])])
     sky_streets = Layer("asphalt", Z["asphalt"], "road", list(sky.streets))
-    clip_pieces = {id(layer): layer.pieces for layer in [ground, *level.layers, sky_streets]}
     layers = [ground, *level.layers, sky_streets]
     parts: list[CityPart] = []
     grouped: dict[tuple[str, str], list[TexMesh]] = {}
@@ -117,20 +118,19 @@ def build_city(layout: TownLayout, *, texture_root: Path) -> City:
     on_grass = ShadowSet(tree_shadows(park_trees, np.array([crown_centre(t) for t in park_trees]).reshape(-1, 3), sun))
     shadow_parts: list[CityPart] = []
     for layer in layers:
-        own = clip_pieces[id(layer)]
+        own = layer.pieces
         pieces = casters.on(own) + (on_grass.on(own) if layer.material == "grass" else [])
         if pieces:
             mesh = convex_pieces_mesh(pieces, layer.z_m + SHADOW_LIFT_M, TILE_M.get(layer.material, 1.0))
             rgb = tuple(c * s for c, s in zip(PLAIN_RGB.get(layer.material, (1.0, 1.0, 1.0)), SHADE_RGB, strict=True))
-            shadow_parts.append(CityPart(layer.material, mesh, rgb, layer.semantic))  # type: ignore[arg-type]
+            shadow_parts.append(CityPart(layer.material, mesh, rgb, layer.semantic, shadow=True))  # type: ignore[arg-type]
     for (material, semantic), meshes in sorted(grouped.items()):
         mesh = merge(meshes)
         if mesh.triangle_count:
             specular = 0.25 if material.startswith("glass") else 0.03
             parts.append(CityPart(material, mesh, PLAIN_RGB.get(material, (1.0, 1.0, 1.0)), semantic, specular))
     parts = sorted(parts + shadow_parts, key=_draw_rank)
-    materials = {p.material for p in parts} | {"asphalt"}
-    texture_of = {m: m for m in sorted(materials) if m in TEXTURED}
+    texture_of = {m: m for m in sorted({p.material for p in parts}) if m in TEXTURED}
     files = {name: texture_file(name, dressing.texture_seed, texture_root) for name in sorted(set(texture_of.values()))}
     return City(parts, texture_of, files, dressing, ShadowSet(building_polys),
                 triangles=sum(p.mesh.triangle_count for p in parts))
@@ -150,11 +150,8 @@ def _draw_rank(part: CityPart) -> tuple[int, float, int]:
         return (1, 0.0, 0)
     if part.semantic == "skyline":
         return (1, 0.0, 1)
-    rank = _LAYER_RANK.get(part.material, 7)
-    is_shadow = (part.rgb[2] < 0.99 and part.material not in PLAIN_RGB) or (part.material in PLAIN_RGB and \
-        part.rgb != PLAIN_RGB[part.material])
     top = float(part.mesh.vertices[:, 2].max()) if len(part.mesh.vertices) else 0.0
-    return (rank, -top, 0 if is_shadow else 1)
+    return (_LAYER_RANK.get(part.material, 7), -top, 0 if part.shadow else 1)
 
 
 def vehicle_shadow_mesh(city: City, mesh: VehicleMesh, yaw_rad: float) -> TexMesh:

@@ -22,7 +22,7 @@ import numpy as np
 from agos.world.towns.dressing import DRESSING_VERSION, Dressing, Facade, RoofUnit
 from agos.world.towns.layout import TownLayout
 from agos.world.towns.placement import Building
-from agos.world.towns.texmesh import TexMesh, boxes, flat_quads, footprints, walls_batch
+from agos.world.towns.texmesh import TexMesh, boxes, flat_fans, footprints, walls_batch
 from agos.world.towns.textures import (
     BAYS_PER_TILE,
     FACADE_MODULE_M,
@@ -74,7 +74,7 @@ def buildings_meshes(buildings: list[Building], facades: list[Facade], *, detail
                                      np.repeat(height[m], 4), bays[m].ravel() / BAYS_PER_TILE, np.zeros(4 * k),
                                      np.repeat(storeys[m] / STOREYS_PER_TILE, 4)))
         roof = ROOF_OF[style]
-        _add(out, roof, flat_quads(corners[m], height[m], TILE_M[roof], unit_uv=True))  # coping at the edge
+        _add(out, roof, flat_fans(corners[m], height[m], TILE_M[roof], unit_uv=True))  # coping at the edge
     for ground in sorted(set(grounds.tolist()) - {""}):
         m = grounds == ground
         shop_bays = np.maximum(1, np.round(length[m] / FACADE_MODULE_M[ground][0]))

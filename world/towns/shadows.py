@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from agos.world.towns.placement import Building, Tree
-from agos.world.towns.texmesh import footprint
+from agos.world.towns.texmesh import ccw, footprint, signed_area
 
 SHADOW_LIFT_M = 0.006
 """How far above its surface a shadow is drawn."""
@@ -33,11 +33,7 @@ def project(points_world_m: np.ndarray, sun: np.ndarray) -> np.ndarray:
 
 def hull(points_xy: np.ndarray) -> np.ndarray:
     """Convex hull, counter-clockwise (float64)."""
-    h = cv2.convexHull(np.asarray(points_xy, np.float32)).reshape(-1, 2).astype(np.float64)
-    x, y = h[:, 0], h[:, 1]
-    if float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))) < 0:
-        h = h[::-1]
-    return h
+    return ccw(cv2.convexHull(np.asarray(points_xy, np.float32)).reshape(-1, 2).astype(np.float64))
 
 
 def building_shadow(b: Building, sun: np.ndarray) -> np.ndarray:
@@ -123,11 +119,8 @@ class ShadowSet:
             x1, y1 = piece.max(axis=0)
             for k in self._candidates(float(x0), float(y0), float(x1), float(y1)):
                 part = clip_convex([(float(x), float(y)) for x, y in self.polygons[k]], piece)
-                if len(part) >= 3:
-                    poly = np.asarray(part)
-                    x, y = poly[:, 0], poly[:, 1]
-                    if abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))) > 2e-3:
-                        out.append(poly)
+                if len(part) >= 3 and abs(signed_area(np.asarray(part))) > 1e-3:
+                    out.append(np.asarray(part))
         return out
 
     def contains(self, point_xy: tuple[float, float]) -> bool:

@@ -34,8 +34,10 @@ from agos.world.towns.texmesh import (
     arc_length,
     ccw,
     convex_decomposition,
+    convex_pieces_mesh,
     cut,
     flat_strip,
+    footprint,
     merge,
     offset_line,
     simplify_strip,
@@ -109,28 +111,6 @@ class StreetLevel:
     sidewalks: list[Sidewalk]
     kerbs: TexMesh
     """Vertical kerb faces and the kerb stones' tops (material ``kerb``)."""
-
-
-def convex_pieces_mesh(pieces: list[np.ndarray], z: float, tile_m: float) -> TexMesh:
-    """Fans of many convex polygons at one height, vectorised by vertex count."""
-    by_n: dict[int, list[np.ndarray]] = {}
-    for p in pieces:
-        if len(p) >= 3:
-            by_n.setdefault(len(p), []).append(p)
-    parts = []
-    for n, group in sorted(by_n.items()):
-        polys = np.stack(group)  # (P, n, 2)
-        x, y = polys[:, :, 0], polys[:, :, 1]
-        area = (x * np.roll(y, -1, axis=1) - y * np.roll(x, -1, axis=1)).sum(axis=1)
-        polys[area < 0] = polys[area < 0][:, ::-1]
-        p_count = len(polys)
-        verts = np.concatenate([polys.reshape(-1, 2), np.full((p_count * n, 1), z)], axis=1)
-        i = np.arange(1, n - 1)
-        fan = np.stack([np.zeros_like(i), i, i + 1], 1).ravel()
-        idx = (fan[None, :] + (np.arange(p_count) * n)[:, None]).ravel()
-        parts.append(TexMesh(verts, idx.astype(np.int64), np.tile([0.0, 0.0, 1.0], (p_count * n, 1)),
-                             polys.reshape(-1, 2) / tile_m))
-    return merge(parts)
 
 
 def _quads(a: np.ndarray, b: np.ndarray) -> list[np.ndarray]:
@@ -226,9 +206,9 @@ def _band(centre: np.ndarray, s0: float, s1: float, left_from: float, left_to: f
     return [simplify_strip(offset_line(part, left_from), offset_line(part, left_to), max_len_m=8.0)]
 
 
-def _line(centre: np.ndarray, s0: float, s1: float, left_m: float, width_m: float, dashed: bool) -> list[np.ndarray]:
-    """Dashes as quads; a solid line goes through :func:`_band` instead."""
-    # dashes: one quad each between points interpolated on the two edges (3 m run straight enough)
+def _dashes(centre: np.ndarray, s0: float, s1: float, left_m: float, width_m: float) -> list[np.ndarray]:
+    """A dashed line as quads, one a dash between points interpolated on its two edges (a 3 m run is
+    straight enough); a solid line is a :func:`_band`."""
     starts = np.arange(s0 + GAP_M / 2, s1, DASH_M + GAP_M)
     if len(starts) == 0:
         return []
@@ -263,7 +243,7 @@ def lane_markings(network: LaneNetwork) -> tuple[Layer, Layer]:
         if left == "opposite":
             yellow.strips += _band(c, s0, s1, half - 0.23, half - 0.11)
         elif left == "same":
-            white.loose += _line(c, s0, s1, half, 0.12, dashed=True)
+            white.loose += _dashes(c, s0, s1, half, 0.12)
         else:
             white.strips += _band(c, s0, s1, half - 0.25, half - 0.11)
         if right == "none":
@@ -307,21 +287,14 @@ def parking_ticks(layout: TownLayout) -> list[np.ndarray]:
         c, s = math.cos(slot.yaw_rad), math.sin(slot.yaw_rad)
         if slot.plaza:  # cars side by side facing +y: lines at x +- 1.5 m, 5 m long
             for dx in (-1.5, 1.5):
-                out.append(_rect((x + dx, y), 0.12, 5.0, slot.yaw_rad - math.pi / 2))
+                out.append(footprint((x + dx, y), (5.0, 0.12), slot.yaw_rad - math.pi / 2))
             continue
         lane = layout.network.lanes.get(slot.lane_id)
         if lane is None or _parking_strip_m(lane) <= 0.0:
             continue
         width = _parking_strip_m(lane)  # one tick behind each place (slots are 7.5 m apart)
-        out.append(_rect((x - c * 3.75, y - s * 3.75), width * 0.8, 0.12, slot.yaw_rad))
+        out.append(footprint((x - c * 3.75, y - s * 3.75), (0.12, width * 0.8), slot.yaw_rad))
     return out
-
-
-def _rect(centre: tuple[float, float], across_m: float, along_m: float, yaw_rad: float) -> np.ndarray:
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    local = np.array([[-along_m / 2, -across_m / 2], [along_m / 2, -across_m / 2], [along_m / 2, across_m / 2],
-                      [-along_m / 2, across_m / 2]])
-    return local @ np.array([[c, s], [-s, c]]) + np.asarray(centre)
 
 
 # ----- sidewalks and kerbs ----------------------------------------------------------------------

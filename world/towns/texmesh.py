@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agos.world.towns.meshes import strip_mesh
+
 
 @dataclass
 class TexMesh:
@@ -77,19 +79,13 @@ def flat_polygon(poly: np.ndarray, z: float, tile_m: float, *, up: bool = True) 
     return TexMesh(v, tri.ravel().astype(np.int64), np.tile(normal, (n, 1)), poly / tile_m)
 
 
-def flat_strip(edge_a: np.ndarray, edge_b: np.ndarray, z: float | np.ndarray, tile_m: float) -> TexMesh:
-    """Quads between two polylines (point i of one facing point i of the other), facing up."""
-    n = len(edge_a)
-    if n < 2:
+def flat_strip(edge_a: np.ndarray, edge_b: np.ndarray, z: float, tile_m: float) -> TexMesh:
+    """Quads between two polylines (point i of one facing point i of the other), facing up:
+    :func:`~agos.world.towns.meshes.strip_mesh` with normals and UV = xy / tile."""
+    if len(edge_a) < 2:
         return merge([])
-    za = np.broadcast_to(np.asarray(z, float), (n,))
-    v = np.concatenate([np.column_stack([edge_a, za]), np.column_stack([edge_b, za])])
-    i = np.arange(n - 1)
-    tri = np.concatenate([np.stack([i, i + 1, n + i + 1], 1), np.stack([i, n + i + 1, n + i], 1)])
-    a, b, c = v[tri[:, 0], :2], v[tri[:, 1], :2], v[tri[:, 2], :2]
-    cross = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
-    tri[cross < 0] = tri[cross < 0][:, [0, 2, 1]]
-    return TexMesh(v, tri.ravel().astype(np.int64), np.tile([0.0, 0.0, 1.0], (2 * n, 1)), v[:, :2] / tile_m)
+    v, idx = strip_mesh(edge_a, edge_b, z)
+    return TexMesh(v, idx.astype(np.int64), np.tile([0.0, 0.0, 1.0], (len(v), 1)), v[:, :2] / tile_m)
 
 
 def footprint(centre: tuple[float, float], size: tuple[float, float], yaw_rad: float) -> np.ndarray:
@@ -178,21 +174,37 @@ def walls_batch(p0: np.ndarray, p1: np.ndarray, z0: np.ndarray | float, z1: np.n
     return TexMesh(verts, idx.astype(np.int64), np.repeat(normal, 4, axis=0), uvs)
 
 
-def flat_quads(quads: np.ndarray, z: np.ndarray | float, tile_m: float, *, unit_uv: bool = False) -> TexMesh:
-    """Many convex quads (N, 4, 2), each at its height, facing up, UV = xy / tile (or, with
-    ``unit_uv``, the whole texture once over each counter-clockwise quad)."""
-    n = len(quads)
+def flat_fans(polys: np.ndarray, z: np.ndarray | float, tile_m: float, *, unit_uv: bool = False) -> TexMesh:
+    """Many convex polygons of one vertex count (N, K, 2), each at its height, facing up, as fans;
+    UV = xy / tile (or, with ``unit_uv``, for quads, the whole texture once over each)."""
+    n = len(polys)
     if n == 0:
         return merge([])
-    q = np.asarray(quads, float).copy()
+    q = np.asarray(polys, float).copy()
+    k = q.shape[1]
     x, y = q[:, :, 0], q[:, :, 1]
     area = (x * np.roll(y, -1, axis=1) - y * np.roll(x, -1, axis=1)).sum(axis=1)
     q[area < 0] = q[area < 0][:, ::-1]
-    zz = np.repeat(np.broadcast_to(np.asarray(z, float), (n,)), 4)
+    zz = np.repeat(np.broadcast_to(np.asarray(z, float), (n,)), k)
     verts = np.column_stack([q.reshape(-1, 2), zz])
-    idx = (np.array([0, 1, 2, 0, 2, 3])[None, :] + 4 * np.arange(n)[:, None]).ravel()
-    uvs = np.tile([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], (n, 1)) if unit_uv else q.reshape(-1, 2) / tile_m
-    return TexMesh(verts, idx.astype(np.int64), np.tile([0.0, 0.0, 1.0], (4 * n, 1)), uvs)
+    i = np.arange(1, k - 1)
+    fan = np.stack([np.zeros_like(i), i, i + 1], 1).ravel()
+    idx = (fan[None, :] + k * np.arange(n)[:, None]).ravel()
+    if unit_uv:
+        assert k == 4, "unit_uv maps the texture onto quads"
+        uvs = np.tile([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], (n, 1))
+    else:
+        uvs = q.reshape(-1, 2) / tile_m
+    return TexMesh(verts, idx.astype(np.int64), np.tile([0.0, 0.0, 1.0], (k * n, 1)), uvs)
+
+
+def convex_pieces_mesh(pieces: list[np.ndarray], z: float, tile_m: float) -> TexMesh:
+    """Fans of many convex polygons at one height, vectorised by vertex count (:func:`flat_fans`)."""
+    by_n: dict[int, list[np.ndarray]] = {}
+    for p in pieces:
+        if len(p) >= 3:
+            by_n.setdefault(len(p), []).append(p)
+    return merge([flat_fans(np.stack(group), z, tile_m) for _, group in sorted(by_n.items())])
 
 
 def footprints(centres: np.ndarray, sizes: np.ndarray, yaws: np.ndarray) -> np.ndarray:
@@ -218,7 +230,7 @@ def boxes(centres: np.ndarray, halves: np.ndarray, yaws: np.ndarray, tile_m: flo
     z1 = np.repeat(centres[:, 2] + halves[:, 2], 4)
     length = np.hypot(*(p1 - p0).T)
     sides = walls_batch(p0, p1, z0, z1, length / tile_m, z0 / tile_m, z1 / tile_m)
-    return merge([sides, flat_quads(foot, centres[:, 2] + halves[:, 2], tile_m)])
+    return merge([sides, flat_fans(foot, centres[:, 2] + halves[:, 2], tile_m)])
 
 
 def triangulate(polygon: np.ndarray) -> list[tuple[int, int, int]]:

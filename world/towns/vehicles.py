@@ -26,6 +26,7 @@ from functools import lru_cache
 import numpy as np
 
 from agos.world.towns.catalog import colour_rgb
+from agos.world.towns.texmesh import ccw
 
 MATERIALS: tuple[str, ...] = ("paint", "roof", "stripe", "glass", "dark", "rim", "rack", "cargo", "head", "tail",
                               "plate")
@@ -258,12 +259,6 @@ def _inset(poly: np.ndarray, d: float) -> np.ndarray:
     return np.asarray(out)
 
 
-def _ccw(profile: np.ndarray) -> np.ndarray:
-    x, z = profile[:, 0], profile[:, 1]
-    area = np.sum(x * np.roll(z, -1) - np.roll(x, -1) * z)
-    return profile if area > 0 else profile[::-1]
-
-
 class _Side:
     """The tapered side plane of a prism: y = sign * (w0 + slope * (z - z0))."""
 
@@ -285,7 +280,7 @@ class _Side:
 
 
 def _prism(b: _Builder, prism: _Prism, *, top_material: str, attrs: VehicleAttributes, stripe_sides: bool) -> None:
-    prof = _ccw(np.asarray(prism.profile_xz, float))
+    prof = ccw(np.asarray(prism.profile_xz, float))
     sides = (_Side(prism, 1.0), _Side(prism, -1.0))
     body = "roof" if attrs.roof is not None and prism.role == "cabin" else "paint"
     for side in sides:
@@ -458,7 +453,7 @@ def _build(name: str, attrs: VehicleAttributes) -> VehicleMesh:
         z_hi = max(z for _, z in top.profile_xz)
         for sign in (1.0, -1.0):
             plane = _Side(top, sign)
-            band = _clip(_inset(_ccw(np.asarray(top.profile_xz, float)), 0.02), 1, top.windows_z[1] + 0.04, True)
+            band = _clip(_inset(ccw(np.asarray(top.profile_xz, float)), 0.02), 1, top.windows_z[1] + 0.04, True)
             b.add("roof", plane.lift(_clip(band, 1, z_hi - 0.02, False), DECAL_M / 2), plane.outward())
     if attrs.rack:
         rx0, rx1 = min(roof_xs) + 0.12, max(roof_xs) - 0.12
