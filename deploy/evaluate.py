@@ -331,19 +331,15 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
                     # after a minute): after LOST_IN_A_ROW checks in a row, stop rather than lose them all.
                     unstored_checks = unstored_checks + 1 if not present.evaluator and orch.unacknowledged() else 0
                     workerless_checks = workerless_checks + 1 if not present.worlds else 0
+                    missing = None  # (what is wrong, the command that starts what is missing)
                     if workerless_checks >= LOST_IN_A_ROW:
-                        console.print(f"[red]stopping: no world worker joined run {plan.run_id} ({LOST_IN_A_ROW} checks "
-                                      f"{PRESENCE_EVERY_S:.0f} s apart); start one with `agos world --connect "
-                                      f"{own.connect} --run {plan.run_id}` and resume with "
-                                      f"`agos eval --resume {plan.run_dir}`", highlight=False)
-                        orch.publish_manifest("interrupted")
-                        return 3
-                    if unstored_checks >= LOST_IN_A_ROW:
-                        console.print(f"[red]stopping: no evaluator stored the records of "
-                                      f"{', '.join(orch.unacknowledged())} ({LOST_IN_A_ROW} checks "
-                                      f"{PRESENCE_EVERY_S:.0f} s apart); start one with `agos evaluator --connect "
-                                      f"{own.connect} --run {plan.run_id}` and resume with "
-                                      f"`agos eval --resume {plan.run_dir}`", highlight=False)
+                        missing = (f"no world worker joined run {plan.run_id}", "world")
+                    elif unstored_checks >= LOST_IN_A_ROW:
+                        missing = (f"no evaluator stored the records of {', '.join(orch.unacknowledged())}", "evaluator")
+                    if missing is not None:
+                        console.print(f"[red]stopping: {missing[0]} ({LOST_IN_A_ROW} checks {PRESENCE_EVERY_S:.0f} s "
+                                      f"apart); start one with `agos {missing[1]} --connect {own.connect} --run "
+                                      f"{plan.run_id}` and resume with `agos eval --resume {plan.run_dir}`", highlight=False)
                         orch.publish_manifest("interrupted")
                         return 3
                 # A recorder that dies loses the recording, never the run (nothing waits for it).

@@ -47,7 +47,7 @@ from agos.runtime.schemas import (
 log = logging.getLogger("agos.orchestrator")
 
 LEASE_REPEAT_S = 5.0
-"""How often current lease notices (and unacknowledged failure records) are published again, for an
+"""How often current lease notices (and records not yet acknowledged) are published again, for an
 evaluator that started, or restarted, after they were first sent."""
 STUCK_MARGIN_S = 60.0
 """An episode counts as stuck only after its decision timeout and this much more without progress."""
@@ -187,14 +187,12 @@ class Orchestrator:
             self._repeat_at = now + LEASE_REPEAT_S
             for lease in self.leases.values():
                 self._announce(lease)
-            for record in self.gave_up.values():
-                self.bus.publish(keys.result(self.run_id, record.episode_id), record)
-            # A holder's record whose ack came first (a small ack can overtake a large record: the two
-            # travel on different keys) had that ack refused above; publishing the record again makes
-            # the evaluator acknowledge it once more (as a duplicate), now in the right order.
-            for episode_id in self.unacknowledged():
-                if episode_id not in self.gave_up:
-                    self.bus.publish(keys.result(self.run_id, episode_id), self.records[episode_id])
+            # Every record not yet acknowledged goes out again: this orchestrator's failure records, and
+            # a holder's record whose ack came first (a small ack can overtake a large record on another
+            # key) and was refused above, so the evaluator acknowledges it once more, in order.
+            unacked = {e: self.records[e] for e in self.unacknowledged()} | self.gave_up
+            for episode_id, record in unacked.items():
+                self.bus.publish(keys.result(self.run_id, episode_id), record)
         self._answer_queries()
         return newly
 
