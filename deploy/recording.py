@@ -211,6 +211,7 @@ class EpisodeRecording:
         if record.step_log:
             self.step_times = [s.sim_time_s for s in record.step_log]
             self._paths_from_step_log(record.step_log)
+            self._steps_lost_on_the_stream(record.step_log)
         self._link_events(record)
         self._at(record.sim_time_s, len(self.step_times))
         for c in record.candidates:
@@ -222,6 +223,19 @@ class EpisodeRecording:
         self.rec.log("log/steps", rr.TextLog(f"episode over: {record.termination} "
                                              f"({'success' if record.success else 'failure'})",
                                              level="INFO" if record.success else "WARN"))
+
+    def _steps_lost_on_the_stream(self, step_log: list[LoggedStep]) -> None:
+        """Decisions whose step event the best-effort stream lost: logged from the record instead, with
+        the views that waited for them, so the file has every decision whenever the record arrives."""
+        for k, s in enumerate(step_log, start=1):
+            if (s.role, s.decision_index) in self.step_of:
+                continue
+            self.step_of[(s.role, s.decision_index)] = (s.sim_time_s, k)
+            self._at(s.sim_time_s, k)
+            self.rec.log("log/steps", rr.TextLog(f"{s.role.upper()} #{s.decision_index}: {s.applied} (from the record: "
+                                                 "its step event was lost on the stream)", level="WARN"))
+            for frame in self.pending.pop((s.role, s.decision_index), []):
+                self._log_frame(frame, k)
 
     def close(self) -> Seen:
         """Write what is still pending and the outcome, and finish the file."""

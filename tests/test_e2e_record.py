@@ -255,6 +255,22 @@ def test_the_recorder_writes_the_stream_of_an_episode(tmp_path: Path) -> None:
     assert {"/map/region", "/map/target", "/uav/nadir/grid", "/uav/nadir/cells"} <= rrd.static
 
 
+def test_a_step_event_lost_on_the_stream_comes_from_the_record(tmp_path: Path) -> None:
+    """The stream is best effort: without the UGV's STOP_OBSERVE event (decision 4) the file still has
+    every decision in its step log and the forward view that waited for it, taken from the record."""
+    bus = MemoryBus()
+    recorder = Recorder(bus, RUN, tmp_path)
+    for key, message in _stream():
+        if not (isinstance(message, StepEvent) and message.episode_step == 4):
+            bus.publish_viz(key, message)
+    while (sample := recorder.inbox.get(timeout_s=0)) is not None:
+        recorder.handle(sample)
+    recorder.finish()
+    rrd = Rrd(tmp_path / f"{EP}.rrd")
+    assert rrd.rows["/log/steps"] == 5 + 2  # the start, every decision, the end
+    assert rrd.decisions["/ugv/forward"] == [3, 4]
+
+
 def test_the_recorder_refuses_what_is_not_its_run(tmp_path: Path) -> None:
     bus = MemoryBus()
     recorder = Recorder(bus, RUN, tmp_path)
