@@ -19,8 +19,10 @@ the stream's thumbnails.
 
 An episode's file is finished ``LATE_S`` seconds after the copy of its record arrives on
 ``viz/<ep>/result`` (frames are made on the world's frame thread and may arrive after it); at exit
-(SIGTERM, SIGINT) what is queued is written for at most ``DRAIN_S`` seconds and every open
-recording is closed (its outcome then says no record arrived).
+(SIGTERM, SIGINT) the recorder goes on until every open file is finished that way, for at most
+``DRAIN_S`` seconds (``agos eval`` stops the recorder once the evaluator has stored the last
+record, and that copy travels at a higher priority than the stream's, so it can overtake it); then
+every open recording is closed (its outcome then says no record arrived).
 
 Test hook: ``AGOS_RECORDER_STALL_S=N`` makes the handler sleep N seconds at the first sample, as a
 recorder stuck in its work would (tests/test_e2e_record.py).
@@ -116,11 +118,15 @@ class Recorder:
             sample = self.inbox.get(timeout_s=0.2)
             if sample is not None:
                 self.handle(sample, stop)
-            for episode in [e for e, at in self.closing.items() if at <= time.monotonic()]:
-                self._close(episode)
+            self._close_due()
         deadline = time.monotonic() + DRAIN_S
-        while time.monotonic() < deadline and (sample := self.inbox.get(timeout_s=0)) is not None:
-            self.handle(sample, None)
+        while time.monotonic() < deadline:
+            sample = self.inbox.get(timeout_s=0.1)
+            if sample is not None:
+                self.handle(sample, None)
+            self._close_due()
+            if not self.open:
+                break
         left = len(self.inbox.drain())
         self.finish()
         self._status("stopped", not_written=left)
@@ -132,6 +138,11 @@ class Recorder:
                  f", {left} queued at exit not written" if left else "")
         self.rejections.log_summary()
         return 0
+
+    def _close_due(self) -> None:
+        """Finish the files whose record arrived ``LATE_S`` ago (their last frames have had time)."""
+        for episode in [e for e, at in self.closing.items() if at <= time.monotonic()]:
+            self._close(episode)
 
     def finish(self) -> None:
         """Close every open recording and stop listening."""

@@ -211,7 +211,6 @@ class EpisodeRecording:
         if record.step_log:
             self.step_times = [s.sim_time_s for s in record.step_log]
             self._paths_from_step_log(record.step_log)
-            self._steps_lost_on_the_stream(record.step_log)
         self._link_events(record)
         self._at(record.sim_time_s, len(self.step_times))
         for c in record.candidates:
@@ -226,7 +225,7 @@ class EpisodeRecording:
 
     def _steps_lost_on_the_stream(self, step_log: list[LoggedStep]) -> None:
         """Decisions whose step event the best-effort stream lost: logged from the record instead, with
-        the views that waited for them, so the file has every decision whenever the record arrives."""
+        the views that waited for them, so the file has every decision the record has."""
         for k, s in enumerate(step_log, start=1):
             if (s.role, s.decision_index) in self.step_of:
                 continue
@@ -239,6 +238,9 @@ class EpisodeRecording:
 
     def close(self) -> Seen:
         """Write what is still pending and the outcome, and finish the file."""
+        if self.record is not None and self.record.step_log:
+            # Only now: the record travels reliably and can overtake the last step events on the stream.
+            self._steps_lost_on_the_stream(self.record.step_log)
         self._flush_pending()
         end = self.record.sim_time_s if self.record is not None else self.step_times[-1] if self.step_times else 0.0
         self._at(end, len(self.step_times))

@@ -90,6 +90,10 @@ class Bus(Protocol):
     def close(self) -> None: ...
 
 
+VIZ_QUEUE_BATCHES = 16
+"""zenoh TX queue of the visualisation priority (DATA_LOW), in 64 KiB batches: see :func:`zenoh_config`."""
+
+
 def zenoh_config(*, mode: str = "client", connect: list[str] | None = None, listen: list[str] | None = None,
                  multicast_scouting: bool = False, connect_timeout_s: float = 10.0,
                  tls: dict[str, Any] | None = None, access_control: dict[str, Any] | None = None) -> zenoh.Config:
@@ -105,6 +109,11 @@ def zenoh_config(*, mode: str = "client", connect: list[str] | None = None, list
         conf.insert_json5("connect/timeout_ms", json.dumps({"client": int(connect_timeout_s * 1000), "peer": -1}))
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(listen))
+    # The visualisation stream (DATA_LOW, DROP) comes in bursts: six full-resolution views at a
+    # STOP_OBSERVE are about 0.5 MB, and zenoh's default of 2 batches (128 KiB) a priority dropped one
+    # now and then on an idle loopback. 16 batches (zenoh's maximum; allocated lazily, per link) hold
+    # a burst; a subscriber that falls behind still loses samples instead of slowing anyone.
+    conf.insert_json5("transport/link/tx/queue/size/data_low", json.dumps(VIZ_QUEUE_BATCHES))
     if tls is not None:
         conf.insert_json5("transport/link/tls", json.dumps(tls))
     if access_control is not None:

@@ -22,7 +22,7 @@ Layout::
     agos/<run>/viz/<ep>/coord                visualisation (lossy): coordination truth
     agos/<run>/viz/<ep>/frame/<role>         visualisation (lossy): a small JPEG of each of the role's views
     agos/<run>/viz/<ep>/spec                 visualisation (lossy): the episode spec (region, target), at its start
-    agos/<run>/viz/<ep>/result               visualisation (lossy): a copy of the episode record, at its end
+    agos/<run>/viz/<ep>/result               visualisation (reliable): a copy of the episode record, at its end
     agos/<run>/viz/<ep>/full/<role>          visualisation (lossy): the role's views at full resolution, made
                                              only while someone subscribes there (``agos record --full``)
     agos/assets/<sha256>                     queryable: frozen town assets

@@ -378,7 +378,9 @@ class WorldWorker:
             self.frames.forget(keys.viz_prefix(self.run_id, spec.episode_id))
             self.bus.forget(keys.episode_prefix(self.run_id, spec.episode_id))
             self.bus.forget(keys.viz_prefix(self.run_id, spec.episode_id))
-        self.bus.publish_viz(keys.viz_result(self.run_id, spec.episode_id), record)  # for viewers (lossy)
+        # The viewers' copy of the record travels like control traffic (one small message an episode):
+        # on the lossy stream a full-resolution recording lost it under load, and the file its outcome.
+        self.bus.publish(keys.viz_result(self.run_id, spec.episode_id), record)
         self.bus.forget(keys.viz_result(self.run_id, spec.episode_id))
         self.submit(record)
         log.info("episode %s: %s (%s) in %.1f s", spec.episode_id, record.termination,
