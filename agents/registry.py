@@ -4,17 +4,26 @@ Implementations are imported only when asked for, so a process loads just the po
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from agos.agents.contract import Policy
 from agos.agents.names import KNOWN, VLM_POLICIES, parse_standin, split_name
 from agos.runtime.schemas import Role
 from agos.runtime.settings import VlmOptions
 
 
-def make_policy(name: str, role: Role, *, vlm: VlmOptions | None = None) -> Policy:
+def make_policy(name: str, role: Role, *, vlm: VlmOptions | None = None, dataset_out: Path | None = None) -> Policy:
     """Build a policy by name (see ``KNOWN``); ablation variants change only world-side tools.
 
-    VLM policies (``agos-agent``, ``baseline``) need ``vlm``: the endpoint, model and client options."""
+    VLM policies (``agos-agent``, ``baseline``) need ``vlm``: the endpoint, model and client options.
+    ``dataset_out``: the expert also writes every decision there (agents/dataset/writer.py)."""
     base, _ = split_name(name)
+    if dataset_out is not None:
+        if base != "expert":
+            raise ValueError(f"--dataset-out writes the expert's decisions; policy {name!r} is not 'expert'")
+        from agos.agents.dataset.writer import DatasetWriter
+
+        return DatasetWriter(role, dataset_out)
     if base in VLM_POLICIES:
         if vlm is None or not vlm.base_url or not vlm.model:
             raise ValueError(f"policy {name!r} asks a VLM: give --vlm-base-url URL and --model NAME "

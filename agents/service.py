@@ -25,6 +25,7 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import Any
 
 from agos.agents.contract import Policy, action_for
@@ -258,11 +259,12 @@ async def serve_async(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag
     return 0
 
 
-def main(cfg: AgosConfig, *, role: Role, policy_name: str | None = None, concurrency: int = 32) -> int:
+def main(cfg: AgosConfig, *, role: Role, policy_name: str | None = None, concurrency: int = 32,
+         dataset_out: Path | None = None) -> int:
     setup_logging(f"agent-{role}")
     stop = install_stop_handlers()
     name = policy_name or (cfg.run.policy_uav if role == "uav" else cfg.run.policy_ugv)
-    policy = make_policy(name, role, vlm=cfg.vlm)
+    policy = make_policy(name, role, vlm=cfg.vlm, dataset_out=dataset_out)
     if hasattr(policy, "preflight"):
         from agos.agents.vlm.client import VlmError
 

@@ -89,6 +89,19 @@ def build_parser() -> argparse.ArgumentParser:
                     help="start the offline stand-in VLM server for this run (optionally with faults, "
                          "e.g. 429=0.1,500=0.05); VLM policies then use it")
 
+    ds = sub.add_parser("dataset", help="AGOS-Dataset: expert trajectories, actions, messages and images (docs/DATASET.md)")
+    ds_sub = ds.add_subparsers(dest="dataset_command", required=True)
+    dsb = ds_sub.add_parser("build", help="build (or resume) the dataset of an episode split with leased world workers")
+    dsb.add_argument("--config", type=Path)
+    dsb.add_argument("--split", type=Path, required=True, help="JSONL episode file (e.g. a split's train.jsonl)")
+    dsb.add_argument("--out", type=Path, required=True, help="dataset directory (run the command again to resume)")
+    dsb.add_argument("--workers", type=int, default=1, help="local world worker processes (default 1)")
+    dsb.add_argument("--capture-every", type=float, default=10.0, metavar="M",
+                     help="also render each role's camera every M metres between decisions (default 10)")
+    dsb.add_argument("--connect", help="attach to a router and processes started by hand (agents with --dataset-out DIR)")
+    dsb.add_argument("--run", dest="run_id", help="run id (with --connect)")
+    dsb.add_argument("--port", type=int)
+
     sw = sub.add_parser("sweep", help="a comm-profile parameter grid x link seeds: table and plots with CIs")
     sw.add_argument("--config", type=Path, help="TOML settings file: its [world] section shapes the episodes")
     sw.add_argument("--split", type=Path, required=True, help="JSONL episode file")
@@ -126,6 +139,8 @@ def build_parser() -> argparse.ArgumentParser:
     agent.add_argument("--role", choices=["uav", "ugv"], required=True)
     agent.add_argument("--policy", help="policy name (default from config: heuristic)")
     agent.add_argument("--concurrency", type=int, default=32, help="decisions answered at once (default 32)")
+    agent.add_argument("--dataset-out", type=Path,
+                       help="with --policy expert: also write every decision for AGOS-Dataset here (agos dataset build)")
     _vlm_flags(agent)
 
     human = sub.add_parser("human", help="a person plays a role in the browser (the Human reference), or --spectate "
@@ -258,7 +273,7 @@ def _config(args: argparse.Namespace) -> AgosConfig:
     return load_config(getattr(args, "config", None), overrides=overrides)
 
 
-CONFIG_COMMANDS = ("demo", "eval", "sweep", "router", "world", "agent", "human", "evaluator", "check", "health", "watch",
+CONFIG_COMMANDS = ("demo", "eval", "dataset", "sweep", "router", "world", "agent", "human", "evaluator", "check", "health", "watch",
                    "record")
 """The commands that read the settings (``--config`` and the flags that override it)."""
 
@@ -306,6 +321,8 @@ def _run_configured(args: argparse.Namespace, cfg: AgosConfig) -> int:
         except ValueError as exc:  # a policy or profile name, a run directory: before any process starts
             print(f"demo error: {exc}", file=sys.stderr)
             return 2
+    if args.command == "dataset":
+        return _dataset(args, cfg)
     if args.command == "eval":
         return _eval(args, cfg)
     if args.command == "sweep":
@@ -326,11 +343,12 @@ def _run_configured(args: argparse.Namespace, cfg: AgosConfig) -> int:
 
         try:
             make_policy(args.policy or (cfg.run.policy_uav if args.role == "uav" else cfg.run.policy_ugv), args.role,
-                        vlm=cfg.vlm)
+                        vlm=cfg.vlm, dataset_out=args.dataset_out)
         except ValueError as exc:
             print(f"agent error: {exc}", file=sys.stderr)
             return 2
-        return service.main(cfg, role=args.role, policy_name=args.policy, concurrency=args.concurrency)
+        return service.main(cfg, role=args.role, policy_name=args.policy, concurrency=args.concurrency,
+                            dataset_out=args.dataset_out)
     if args.command == "human":
         return _human(args, cfg)
     if args.command == "check":
@@ -418,6 +436,25 @@ def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
     print((args.out / "sweep.md").read_text())
     print(f"{len(table)} points -> {args.out}/sweep.csv, sweep.md, sweep.png")
     return 0
+
+
+def _dataset(args: argparse.Namespace, cfg: AgosConfig) -> int:
+    from agos.deploy import dataset, evaluate
+    from agos.world.episodes.sampling import read_episodes
+
+    if args.connect and not args.run_id:
+        print("dataset error: --connect needs --run RUN (the run id the attached processes serve)", file=sys.stderr)
+        return 2
+    if args.capture_every <= 0:
+        print(f"dataset error: --capture-every {args.capture_every}: give a distance in metres above 0", file=sys.stderr)
+        return 2
+    try:
+        read_episodes(args.split)  # a bad split fails here, before any process starts
+        return dataset.build(cfg, args.split, args.out, workers=args.workers, capture_every_m=args.capture_every,
+                             attach=args.connect is not None, port=args.port, config_path=args.config)
+    except (dataset.DatasetError, evaluate.RunDirError) as exc:
+        print(f"dataset error: {exc}", file=sys.stderr)
+        return 2
 
 
 def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:

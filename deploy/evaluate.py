@@ -13,6 +13,7 @@ import json
 import logging
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -34,7 +35,7 @@ from agos.evaluator.table import results_table
 from agos.runtime.bus import ZenohBus
 from agos.runtime.episode_config import EpisodeConfig, StoredConfigError, read_config
 from agos.runtime.process import install_stop_handlers
-from agos.runtime.schemas import EpisodeSpec
+from agos.runtime.schemas import EpisodeRecord, EpisodeSpec
 from agos.runtime.settings import AgosConfig
 
 log = logging.getLogger("agos.eval")
@@ -59,6 +60,8 @@ class RunPlan:
     the run starts itself. Stored in run.json (never an API key)."""
     workers: int | str | None = None
     """``--workers`` as the run was started with (a count or ``auto``): what ``--resume`` uses again."""
+    dataset_out: Path | None = None
+    """A dataset build (deploy/dataset.py): the agents it starts write every decision there."""
 
     @property
     def run_id(self) -> str:
@@ -92,9 +95,9 @@ def vlm_plan(cfg: AgosConfig, policies: dict[str, str], standin: str | None) -> 
 
 
 def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: str, stamp: bool,
-             vlm_standin: str | None = None, workers: int | str | None = None) -> RunPlan:
+             vlm_standin: str | None = None, workers: int | str | None = None, dataset_out: Path | None = None) -> RunPlan:
     """A new run directory with its run.json and episodes.jsonl. ``workers``: the command's
-    ``--workers`` (a count or ``auto``), stored for ``--resume``."""
+    ``--workers`` (a count or ``auto``), stored for ``--resume``; ``dataset_out``: see :class:`RunPlan`."""
     from agos.world.episodes.sampling import read_episodes, write_episodes
 
     # Everything that can be wrong with the command fails before episodes are generated.
@@ -115,11 +118,12 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
         episodes = generated_episodes(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_episodes(run_dir / "episodes.jsonl", episodes)
-    plan = RunPlan(run_dir, episodes, policies, config, vlm=vlm, workers=workers)
+    plan = RunPlan(run_dir, episodes, policies, config, vlm=vlm, workers=workers, dataset_out=dataset_out)
     (run_dir / RUN_FILE).write_text(json.dumps({
         "run_id": plan.run_id, "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "policies": plan.policies, "comm": config.comm.name, "timing_mode": config.timing_mode, "episodes": len(episodes),
         "vlm": vlm, "workers": workers, "config_hash": config.config_hash(),
+        **({"dataset_out": str(dataset_out)} if dataset_out is not None else {}),
         "episode_config": config.model_dump(mode="json"),
         "episode_source": str(cfg.run.episodes_file or f"generated: {cfg.run.town}, {cfg.run.per_difficulty}/difficulty, "
                                                          f"seed {cfg.run.episode_seed}"),
@@ -141,7 +145,8 @@ def resume_plan(run_dir: Path) -> RunPlan:
     except StoredConfigError as exc:
         raise RunDirError(str(exc)) from None
     return RunPlan(run_dir, read_episodes(run_dir / "episodes.jsonl"), meta["policies"], config, resumed=True,
-                   vlm=meta.get("vlm", {}), workers=meta.get("workers"))
+                   vlm=meta.get("vlm", {}), workers=meta.get("workers"),
+                   dataset_out=Path(meta["dataset_out"]) if meta.get("dataset_out") else None)
 
 
 def stored_episodes(run_dir: Path) -> set[str]:
@@ -209,6 +214,8 @@ def _launch_all(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, endpoint: st
         return False
     # Every episode in flight may wait on an agent at once: decisions answered at once >= workers.
     at_once = ["--concurrency", str(max(32, workers))]
+    if plan.dataset_out is not None:
+        at_once += ["--dataset-out", str(plan.dataset_out)]
     people = start_console(launcher, plan.policies, common, plan.config, console, env)  # roles a person plays
     if people is None:
         return False
@@ -257,11 +264,13 @@ def _start_vlm(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, console: Cons
 
 def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, port: int | None = None,
         config_path: Path | None = None, console: Console | None = None, stuck_after_s: float = 180.0,
-        secure: bool = False, recording: Recording | None = None) -> int:
+        secure: bool = False, recording: Recording | None = None,
+        on_record: Callable[[EpisodeRecord], None] | None = None) -> int:
     """Run ``plan`` to the end. ``secure``: the processes it starts talk mutual TLS through a router
     enforcing access control, with a throwaway CA made for this run (deploy/certs.py). ``recording``:
     a recorder process writes the run's episodes as rerun files (deploy/record.py); an attached run
-    starts one too, connected as this command's settings say."""
+    starts one too, connected as this command's settings say. ``on_record``: called with each record
+    stored during the run, on this thread (a dataset build assembles the episode's files)."""
     console = console or Console()
     stop = install_stop_handlers()
     done_before = stored_episodes(plan.run_dir)
@@ -314,6 +323,8 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
                                       f"({record.status}): {cause}", highlight=False)
                         orch.publish_manifest("interrupted")  # attached workers stop asking for jobs
                         return 3
+                    if on_record is not None:
+                        on_record(record)
                     fresh += 1
                     successes += record.success
                     progress.update(task, completed=len(orch.stored), sr=f"{100 * successes / fresh:.0f}%")

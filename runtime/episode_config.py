@@ -116,6 +116,10 @@ class EpisodeConfig(_Part):
     tools: ToolConfig = ToolConfig()
     comm: CommProfile = IDEAL
     """The link model between the roles (docs/COMMS.md)."""
+    capture_every_m: float | None = Field(None, gt=0)
+    """Dataset builds (``agos dataset build``): the world also renders each role's camera every this
+    many metres along its moves, delivered with the next observation (``ExpertHints.passed``, expert
+    runs only). None: no views between decisions."""
 
     def config_hash(self) -> str:
         """Short sha256 (12 hex digits) of the canonical JSON of every field: equal hashes, equal
@@ -151,10 +155,13 @@ def read_config(data: Any, *, where: str) -> EpisodeConfig:
 
 def config_hash(data: dict[str, Any]) -> str:
     """Short hash of a configuration as stored (a map): the same for an object and its stored copy.
-    ``look`` counts only when it is not the default ``flat``, and ``tools.expert`` only when it is
-    on, so configurations stored before those fields existed keep their hash."""
+    ``look`` counts only when it is not the default ``flat``, ``tools.expert`` only when it is on and
+    ``capture_every_m`` only when set, so configurations stored before those fields existed keep
+    their hash."""
     if data.get("look") == "flat":
         data = {k: v for k, v in data.items() if k != "look"}
+    if "capture_every_m" in data and data["capture_every_m"] is None:
+        data = {k: v for k, v in data.items() if k != "capture_every_m"}
     tools = data.get("tools")
     if isinstance(tools, dict) and tools.get("expert") is False:
         data = {**data, "tools": {k: v for k, v in tools.items() if k != "expert"}}

@@ -176,12 +176,46 @@ class ExpertStep(Part, kw_only=True):
     message: str | None = None
 
 
+class ExpertWaypoint(Part, kw_only=True):
+    """One point of an expert trajectory: a UAV grid node or a UGV road anchor (``R<n>``), reached at
+    ``t_s`` (sim seconds from the episode's start)."""
+
+    waypoint_id: str
+    position_world_m: tuple[float, float]
+    t_s: float
+
+
+class PassedView(Part, kw_only=True):
+    """The role's camera between two decisions (dataset builds: ``capture_every_m``): rendered where
+    the platform passes ``distance_m`` along its move, at ``sim_time_s``; RGB, depth and semantic
+    frames like an observation's."""
+
+    sim_time_s: float
+    distance_m: float
+    """Along the move that started at the role's last decision."""
+    pose: Pose
+    images: list[ImageFrame]
+
+
 class ExpertHints(Part, kw_only=True):
     """The expert's plan for one role, computed by the world (which holds the ground truth) and
     given only when the run's policy is ``expert``: its whole decision script, one step per
-    decision, in order (step k answers the role's decision k + 1)."""
+    decision, in order (step k answers the role's decision k + 1), the trajectories it realises
+    (docs/DATASET.md), and the views passed since the role's last decision."""
 
     steps: list[ExpertStep]
+    raw_trajectory: list[ExpertWaypoint] = []
+    """Tra_0: the first mTSP solution's route of this role, before truncation."""
+    trajectory: list[ExpertWaypoint] = []
+    """Tra: where the role decides, truncated at ``t_f_s`` (the UGV's with its handoff path)."""
+    t_f_s: float | None = None
+    """First time either role would find the target."""
+    t_arr_s: float | None = None
+    """When the UGV arrives where it confirms (``t_f_s`` when the UGV finds the target itself)."""
+    finder: Role | None = None
+    wrong_candidates: int = 0
+    passed: list[PassedView] = []
+    """Views along the move since this role's last decision (``EpisodeConfig.capture_every_m``)."""
 
 
 class Observation(Message, tag="observation", kw_only=True):

@@ -154,10 +154,21 @@ class VlmAgent:
                 fallback_reason=f"agent error: {type(exc).__name__}: {exc}"[:300], error=type(exc).__name__)
             return action
 
-    async def _decide(self, obs: Observation) -> Action:
+    def prompt_for(self, obs: Observation) -> Prompt:
+        """The request for ``obs``, after updating the episode's memory with where the role is now:
+        what the model is sent at this decision. Call :meth:`note_decision` with the answer."""
         memory = self._memory.setdefault(obs.episode_id, Memory())
         self._locate(obs, memory)
-        prompt = self.build(obs, memory, images=self.options.images)
+        return self.build(obs, memory, images=self.options.images)
+
+    def note_decision(self, obs: Observation, action: Action) -> None:
+        """Remember the decision taken at ``obs`` (the memory the next prompts show). The dataset's
+        export replays the expert's decisions through this and :meth:`prompt_for`, so its prompts are
+        the ones this agent would have been sent on the same trajectory (agents/dataset/)."""
+        self._remember(obs, self._memory.setdefault(obs.episode_id, Memory()), action)
+
+    async def _decide(self, obs: Observation) -> Action:
+        prompt = self.prompt_for(obs)
         schema = action_schema(prompt.actions)
         messages = prompt.messages()
         attempts = reasks = prompt_tokens = completion_tokens = 0
@@ -198,7 +209,7 @@ class VlmAgent:
             parsed_action=action.action, fallback=reason is not None, fallback_reason=reason, repaired=parsed.repaired,
             reasks=reasks, http_attempts=attempts, latency_s=round(latency, 4), prompt_tokens=prompt_tokens or None,
             completion_tokens=completion_tokens or None, error=error)
-        self._remember(obs, memory, action)
+        self.note_decision(obs, action)
         if self._trace_path is not None:
             self._append_trace(obs, action)
         return action

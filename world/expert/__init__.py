@@ -12,7 +12,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from agos.runtime.schemas import ExpertStep, Role
+    from agos.runtime.schemas import ExpertHints, Role
     from agos.world.sim.state import EpisodeState
 
 
@@ -21,9 +21,9 @@ def install() -> None:
     imported at the first expert episode, not here: a world worker of other runs never loads them."""
     from agos.world.sim.observations import use_expert_planner
 
-    def plan(st: EpisodeState) -> dict[Role, list[ExpertStep]]:
-        from agos.world.expert.planner import plan_episode
+    def plan(st: EpisodeState) -> dict[Role, ExpertHints]:
+        from agos.world.expert.planner import hints_of, plan_episode
 
-        return plan_episode(st).steps
+        return hints_of(st, plan_episode(st))
 
     use_expert_planner(plan)

@@ -36,7 +36,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 
-from agos.runtime.schemas import ExpertStep, Role
+from agos.runtime.schemas import ExpertHints, ExpertStep, ExpertWaypoint, Role
 from agos.world.expert.closure import distances_to, uav_flight, uav_path
 from agos.world.expert.coverage import CoverageProblem
 from agos.world.expert.evidence import Evidence, as_xy
@@ -94,6 +94,28 @@ class ExpertPlan:
     @property
     def decisions(self) -> int:
         return len(self.steps["uav"]) + len(self.steps["ugv"])
+
+
+def hints_of(st: EpisodeState, plan: ExpertPlan) -> dict[Role, ExpertHints]:
+    """What each role's observations carry of ``plan``: its script and its trajectories, with
+    positions (UAV nodes at their ground point, UGV anchors where the road graph puts them)."""
+    pos = st.roads.positions_world_m
+
+    def where(role: Role, waypoint_id: str) -> tuple[float, float]:
+        if role == "uav":
+            x, y, _ = st.town.uav_grid.nodes[waypoint_id].position_world_m
+        else:
+            x, y = pos[RoadGraphs.parse_anchor_id(waypoint_id)][:2]
+        return (round(float(x), 3), round(float(y), 3))
+
+    def points(role: Role, trajectory: list[TrajectoryPoint]) -> list[ExpertWaypoint]:
+        return [ExpertWaypoint(waypoint_id=p.waypoint_id, position_world_m=where(role, p.waypoint_id), t_s=round(p.t_s, 3))
+                for p in trajectory]
+
+    return {role: ExpertHints(steps=plan.steps[role], raw_trajectory=points(role, plan.raw[role]),
+                              trajectory=points(role, plan.trajectories[role]), t_f_s=round(plan.t_f_s, 3),
+                              t_arr_s=round(plan.t_arr_s, 3), finder=plan.finder, wrong_candidates=plan.wrong_candidates)
+            for role in ("uav", "ugv")}
 
 
 def plan_episode(st: EpisodeState, *, deterministic_time: float = 5.0) -> ExpertPlan:

@@ -47,7 +47,7 @@ from agos.runtime.schemas import (
     StepEvent,
     StoredTrace,
 )
-from agos.world.sim import rules, sensors
+from agos.world.sim import capture, rules, sensors
 from agos.world.sim.comms import Channel
 from agos.world.sim.episode_vehicles import add_episode_vehicles
 from agos.world.sim.observations import coordination, observe, uav_waypoint
@@ -90,6 +90,10 @@ class NullSink:
 
     def message(self, message: AgentMessage) -> None:
         pass
+
+
+MOVES = frozenset({"MOVE_TO_UAV_WAYPOINT", "MOVE_TO_ROAD_WAYPOINT", "GO_TO_CANDIDATE"})
+"""The actions that carry a platform somewhere (the views along them are captured in dataset builds)."""
 
 
 class EpisodeRunner:
@@ -219,6 +223,7 @@ class EpisodeRunner:
         st = self.state
         st.decisions_used += 1
         route_before = len(st.ugv.route)
+        uav_before = st.uav.position[:2]
         if st.cfg.timing_mode == "realtime" and action is not None and action.agent_wall_latency_s:
             # A slow decision takes effect late; the teammate's schedule is unaffected.
             st.sim_time_s += max(0.0, action.agent_wall_latency_s)
@@ -234,6 +239,8 @@ class EpisodeRunner:
         if fallback is not None:
             st.fallbacks += 1
             rules.wait(st, role)
+        if st.cfg.capture_every_m is not None and applied in MOVES:
+            self._capture_move(role, uav_before, route_before, st.cfg.capture_every_m)
         if action is not None and action.trace is not None:
             st.traces.append(StoredTrace(role=role, decision_index=obs.decision_index, **msgspec.structs.asdict(action.trace)))
         if action is not None and action.message and fallback is None:
@@ -247,6 +254,16 @@ class EpisodeRunner:
             target_visible_uav=st.uav_target_px >= st.cfg.uav_visible_min_px() if role == "uav" else None,
             target_visible_ugv=st.ground_visible if role == "ugv" and applied == "STOP_OBSERVE" else None,
             candidate_id=candidate_id, info_age_s=st.info_age[role]))
+
+    def _capture_move(self, role: Role, uav_before: tuple[float, float], route_before: int, every_m: float) -> None:
+        """Dataset builds: the role's views along the move just applied, for its next observation."""
+        st = self.state
+        if role == "uav":
+            line = [(uav_before[0], uav_before[1]), (st.uav.position[0], st.uav.position[1])]
+        else:
+            pos = st.roads.positions_world_m
+            line = [(float(pos[n][0]), float(pos[n][1])) for n in st.ugv.route[route_before - 1:]]
+        st.passed[role] = capture.views_along(st, role, line, st.sim_time_s, every_m)
 
     def _publish_coordination(self) -> None:
         st = self.state

@@ -18,11 +18,12 @@ import copy
 import math
 from collections.abc import Callable
 
+import msgspec
+
 from agos.runtime.codec import encode_png
 from agos.runtime.schemas import (
     CoordinationState,
     ExpertHints,
-    ExpertStep,
     ImageFrame,
     Observation,
     OracleHints,
@@ -140,8 +141,9 @@ def _oracle(st: EpisodeState, role: Role, target_in_view: bool) -> OracleHints |
     return OracleHints(target_world_m=st.target_xy, target_in_view=target_in_view, confirm_would_succeed=would)
 
 
-ExpertPlanner = Callable[[EpisodeState], dict[Role, list[ExpertStep]]]
-"""Makes the expert's decision script of an episode from its state (ground truth and scene)."""
+ExpertPlanner = Callable[[EpisodeState], dict[Role, ExpertHints]]
+"""Makes the expert's plan of an episode (its decision script and trajectories per role) from its
+state (ground truth and scene)."""
 
 _expert_planner: ExpertPlanner | None = None
 
@@ -161,5 +163,6 @@ def _expert(st: EpisodeState, role: Role) -> ExpertHints | None:
         if _expert_planner is None:
             raise RuntimeError("the expert tool is on but this process has no expert planner: "
                                "call agos.world.expert.install() before running episodes")
-        st.expert_plan = {r: ExpertHints(steps=steps) for r, steps in _expert_planner(st).items()}
-    return st.expert_plan[role]
+        st.expert_plan = _expert_planner(st)
+    passed, st.passed[role] = st.passed[role], []
+    return msgspec.structs.replace(st.expert_plan[role], passed=passed) if passed else st.expert_plan[role]

@@ -30,6 +30,7 @@ from agos.runtime.schemas import (
     ImageFrame,
     LoggedStep,
     MessageRecord,
+    PassedView,
     Pose,
     Role,
     StoredTrace,
@@ -112,6 +113,8 @@ class EpisodeState:
         self.added: list[int] = []
         self.expert_plan: dict[Role, ExpertHints] | None = None
         """The expert's script per role, planned at the first observation (runs with the expert tool)."""
+        self.passed: dict[Role, list[PassedView]] = {"uav": [], "ugv": []}
+        """Views along each role's last move, until its next observation (``capture_every_m``)."""
 
     # ----- views ----------------------------------------------------------------------------
     def ugv_xy(self) -> tuple[float, float]:

@@ -1,0 +1,234 @@
+"""``agos dataset build``: AGOS-Dataset from an episode split, built by leased world workers.
+
+    agos dataset build --split val.jsonl --out data/val [--workers N] [--capture-every 10]
+
+A build is an evaluation run of the ``expert`` policy (comm ideal, lockstep) in
+``DIR/dataset-<split hash>``, with the same leases, re-leases and resume as ``agos eval``; its two
+agents write every decision under
+``DIR/.partial`` (agents/dataset/writer.py) and its world workers render each role's camera every
+``--capture-every`` metres between decisions too. Each stored record is *assembled* here, on the
+build's thread: a successful episode whose two roles wrote every decision the record counts gets
+``episode.json`` (spec, outcome, the expert's trajectories) and ``files.sha256``, and its directory
+is moved into ``DIR/episodes/<episode>`` in one rename, so an episode is either whole there or absent.
+An episode the expert failed (a bug in the dataset or the checker: the expert must succeed) is listed
+in ``failed.jsonl`` and left in ``.partial`` for a look. At the end (also after Ctrl-C) ``export.jsonl``
+(every decision's fine-tuning example, paths relative to ``DIR``) and ``manifest.json`` (counts, the
+split's sha256, the configuration hash, each episode's ``files.sha256`` hash) are written again from
+what is assembled.
+
+Run the same command again to resume: stored episodes are skipped, and a stored episode whose files
+were not assembled yet (the build stopped in between) is assembled from ``.partial``. On many hosts,
+start the agents where ``DIR`` is (``agos agent --role R --policy expert --dataset-out DIR``), world
+workers anywhere, and this command with ``--connect EP --run RUN`` on the agents' host
+(docs/DATASET.md).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from agos.agents.dataset.writer import EPISODES, PARTIAL
+from agos.deploy import evaluate
+from agos.runtime.schemas import EpisodeRecord, EpisodeSpec
+from agos.runtime.settings import AgosConfig
+
+MANIFEST = "manifest.json"
+EXPORT = "export.jsonl"
+FAILED = "failed.jsonl"
+EPISODE_FILE = "episode.json"
+HASHES = "files.sha256"
+ROLES = ("uav", "ugv")
+DEFAULT_CAPTURE_EVERY_M = 10.0
+
+
+class DatasetError(ValueError):
+    """A build that cannot start or go on; the message names the file and what to do."""
+
+
+@dataclass
+class Assembler:
+    """Moves finished episodes from ``.partial`` into ``episodes/`` (module docstring)."""
+
+    out_dir: Path
+    specs: dict[str, EpisodeSpec]
+    console: Console = field(default_factory=Console)
+
+    def __call__(self, record: EpisodeRecord) -> None:
+        problem = self.assemble(record)
+        if problem is not None:
+            self.console.print(f"[red]dataset: {record.episode_id} not added: {problem}", highlight=False)
+            with (self.out_dir / FAILED).open("a") as f:
+                f.write(json.dumps({"episode_id": record.episode_id, "difficulty": record.difficulty,
+                                    "termination": record.termination, "problem": problem}) + "\n")
+
+    def assemble(self, record: EpisodeRecord) -> str | None:
+        """Add ``record``'s episode to the dataset; the reason when it cannot be."""
+        final = self.out_dir / EPISODES / record.episode_id
+        if (final / EPISODE_FILE).exists():
+            return None  # assembled by an earlier build
+        if not record.success:
+            return f"the expert did not succeed ({record.status}, {record.termination}); its files stay in " \
+                   f"{self.out_dir / PARTIAL / record.episode_id}"
+        attempt = _latest_attempt(self.out_dir / PARTIAL / record.episode_id)
+        if attempt is None:
+            return f"no decisions were written under {self.out_dir / PARTIAL / record.episode_id} (were the agents " \
+                   "started with --dataset-out on this directory?)"
+        counts = {"uav": record.decisions_uav, "ugv": record.decisions_ugv}
+        for role in ROLES:
+            written = _lines(attempt / role / "decisions.jsonl")
+            if written != counts[role]:
+                return f"{role}: {written} decisions written, the record has {counts[role]} (an agent restarted " \
+                       "mid-episode?); rebuild it"
+        expert = {role: json.loads((attempt / role / "expert.json").read_text()) for role in ROLES}
+        spec = self.specs[record.episode_id]
+        (attempt / EPISODE_FILE).write_text(json.dumps(_episode_doc(spec, record, expert), indent=1) + "\n")
+        (attempt / HASHES).write_text("".join(f"{digest}  {rel}\n" for rel, digest in _hashes(attempt)))
+        if final.exists():
+            shutil.rmtree(final)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        os.rename(attempt, final)  # the whole episode appears at once
+        shutil.rmtree(self.out_dir / PARTIAL / record.episode_id, ignore_errors=True)
+        return None
+
+
+def build(cfg: AgosConfig, split: Path, out_dir: Path, *, workers: int, capture_every_m: float,
+          attach: bool = False, port: int | None = None, config_path: Path | None = None,
+          console: Console | None = None) -> int:
+    """Build (or resume) the dataset of ``split`` in ``out_dir``; the exit code."""
+    console = console or Console()
+    out_dir = out_dir.resolve()
+    split_sha = _sha256(split)
+    run_dir = out_dir / (cfg.run.run_id if attach else f"dataset-{split_sha[:8]}")
+    if (run_dir / evaluate.RUN_FILE).exists():
+        plan = evaluate.resume_plan(run_dir)
+        made_from = json.loads((out_dir / MANIFEST).read_text()).get("split_sha256") if (out_dir / MANIFEST).exists() else None
+        if made_from not in (None, split_sha):
+            raise DatasetError(f"{out_dir} holds a build of another split ({made_from[:12]}, {split} is "
+                               f"{split_sha[:12]}); give another --out")
+        console.print(f"resuming the build in {out_dir}", highlight=False)
+    else:
+        run = cfg.run.model_copy(update={"episodes_file": split, "policy_uav": "expert", "policy_ugv": "expert"})
+        world = cfg.world.model_copy(update={"capture_every_m": capture_every_m})
+        cfg = cfg.model_copy(update={"run": run, "world": world})
+        plan = evaluate.new_plan(cfg, run_dir=run_dir, comm="ideal", timing_mode="lockstep", stamp=False,
+                                 workers=workers, dataset_out=out_dir)
+    assembler = Assembler(out_dir, {s.episode_id: s for s in plan.episodes}, console)
+    _write_manifest(out_dir, plan, split, split_sha)  # the split's hash first: a resume checks it
+    for record in _stored_records(run_dir):  # stored before an interruption, not yet assembled
+        assembler(record)
+    try:
+        code = evaluate.run(cfg, plan, workers=workers, attach=attach, port=port, config_path=config_path,
+                            console=console, on_record=assembler)
+    finally:
+        manifest = _write_manifest(out_dir, plan, split, split_sha)
+        _write_export(out_dir, sorted(manifest["episodes"]))
+    c = manifest["counts"]
+    console.print(f"dataset {out_dir}: {c['episodes']} of {len(plan.episodes)} episodes, {c['decisions']} decisions, "
+                  f"{c['images']} images ({c['bytes'] / 1e6:.1f} MB); {c['failed']} failed; export: {out_dir / EXPORT}",
+                  highlight=False)
+    return code if code else (1 if c["failed"] else 0)
+
+
+# ----- the files ------------------------------------------------------------------------------
+def _episode_doc(spec: EpisodeSpec, record: EpisodeRecord, expert: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    uav, ugv = expert["uav"], expert["ugv"]
+    return {
+        "episode_id": spec.episode_id, "town_id": record.town_id, "asset_sha256": record.asset_sha256,
+        "difficulty": spec.difficulty, "seed": spec.seed, "decision_budget": spec.decision_budget,
+        "target": {"model": spec.target.model, "colour": spec.target.colour,
+                   "position_world_m": list(spec.target.position_world_m)},
+        "outcome": {"success": record.success, "termination": record.termination, "sim_time_s": record.sim_time_s,
+                    "decisions_uav": record.decisions_uav, "decisions_ugv": record.decisions_ugv,
+                    "ugv_path_length_m": record.ugv_path_length_m,
+                    "shortest_path_length_m": record.shortest_path_length_m, "config_hash": record.config_hash},
+        "expert": {"t_f_s": uav["t_f_s"], "t_arr_s": uav["t_arr_s"], "finder": uav["finder"],
+                   "wrong_candidates": uav["wrong_candidates"],
+                   "raw_trajectory": {"uav": uav["raw_trajectory"], "ugv": ugv["raw_trajectory"]},
+                   "trajectory": {"uav": uav["trajectory"], "ugv": ugv["trajectory"]},
+                   "steps": {"uav": uav["steps"], "ugv": ugv["steps"]}},
+    }
+
+
+def _write_manifest(out_dir: Path, plan: evaluate.RunPlan, split: Path, split_sha: str) -> dict[str, Any]:
+    episodes: dict[str, Any] = {}
+    decisions = images = size = 0
+    for ep_dir in sorted((out_dir / EPISODES).glob("*/")):
+        hashes = ep_dir / HASHES
+        if not (ep_dir / EPISODE_FILE).exists() or not hashes.exists():
+            continue
+        doc = json.loads((ep_dir / EPISODE_FILE).read_text())
+        lines = hashes.read_text().splitlines()
+        n_images = sum(1 for line in lines if line.endswith((".jpg", ".png")))
+        n_bytes = sum((ep_dir / line.split("  ", 1)[1]).stat().st_size for line in lines)
+        n_decisions = doc["outcome"]["decisions_uav"] + doc["outcome"]["decisions_ugv"]
+        episodes[ep_dir.name] = {"difficulty": doc["difficulty"], "town_id": doc["town_id"], "decisions": n_decisions,
+                                 "images": n_images, "bytes": n_bytes, "files_sha256": _sha256(hashes)}
+        decisions, images, size = decisions + n_decisions, images + n_images, size + n_bytes
+    failed = _lines(out_dir / FAILED)
+    manifest = {
+        "format": 1, "split": str(split), "split_sha256": split_sha, "run_dir": plan.run_dir.name,
+        "config_hash": plan.config.config_hash(), "capture_every_m": plan.config.capture_every_m,
+        "counts": {"episodes": len(episodes), "decisions": decisions, "images": images, "bytes": size,
+                   "failed": failed, "split": len(plan.episodes)},
+        "episodes": episodes,
+    }
+    tmp = out_dir / f".{MANIFEST}.tmp"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp.write_text(json.dumps(manifest, indent=1) + "\n")
+    tmp.replace(out_dir / MANIFEST)
+    return manifest
+
+
+def _write_export(out_dir: Path, episodes: list[str]) -> None:
+    """``export.jsonl``: every assembled episode's examples, episode by episode, UAV then UGV."""
+    tmp = out_dir / f".{EXPORT}.tmp"
+    with tmp.open("w") as out:
+        for episode in episodes:
+            for role in ROLES:
+                path = out_dir / EPISODES / episode / role / EXPORT
+                out.write(path.read_text())
+    tmp.replace(out_dir / EXPORT)
+
+
+def _stored_records(run_dir: Path) -> Iterator[EpisodeRecord]:
+    from agos.evaluator.store import ResultStore
+
+    path = run_dir / "results.sqlite"
+    if not path.exists():
+        return
+    store = ResultStore(path, create=False)
+    try:
+        yield from store.records()
+    finally:
+        store.close()
+
+
+def _latest_attempt(episode_partial: Path) -> Path | None:
+    attempts = sorted((p for p in episode_partial.glob("a*") if p.name[1:].isdigit()), key=lambda p: int(p.name[1:]))
+    return attempts[-1] if attempts else None
+
+
+def _hashes(root: Path) -> list[tuple[str, str]]:
+    return [(p.relative_to(root).as_posix(), _sha256(p)) for p in sorted(root.rglob("*")) if p.is_file()
+            and p.name != HASHES]
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _lines(path: Path) -> int:
+    return sum(1 for _ in path.open()) if path.exists() else 0
