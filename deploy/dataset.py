@@ -108,12 +108,12 @@ def build(cfg: AgosConfig, split: Path, out_dir: Path, *, workers: int, capture_
     out_dir = out_dir.resolve()
     split_sha = _sha256(split)
     run_dir = out_dir / (cfg.run.run_id if attach else f"dataset-{split_sha[:8]}")
+    made_from = json.loads((out_dir / MANIFEST).read_text()).get("split_sha256") if (out_dir / MANIFEST).exists() else None
+    if made_from is not None and made_from != split_sha:
+        raise DatasetError(f"{out_dir} holds a build of another split (sha256 {made_from[:12]}; {split} is "
+                           f"{split_sha[:12]}); give another --out")
     if (run_dir / evaluate.RUN_FILE).exists():
         plan = evaluate.resume_plan(run_dir)
-        made_from = json.loads((out_dir / MANIFEST).read_text()).get("split_sha256") if (out_dir / MANIFEST).exists() else None
-        if made_from not in (None, split_sha):
-            raise DatasetError(f"{out_dir} holds a build of another split ({made_from[:12]}, {split} is "
-                               f"{split_sha[:12]}); give another --out")
         console.print(f"resuming the build in {out_dir}", highlight=False)
     else:
         run = cfg.run.model_copy(update={"episodes_file": split, "policy_uav": "expert", "policy_ugv": "expert"})
