@@ -31,21 +31,41 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     episodes = sub.add_parser("episodes", help="episode files")
     ep_sub = episodes.add_subparsers(dest="episodes_command", required=True)
     sample = ep_sub.add_parser("sample", help="sample solvable episodes on one town")
-    sample.add_argument("--town", default="grid-s7", help="procedural town id or asset directory")
+    sample.add_argument("--town", default="grid-s7", help="procedural town id, asset directory or .xodr file")
     sample.add_argument("--difficulty", choices=["easy", "mid", "hard"], help="one difficulty (with -n)")
     sample.add_argument("-n", type=int, default=1, help="episodes of --difficulty")
     sample.add_argument("--per-difficulty", type=int, help="episodes of every difficulty instead")
     sample.add_argument("--seed", type=int, default=1)
+    _add_look(sample)
     sample.add_argument("--out", type=Path, required=True)
-    split = ep_sub.add_parser("split", help="train/val over five towns and test on the held-out town")
-    split.add_argument("--out", type=Path, required=True, help="directory for train/val/test.jsonl")
+    split = ep_sub.add_parser("split", help="train/val over five towns and test on a held-out town")
+    split.add_argument("--out", type=Path, required=True, help="directory for train/val/test.jsonl and manifest.json")
+    split.add_argument("--preset", choices=["paper"],
+                       help="paper: the five CARLA towns Town01, 02, 04, 06, 07 (in --maps) for train/val; "
+                            "needs --test-town")
+    split.add_argument("--towns", help="train/val towns, comma-separated: procedural ids, asset directories or "
+                                       ".xodr files (default: the five procedural train/val towns)")
+    split.add_argument("--test-town", help="the held-out test town, not among the train/val towns (default parks-s23)")
+    split.add_argument("--maps", type=Path, default=Path("../shared/maps/carla"),
+                       help="where --preset paper finds the CARLA .xodr files (default ../shared/maps/carla)")
     split.add_argument("--train", type=int, default=5500, help="train episodes (default 5500, the paper's)")
     split.add_argument("--val", type=int, default=2200, help="validation episodes (default 2200)")
     split.add_argument("--test", type=int, default=210, help="test episodes, on the held-out town (default 210)")
     split.add_argument("--seed", type=int, default=1)
+    _add_look(split)
     split.add_argument("--workers", type=int, default=2)
     check = ep_sub.add_parser("check", help="validate an episode file")
     check.add_argument("file", type=Path)
+
+
+def _add_look(parser: argparse.ArgumentParser) -> None:
+    """``--look``: the look the episodes are sampled and checked with (rich episodes differ); its
+    default is the episode configuration's, so the files match what ``agos eval`` draws by default."""
+    from agos.runtime.episode_config import EpisodeConfig
+
+    default = EpisodeConfig.model_fields["look"].default
+    parser.add_argument("--look", choices=["flat", "rich"], default=default,
+                        help=f"vehicle look to sample and check with (default {default}, [world] look's default)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -141,11 +161,12 @@ def _episodes(args: argparse.Namespace) -> int:
         return 0
     if args.episodes_command == "sample":
         from agos.world.episodes.sampling import DIFFICULTIES, sample_episode, write_episodes
+        from agos.world.episodes.splits import resolve_town
         from agos.world.sim.scene import Scene
         from agos.world.towns.asset import open_town
 
-        town = open_town(args.town)
-        scene = Scene(town.layout)
+        town = open_town(resolve_town(args.town).source)
+        scene = Scene(town.layout, look=args.look)
         try:
             if args.per_difficulty:
                 plan = [(d, args.per_difficulty) for d in DIFFICULTIES]
@@ -159,21 +180,44 @@ def _episodes(args: argparse.Namespace) -> int:
         finally:
             scene.close()
         write_episodes(args.out, episodes)
-        print(f"wrote {len(episodes)} solvable episodes on {town.town_id} (asset {town.sha256[:12]}) to {args.out}")
+        print(f"wrote {len(episodes)} solvable episodes on {town.town_id} (asset {town.sha256[:12]}, {args.look} look) "
+              f"to {args.out}")
         return 0
     if args.episodes_command == "split":
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-        from agos.world.episodes.splits import build_split, plan_jobs
-        from agos.world.towns.procedural import TEST_TOWNS, TOWNS
-
-        trainval = [t for t in TOWNS if t not in TEST_TOWNS]
-        jobs = plan_jobs(train=args.train, val=args.val, test=args.test, trainval_towns=trainval,
-                         test_towns=list(TEST_TOWNS), seed=args.seed)
-        total = sum(j.count for j in jobs)
-        with Progress(TextColumn("[bold]sampling"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()) as bar:
-            task = bar.add_task("episodes", total=total)
-            manifest = build_split(args.out, jobs, workers=args.workers, progress=lambda n: bar.advance(task, n))
-        print(f"{args.out}: " + ", ".join(f"{k} {v}" for k, v in manifest["counts"].items()))
-        return 0
+        return _split(args)
     raise AssertionError(args.episodes_command)
+
+
+def _split(args: argparse.Namespace) -> int:
+    """``agos episodes split``: resolve and check the towns (a bad one is one line, exit 2, before
+    any sampling), then sample with a progress bar."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from agos.world.episodes.splits import PAPER_TRAINVAL_MAPS, SplitPlan, build_split, check_disjoint, paper_towns, resolve_town
+    from agos.world.towns.procedural import TEST_TOWNS, TOWNS
+
+    if args.preset == "paper":
+        if args.towns:
+            raise ValueError("--preset paper names the train/val towns itself: leave out --towns")
+        if not args.test_town:
+            raise ValueError(f"--preset paper needs --test-town T: the held-out test town, any procedural or imported "
+                             f"town but {', '.join(PAPER_TRAINVAL_MAPS)} (e.g. parks-s23)")
+        names = paper_towns(args.maps)
+    elif args.towns:
+        names = [n.strip() for n in args.towns.split(",") if n.strip()]
+    else:
+        names = [t for t in TOWNS if t not in TEST_TOWNS]
+    trainval = tuple(resolve_town(n) for n in names)
+    test_towns = tuple(resolve_town(n) for n in ([args.test_town] if args.test_town else TEST_TOWNS))
+    check_disjoint(trainval, test_towns)
+    for label, towns in (("train/val", trainval), ("test", test_towns)):
+        print(f"{label}: " + ", ".join(f"{t.town_id} ({t.sha256[:12]})" for t in towns))
+    plan = SplitPlan(trainval, test_towns, train=args.train, val=args.val, test=args.test, seed=args.seed,
+                     look=args.look, preset=args.preset)
+    total = sum(j.count for j in plan.jobs())
+    with Progress(TextColumn("[bold]sampling"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()) as bar:
+        task = bar.add_task("episodes", total=total)
+        manifest = build_split(args.out, plan, workers=args.workers, progress=lambda n: bar.advance(task, n))
+    print(f"{args.out}: " + ", ".join(f"{k} {v}" for k, v in manifest["counts"].items())
+          + f" ({args.look} look; manifest.json has the towns' and files' sha256)")
+    return 0
