@@ -96,6 +96,8 @@ def build_parser() -> argparse.ArgumentParser:
     dsb.add_argument("--split", type=Path, required=True, help="JSONL episode file (e.g. a split's train.jsonl)")
     dsb.add_argument("--out", type=Path, required=True, help="dataset directory (run the command again to resume)")
     dsb.add_argument("--workers", type=int, default=1, help="local world worker processes (default 1)")
+    dsb.add_argument("--look", choices=["rich", "flat"], default="rich",
+                     help="how the world draws the episodes (default rich: the textured city the dataset is for)")
     dsb.add_argument("--capture-every", type=float, default=10.0, metavar="M",
                      help="also render each role's camera every M metres between decisions (default 10)")
     dsb.add_argument("--connect", help="attach to a router and processes started by hand (agents with --dataset-out DIR)")
@@ -451,7 +453,7 @@ def _dataset(args: argparse.Namespace, cfg: AgosConfig) -> int:
     try:
         read_episodes(args.split)  # a bad split fails here, before any process starts
         return dataset.build(cfg, args.split, args.out, workers=args.workers, capture_every_m=args.capture_every,
-                             attach=args.connect is not None, port=args.port, config_path=args.config)
+                             look=args.look, attach=args.connect is not None, port=args.port, config_path=args.config)
     except (dataset.DatasetError, evaluate.RunDirError) as exc:
         print(f"dataset error: {exc}", file=sys.stderr)
         return 2

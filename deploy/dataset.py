@@ -1,8 +1,9 @@
 """``agos dataset build``: AGOS-Dataset from an episode split, built by leased world workers.
 
-    agos dataset build --split val.jsonl --out data/val [--workers N] [--capture-every 10]
+    agos dataset build --split val.jsonl --out data/val [--workers N] [--look rich] [--capture-every 10]
 
-A build is an evaluation run of the ``expert`` policy (comm ideal, lockstep) in
+A build is an evaluation run of the ``expert`` policy (comm ideal, lockstep, the rich look unless
+``--look flat``) in
 ``DIR/dataset-<split hash>``, with the same leases, re-leases and resume as ``agos eval``; its two
 agents write every decision under
 ``DIR/.partial`` (agents/dataset/writer.py) and its world workers render each role's camera every
@@ -100,10 +101,11 @@ class Assembler:
         return None
 
 
-def build(cfg: AgosConfig, split: Path, out_dir: Path, *, workers: int, capture_every_m: float,
+def build(cfg: AgosConfig, split: Path, out_dir: Path, *, workers: int, capture_every_m: float, look: str = "rich",
           attach: bool = False, port: int | None = None, config_path: Path | None = None,
           console: Console | None = None) -> int:
-    """Build (or resume) the dataset of ``split`` in ``out_dir``; the exit code."""
+    """Build (or resume) the dataset of ``split`` in ``out_dir`` drawn with ``look``; the exit code. A
+    resumed build keeps the configuration it was started with (``run.json``)."""
     console = console or Console()
     out_dir = out_dir.resolve()
     split_sha = _sha256(split)
@@ -117,7 +119,7 @@ def build(cfg: AgosConfig, split: Path, out_dir: Path, *, workers: int, capture_
         console.print(f"resuming the build in {out_dir}", highlight=False)
     else:
         run = cfg.run.model_copy(update={"episodes_file": split, "policy_uav": "expert", "policy_ugv": "expert"})
-        world = cfg.world.model_copy(update={"capture_every_m": capture_every_m})
+        world = cfg.world.model_copy(update={"capture_every_m": capture_every_m, "look": look})
         cfg = cfg.model_copy(update={"run": run, "world": world})
         plan = evaluate.new_plan(cfg, run_dir=run_dir, comm="ideal", timing_mode="lockstep", stamp=False,
                                  workers=workers, dataset_out=out_dir)
@@ -176,7 +178,7 @@ def _write_manifest(out_dir: Path, plan: evaluate.RunPlan, split: Path, split_sh
     failed = _lines(out_dir / FAILED)
     manifest = {
         "format": 1, "split": str(split), "split_sha256": split_sha, "run_dir": plan.run_dir.name,
-        "config_hash": plan.config.config_hash(), "capture_every_m": plan.config.capture_every_m,
+        "config_hash": plan.config.config_hash(), "look": plan.config.look, "capture_every_m": plan.config.capture_every_m,
         "counts": {"episodes": len(episodes), "decisions": decisions, "images": images, "bytes": size,
                    "failed": failed, "split": len(plan.episodes)},
         "episodes": episodes,

@@ -43,7 +43,7 @@ def test_a_build_writes_every_episode_of_the_split(built: tuple[Path, Path, str]
     manifest = json.loads((out / "manifest.json").read_text())
     assert sorted(manifest["episodes"]) == sorted(episodes)
     assert manifest["split_sha256"] == hashlib.sha256(split.read_bytes()).hexdigest()
-    assert manifest["counts"]["failed"] == 0 and manifest["capture_every_m"] == 10.0
+    assert manifest["counts"]["failed"] == 0 and manifest["capture_every_m"] == 10.0 and manifest["look"] == "rich"
     assert {e["difficulty"] for e in manifest["episodes"].values()} == {"easy", "mid", "hard"}
     assert not list((out / ".partial").glob("*")), "assembled episodes leave nothing behind"
     for episode in episodes:
