@@ -103,6 +103,10 @@ def build_parser() -> argparse.ArgumentParser:
     dsb.add_argument("--connect", help="attach to a router and processes started by hand (agents with --dataset-out DIR)")
     dsb.add_argument("--run", dest="run_id", help="run id (with --connect)")
     dsb.add_argument("--port", type=int)
+    dss = ds_sub.add_parser("stats", help="counts per difficulty and the dataset's statistics figure (reads files only)")
+    dss.add_argument("dir", type=Path, help="dataset directory (the --out of agos dataset build)")
+    dss.add_argument("--out", type=Path, help="figure PNG (default DIR/stats.png)")
+    dss.add_argument("--markdown", action="store_true", help="print the table as markdown (to paste)")
 
     sw = sub.add_parser("sweep", help="a comm-profile parameter grid x link seeds: table and plots with CIs")
     sw.add_argument("--config", type=Path, help="TOML settings file: its [world] section shapes the episodes")
@@ -280,10 +284,15 @@ CONFIG_COMMANDS = ("demo", "eval", "dataset", "sweep", "router", "world", "agent
 """The commands that read the settings (``--config`` and the flags that override it)."""
 
 
+def _reads_config(args: argparse.Namespace) -> bool:
+    """Whether the command reads the settings: CONFIG_COMMANDS but ``dataset stats``, which reads files only."""
+    return args.command in CONFIG_COMMANDS and not (args.command == "dataset" and args.dataset_command == "stats")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        cfg = _config(args) if args.command in CONFIG_COMMANDS else None
+        cfg = _config(args) if _reads_config(args) else None
         code = _dispatch(args, cfg)
         sys.stdout.flush()  # here, where a reader that left (BrokenPipeError) is caught, not at exit
         return code
@@ -378,6 +387,10 @@ def _run_configured(args: argparse.Namespace, cfg: AgosConfig) -> int:
 
 def _run_unconfigured(args: argparse.Namespace) -> int:
     """The commands that do not read the settings."""
+    if args.command == "dataset":  # dataset stats (build reads the settings)
+        from agos.deploy import dataset_stats
+
+        return dataset_stats.main(args.dir, args.out, markdown=args.markdown)
     if args.command in ("episodes", "map"):
         from agos.world import cli as world_cli
 
