@@ -4,9 +4,11 @@ Uses only what an agent receives: the reference views (background removed, with 
 its own RGB and depth images, their intrinsics and camera poses. No ground truth.
 
 A :class:`TargetProfile` is read from the references: the paint colour (HSV of the saturated
-pixels), the painted length and width seen from above, and the height of the painted parts
-seen from the side. Detections are connected regions of paint-coloured pixels whose metric
-size (from altitude or depth) agrees with the profile.
+pixels), the painted and the whole body's length and width seen from above, and the height of
+the painted parts and of the body seen from the side. :func:`detect_from_above` finds connected
+regions of paint-coloured pixels in a nadir RGB image whose metric size (from the altitude)
+agrees with the profile: what an agent without depth can do (the stand-in VLM). The heuristic
+policies use the depth-aware detectors of :mod:`aerial` and :mod:`ground`.
 """
 
 from __future__ import annotations
@@ -38,6 +40,17 @@ class TargetProfile:
     width_m: float
     paint_top_m: float
     """Height of the highest painted pixel in the side view, metres above the road."""
+    body_length_m: float = 0.0
+    """Length of the whole body seen from above (the top view's silhouette, paint or not)."""
+    body_width_m: float = 0.0
+    body_height_m: float = 0.0
+    """Height of the body's top in the side view, metres above the road (0: unknown)."""
+    paint_fraction: float = 0.0
+    """Share of the top view's silhouette that shows the paint (glass, a contrasting roof or a
+    stripe lower it)."""
+    body_cut: bool = False
+    """The top view's silhouette touches the image's edge: ``body_length_m`` and ``body_width_m``
+    are lower bounds (a long vehicle framed off centre)."""
 
 
 def _hsv(rgb: np.ndarray) -> np.ndarray:
@@ -49,7 +62,8 @@ def _paint_pixels(hsv: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return px[(px[:, 1] >= SAT_MIN) & (px[:, 2] >= VALUE_MIN)]
 
 
-def _circular_median_hue(h: np.ndarray) -> float:
+def circular_mean_hue(h: np.ndarray) -> float:
+    """Mean of OpenCV hues (0-179) on the hue circle (red sits at both ends)."""
     angles = h.astype(np.float64) * (2 * math.pi / 180.0)
     mean = math.atan2(np.sin(angles).mean(), np.cos(angles).mean())
     return (mean * 180.0 / (2 * math.pi)) % 180.0
@@ -71,13 +85,17 @@ def profile_from_references(references: list[ImageFrame]) -> TargetProfile:
     paint = _paint_pixels(hsv, body)
     if len(paint) < 10:
         raise ValueError("the reference top view shows no saturated paint")
-    hue, sat = _circular_median_hue(paint[:, 0]), float(np.median(paint[:, 1]))
+    hue, sat = circular_mean_hue(paint[:, 0]), float(np.median(paint[:, 1]))
     value_top = float(np.median(paint[:, 2]))
     paint_mask = body & (hue_distance(hsv[:, :, 0], hue) <= HUE_TOLERANCE) & (hsv[:, :, 1] >= SAT_MIN)
     length_px, width_px = _oriented_size(paint_mask)
     scale = top.metres_per_px
 
-    side_values, paint_top = [], 0.0
+    body_length_px, body_width_px = _oriented_size(body)
+    body_cut = bool(body[0].any() or body[-1].any() or body[:, 0].any() or body[:, -1].any())
+    paint_fraction = float(paint_mask.sum()) / max(1, int(body.sum()))
+
+    side_values, paint_top, body_top = [], 0.0, 0.0
     for name, frame in views.items():
         if name == "ref_top" or frame.metres_per_px is None:
             continue
@@ -91,10 +109,13 @@ def profile_from_references(references: list[ImageFrame]) -> TargetProfile:
         if name == "ref_side" and frame.world_from_camera is not None and frame.intrinsics is not None:
             side_paint = smask & (hue_distance(shsv[:, :, 0], hue) <= HUE_TOLERANCE) & (shsv[:, :, 1] >= SAT_MIN)
             paint_top = _painted_top_m(frame.intrinsics, frame.world_from_camera, side_paint, width_m=width_px * scale)
+            body_top = _painted_top_m(frame.intrinsics, frame.world_from_camera, smask,
+                                      width_m=body_width_px * scale)
     if not side_values:
         side_values = [value_top]
     return TargetProfile(hue, sat, value_top, (min(side_values), max(side_values)),
-                         length_px * scale, width_px * scale, paint_top)
+                         length_px * scale, width_px * scale, paint_top,
+                         body_length_px * scale, body_width_px * scale, body_top, paint_fraction, body_cut)
 
 
 def _painted_top_m(intr: CameraIntrinsics, world_from_camera: list[float], mask: np.ndarray, *,
@@ -136,7 +157,8 @@ class AerialDetection:
     length_m: float
     width_m: float
     score: float
-    """0 (poor) to 1 (perfect) agreement of size with the profile."""
+    """0 (poor) to 1 (perfect) agreement with the profile: size (and, from :mod:`aerial`, height
+    and the light the paint is seen in)."""
 
 
 def detect_from_above(rgb: np.ndarray, profile: TargetProfile, *, altitude_m: float, fy_px: float) -> list[AerialDetection]:
@@ -157,45 +179,4 @@ def detect_from_above(rgb: np.ndarray, profile: TargetProfile, *, altitude_m: fl
         score = max(0.0, 1.0 - err)
         if score >= 0.55:
             found.append(AerialDetection(float(centroids[k][0]), float(centroids[k][1]), length, width, score))
-    return sorted(found, key=lambda d: -d.score)
-
-
-@dataclass(frozen=True)
-class GroundDetection:
-    view: str
-    pixels: int
-    distance_m: float
-    paint_top_m: float
-    score: float
-
-
-def detect_from_ground(rgb: np.ndarray, depth_m: np.ndarray, *, view: str, fx_px: float, fy_px: float,
-                       cx_px: float, cy_px: float, world_from_camera: np.ndarray,
-                       profile: TargetProfile) -> list[GroundDetection]:
-    """Paint-coloured regions of a ground view that stand on the road with the target's
-    painted height, best first."""
-    lo, hi = profile.value_side
-    mask = paint_mask(rgb, profile, (lo * 0.8, min(255.0, max(hi, profile.value_top) * 1.25 + 5)))
-    # Join a roof line to its body panels across the glass band (a tall, narrow closing).
-    joined = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((13, 3), np.uint8))
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(joined, connectivity=8)
-    found = []
-    for k in range(1, n):
-        if stats[k, cv2.CC_STAT_AREA] < 40:
-            continue
-        vs, us = np.nonzero((labels == k) & mask)
-        z = depth_m[vs, us]
-        rays = np.stack([(us - cx_px) / fx_px * z, (vs - cy_px) / fy_px * z, z])
-        pts = world_from_camera[:3, :3] @ rays + world_from_camera[:3, 3:4]
-        top = float(np.percentile(pts[2], 97))
-        if float(np.percentile(pts[2], 50)) < 0.25:
-            continue  # paint on the road surface (markings), not a vehicle
-        distance = float(np.median(np.hypot(pts[0] - world_from_camera[0, 3], pts[1] - world_from_camera[1, 3])))
-        # A roof seen at a grazing angle may be missed from the road, so a detection may sit
-        # lower than the reference by up to 0.75 m, but not higher by more than 0.35 m.
-        if top - profile.paint_top_m > 0.35 or profile.paint_top_m - top > 0.75:
-            continue
-        score = max(0.05, 1.0 - abs(top - profile.paint_top_m) / max(profile.paint_top_m, 0.5))
-        if distance <= 48.0:
-            found.append(GroundDetection(view, int(stats[k, cv2.CC_STAT_AREA]), distance, top, score))
     return sorted(found, key=lambda d: -d.score)

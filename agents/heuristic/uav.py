@@ -2,9 +2,10 @@
 
 Coverage: every visited node also counts its four axis neighbours as seen (the 60 deg nadir
 view spans about 92 m at 80 m, so their centres are in view). The UAV flies towards the nearest
-node not yet seen, one legal neighbour move at a time. Detection: paint colour and footprint
-size against the reference top view (see :mod:`perception`). Candidates rejected by the UGV
-are remembered and not annotated again.
+node not yet seen, one legal neighbour move at a time. Detection: standing objects (from the
+nadir depth) with the target's paint, footprint and height against the reference views (see
+:mod:`aerial`; without a depth image, paint colour and footprint alone, :mod:`perception`).
+Candidates rejected by the UGV are remembered and not annotated again.
 """
 
 from __future__ import annotations
@@ -15,10 +16,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agos.agents.contract import action_for
-from agos.agents.heuristic.perception import TargetProfile, detect_from_above, profile_from_references
+from agos.agents.heuristic.aerial import detect_vehicles_from_above
+from agos.agents.heuristic.perception import AerialDetection, TargetProfile, detect_from_above, profile_from_references
 from agos.runtime.camera import cell_of_pixel, pixel_to_ground
 from agos.runtime.codec import decode_image
-from agos.runtime.schemas import Action, Observation, Role
+from agos.runtime.schemas import Action, ImageFrame, Observation, Role
 
 SEEN_RADIUS_M = 41.0
 REJECTED_RADIUS_M = 12.0
@@ -54,7 +56,7 @@ class HeuristicUav:
             if cell is not None:
                 return action_for(obs, "ANNOTATE_CANDIDATE", cell=cell,
                                   message=f"Candidate in cell {cell}; please verify.",
-                                  rationale="paint colour and footprint match the reference")
+                                  rationale="paint colour, footprint and height match the reference")
 
         if "MOVE_TO_UAV_WAYPOINT" in obs.legal_actions and obs.waypoint_options:
             unseen = [w for w in obs.active_uav_waypoints if w.waypoint_id not in mem.seen]
@@ -74,12 +76,23 @@ class HeuristicUav:
             return None
         rgb = decode_image(frame.data)
         pose = np.asarray(frame.world_from_camera).reshape(4, 4)
-        altitude = float(pose[2, 3])
         rejected = [c.center_world_m for c in obs.coordination.candidates if c.status in ("rejected", "false_confirm")]
         intr = frame.intrinsics
-        for det in detect_from_above(rgb, profile, altitude_m=altitude, fy_px=intr.fy_px):
+        for det in _detections(obs, frame, rgb, pose, profile):
             ground = pixel_to_ground(det.u_px, det.v_px, pose, intr)
             if any(math.dist(ground, r) <= REJECTED_RADIUS_M for r in rejected):
                 continue
             return cell_of_pixel(det.u_px, det.v_px, intr.width_px, intr.height_px)
         return None
+
+
+def _detections(obs: Observation, frame: ImageFrame, rgb: np.ndarray, pose: np.ndarray,
+                profile: TargetProfile) -> list[AerialDetection]:
+    """The nadir view's matches, best first: by shape and context when its depth image came with
+    it, else by colour and footprint."""
+    assert frame.intrinsics is not None
+    depth = next((f for f in obs.images if f.kind == "depth" and f.name == frame.name), None)
+    if depth is None:
+        return detect_from_above(rgb, profile, altitude_m=float(pose[2, 3]), fy_px=frame.intrinsics.fy_px)
+    depth_m = decode_image(depth.data).astype(np.float32) * float(depth.depth_scale_m or 1.0)
+    return detect_vehicles_from_above(rgb, depth_m, profile, intrinsics=frame.intrinsics, world_from_camera=pose)

@@ -1,8 +1,9 @@
 """Heuristic UGV: drive to the UAV's candidate, stop, look around, confirm or reject.
 
 No candidate: WAIT (the world wakes it when the coordination state changes). Pending
-candidate: GO_TO_CANDIDATE. Arrived: STOP_OBSERVE. Six views: CONFIRM when a region with the
-target's paint stands on the road at the reference's painted height within 48 m, else REJECT.
+candidate: GO_TO_CANDIDATE. Arrived: STOP_OBSERVE. Six views: CONFIRM when an object within
+48 m stands on the street with the target's paint (its brightness judged in the light it stands
+in), its body height and no more than its length (:mod:`ground`), else REJECT.
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ import math
 import numpy as np
 
 from agos.agents.contract import action_for
-from agos.agents.heuristic.perception import TargetProfile, detect_from_ground, profile_from_references
+from agos.agents.heuristic.ground import GroundView, find_target
+from agos.agents.heuristic.perception import TargetProfile, profile_from_references
 from agos.agents.navigation import Navigator
 from agos.runtime.codec import decode_image
 from agos.runtime.schemas import Action, Observation, Role
@@ -44,7 +46,7 @@ class HeuristicUgv:
         if obs.mode == "stop_6view":
             if self._target_in_views(obs, profile):
                 return action_for(obs, "CONFIRM", candidate_id=active.candidate_id if active else None,
-                                  message="Target confirmed.", rationale="paint and height match nearby")
+                                  message="Target confirmed.", rationale="paint, height and length match nearby")
             if active is not None:
                 return action_for(obs, "REJECT", candidate_id=active.candidate_id,
                                   message=f"{active.candidate_id} is not the target; keep searching.")
@@ -64,15 +66,12 @@ class HeuristicUgv:
 
     def _target_in_views(self, obs: Observation, profile: TargetProfile) -> bool:
         depth_frames = {f.name: f for f in obs.images if f.kind == "depth"}
+        views = []
         for frame in obs.images:
-            if frame.kind != "rgb" or frame.name not in depth_frames or frame.intrinsics is None:
+            d = depth_frames.get(frame.name)
+            if frame.kind != "rgb" or d is None or frame.intrinsics is None or frame.world_from_camera is None:
                 continue
-            d = depth_frames[frame.name]
             depth_m = decode_image(d.data).astype(np.float32) * float(d.depth_scale_m or 1.0)
-            i = frame.intrinsics
-            found = detect_from_ground(
-                decode_image(frame.data), depth_m, view=frame.name, fx_px=i.fx_px, fy_px=i.fy_px, cx_px=i.cx_px,
-                cy_px=i.cy_px, world_from_camera=np.asarray(frame.world_from_camera).reshape(4, 4), profile=profile)
-            if any(det.pixels >= MIN_PIXELS for det in found):
-                return True
-        return False
+            views.append(GroundView(frame.name, decode_image(frame.data), depth_m, frame.intrinsics,
+                                    np.asarray(frame.world_from_camera).reshape(4, 4)))
+        return bool(find_target(views, profile, min_pixels=MIN_PIXELS))

@@ -1,0 +1,106 @@
+"""The heuristic UGV's check of its six views on synthetic ground views: paint in its light,
+body height and length, not colour alone.
+
+A synthetic view is a camera 1.7 m over a flat street looking along +x (a UGV's view), with a
+vehicle seen broadside: a painted face, and a roof when the vehicle is lower than the camera.
+Depth is metric (z along the optical axis); every image goes through JPEG as agents get it.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from agos.agents.heuristic.ground import GroundView, find_target
+from agos.agents.heuristic.perception import TargetProfile
+from agos.runtime.camera import intrinsics_for
+
+EYE_M = 1.7
+SIZE_PX = 256
+INTR = intrinsics_for(SIZE_PX, SIZE_PX, 70.0)
+# OpenCV camera: x right (world -y), y down (world -z), z forward (world +x).
+POSE = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, EYE_M], [0.0, 0.0, 0.0, 1.0]])
+ASPHALT = (92, 92, 94)
+SKY = (170, 200, 235)
+BLUE = (20, 71, 224)
+NAVY = (15, 23, 107)
+GREEN = (20, 158, 51)
+
+
+def profile(rgb: tuple[int, int, int], *, length_m: float, height_m: float, width_m: float = 1.8) -> TargetProfile:
+    """What the references of a sunlit vehicle of this paint and size would give."""
+    h, s, v = cv2.cvtColor(np.uint8([[rgb]]), cv2.COLOR_RGB2HSV)[0, 0].astype(float)
+    return TargetProfile(hue=h, saturation=s, value_top=v, value_side=(0.8 * v, v), length_m=length_m, width_m=width_m,
+                         paint_top_m=height_m, body_length_m=length_m, body_width_m=width_m, body_height_m=height_m,
+                         paint_fraction=0.75)
+
+
+def broadside(colour, *, distance_m: float = 10.0, length_m: float, height_m: float, width_m: float = 1.8,
+              shade: bool = False) -> GroundView:
+    """A vehicle across the view (length along world y), its near face ``distance_m`` ahead. In
+    shade, the vehicle is darkened to 62% and the street around it turns bluish, as the world
+    draws a building's shadow."""
+    us, vs = np.meshgrid(np.arange(SIZE_PX) + 0.5, np.arange(SIZE_PX) + 0.5)
+    a = (us - INTR.cx_px) / INTR.fx_px  # ray per unit of depth: x = t, y = -a t, z = EYE - b t
+    b = (vs - INTR.cy_px) / INTR.fy_px
+    depth = np.full((SIZE_PX, SIZE_PX), 300.0)
+    rgb = np.zeros((SIZE_PX, SIZE_PX, 3), np.float32)
+    rgb[:] = SKY
+    ground = b > 0
+    t = np.where(ground, EYE_M / np.maximum(b, 1e-6), np.inf)
+    depth[ground] = np.minimum(t[ground], 300.0)
+    rgb[ground] = ASPHALT
+    if shade:
+        near_car = ground & (t > distance_m - 3.0) & (t < distance_m + width_m + 3.0)
+        rgb[near_car] = np.float32(ASPHALT) * np.float32([0.52, 0.55, 0.64])
+    paint = np.float32(colour) * (0.62 if shade else 1.0)
+    z_face, y_face = EYE_M - b * distance_m, -a * distance_m
+    face = (z_face >= 0.3) & (z_face <= height_m) & (np.abs(y_face) <= length_m / 2)
+    depth[face] = distance_m
+    rgb[face] = paint
+    if height_m < EYE_M:  # the roof, seen from above
+        t_roof = (EYE_M - height_m) / np.maximum(b, 1e-6)
+        roof = (b > 0) & (t_roof > distance_m) & (t_roof < distance_m + width_m) & (np.abs(a * t_roof) <= length_m / 2)
+        depth[roof] = t_roof[roof]
+        rgb[roof] = paint
+    ok, data = cv2.imencode(".jpg", cv2.cvtColor(rgb.astype(np.uint8), cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 90])
+    assert ok
+    jpeg = cv2.cvtColor(cv2.imdecode(data, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    return GroundView("front", jpeg, depth.astype(np.float32), INTR, POSE)
+
+
+HATCHBACK = {"length_m": 3.9, "height_m": 1.52}
+
+
+def test_the_target_broadside_is_found_at_its_height_and_place() -> None:
+    found = find_target([broadside(GREEN, **HATCHBACK)], profile(GREEN, **HATCHBACK))
+    assert len(found) == 1
+    assert abs(found[0].top_m - 1.52) < 0.12 and abs(found[0].distance_m - 10.0) < 1.5
+    assert abs(found[0].y_m) < 0.5 and found[0].length_m < 3.9 + 0.5
+
+
+def test_a_taller_or_longer_vehicle_of_the_same_paint_is_not_the_target() -> None:
+    target = profile(GREEN, **HATCHBACK)
+    assert find_target([broadside(GREEN, length_m=4.9, height_m=1.82)], target) == []  # an SUV
+    assert find_target([broadside(GREEN, length_m=5.3, height_m=1.52)], target) == []  # longer
+    assert find_target([broadside(GREEN, length_m=3.9, height_m=1.30)], target) == []  # lower
+
+
+def test_a_navy_vehicle_in_the_sun_is_not_a_blue_target_but_a_blue_one_in_shade_is() -> None:
+    target = profile(BLUE, **HATCHBACK)
+    assert find_target([broadside(NAVY, **HATCHBACK)], target) == []
+    assert len(find_target([broadside(BLUE, **HATCHBACK, shade=True)], target)) == 1
+
+
+def test_a_blue_vehicle_in_shade_is_not_a_navy_target() -> None:
+    target = profile(NAVY, **HATCHBACK)
+    assert find_target([broadside(NAVY, **HATCHBACK)], target)  # the target itself, sunlit
+    assert find_target([broadside(BLUE, **HATCHBACK, shade=True)], target) == []
+
+
+def test_markings_and_shadows_on_the_street_are_not_objects() -> None:
+    view = broadside(GREEN, distance_m=60.0, **HATCHBACK)  # beyond reach: the street alone in range
+    rgb = view.rgb.copy()
+    rgb[200:210, :] = (40, 160, 60)  # a green painted band across the street (flat)
+    flat = GroundView("front", rgb, view.depth_m, INTR, POSE)
+    assert find_target([flat], profile(GREEN, **HATCHBACK)) == []
