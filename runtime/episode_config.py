@@ -153,18 +153,23 @@ def read_config(data: Any, *, where: str) -> EpisodeConfig:
                                 "(written by another agos version?)") from None
 
 
+HASHED_ONLY_WHEN_NOT: dict[str, dict[str, Any]] = {"": {"look": "flat", "capture_every_m": None},
+                                                   "tools": {"expert": False}}
+"""Fields added after configurations were first stored, by section ("" is the top level): left out
+of the hash at these values, so configurations stored before the fields existed keep their hash."""
+
+
 def config_hash(data: dict[str, Any]) -> str:
     """Short hash of a configuration as stored (a map): the same for an object and its stored copy.
-    ``look`` counts only when it is not the default ``flat``, ``tools.expert`` only when it is on and
-    ``capture_every_m`` only when set, so configurations stored before those fields existed keep
-    their hash."""
-    if data.get("look") == "flat":
-        data = {k: v for k, v in data.items() if k != "look"}
-    if "capture_every_m" in data and data["capture_every_m"] is None:
-        data = {k: v for k, v in data.items() if k != "capture_every_m"}
-    tools = data.get("tools")
-    if isinstance(tools, dict) and tools.get("expert") is False:
-        data = {**data, "tools": {k: v for k, v in tools.items() if k != "expert"}}
+    A field of :data:`HASHED_ONLY_WHEN_NOT` counts only when it differs from the value named there."""
+
+    def strip(section: dict[str, Any], absent: dict[str, Any]) -> dict[str, Any]:
+        return {k: v for k, v in section.items() if not (k in absent and v == absent[k])}
+
+    data = strip(data, HASHED_ONLY_WHEN_NOT[""])
+    for name, absent in HASHED_ONLY_WHEN_NOT.items():
+        if name and isinstance(data.get(name), dict):
+            data = {**data, name: strip(data[name], absent)}
     canonical = json.dumps(data, sort_keys=True, separators=(",", ":"), allow_nan=False)
     return hashlib.sha256(canonical.encode()).hexdigest()[:12]
 

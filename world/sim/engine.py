@@ -239,7 +239,7 @@ class EpisodeRunner:
         if fallback is not None:
             st.fallbacks += 1
             rules.wait(st, role)
-        if st.cfg.capture_every_m is not None and applied in MOVES:
+        if st.cfg.capture_every_m is not None and st.cfg.tools.expert and applied in MOVES:  # only experts get them
             self._capture_move(role, uav_before, route_before, st.cfg.capture_every_m)
         if action is not None and action.trace is not None:
             st.traces.append(StoredTrace(role=role, decision_index=obs.decision_index, **msgspec.structs.asdict(action.trace)))

@@ -7,12 +7,13 @@ a link; the modules that change it are named on each field group.
 Who changes what:
 
 * :mod:`agos.world.sim.engine` creates the state, sets it up in the scene, advances
-  ``sim_time_s`` and the budget, counts fallbacks and traces, and logs each applied step;
+  ``sim_time_s`` and the budget, counts fallbacks and traces, logs each applied step, and keeps
+  the views along a move for the role's next observation (``passed``, dataset builds);
 * :mod:`agos.world.sim.rules` applies actions: poses, readiness, candidates and their status,
   CONFIRM outcome and termination;
 * :mod:`agos.world.sim.observations` counts each role's decisions and notes what its cameras saw
   (the UAV's last nadir shot, target pixels, the oracle-visible step ``tau``, information age)
-  and keeps the expert's plan.
+  and keeps the expert's plan (handing ``passed`` over with it).
 """
 
 from __future__ import annotations
