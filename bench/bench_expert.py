@@ -75,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     small: list[dict] = []
     for name in args.towns:
         town = _town(name)
-        scene = Scene(town.layout)
+        scene = Scene(town.layout, look="flat")
         try:
             for d, difficulty in ((1, "mid"), (2, "hard")):
                 for index in range(args.per_cell):

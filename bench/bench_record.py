@@ -34,7 +34,7 @@ def observations() -> list[Observation]:
     from agos.world.towns.asset import open_town
 
     town = open_town("grid-s7")
-    scene = Scene(town.layout)
+    scene = Scene(town.layout, look="flat")
     spec = sample_episode(town, scene, "mid", 0, seed=1)
     seen: list[Observation] = []
     inner = InProcessAgents({r: make_policy("heuristic", r) for r in ("uav", "ugv")})

@@ -120,7 +120,7 @@ def sample_observation() -> Observation:
     from agos.world.towns.asset import open_town
 
     town = open_town("grid-s7")
-    scene = Scene(town.layout)
+    scene = Scene(town.layout, look="flat")
     spec = sample_episode(town, scene, "mid", 0, seed=1)
     captured: list[Observation] = []
 

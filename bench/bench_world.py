@@ -54,7 +54,7 @@ def observation_costs(repeats: int) -> None:
     from agos.world.towns.topdown import RegionMap
 
     town = open_town("grid-s7")
-    scene = Scene(town.layout)
+    scene = Scene(town.layout, look="flat")
     cam = sensors.CameraConfig()
     xy, alt, heading = (5.0, 5.0), 80.0, 0.3
     region = (xy[0] - 150, xy[1] - 150, xy[0] + 150, xy[1] + 150)
@@ -110,7 +110,7 @@ if sys.argv[1] != "-":
     from agos.world.towns.imported import imported_layout
     from agos.world.sim.scene import Scene
     town = freeze(imported_layout(__import__("pathlib").Path(sys.argv[1])))
-    scene = Scene(town.layout)
+    scene = Scene(town.layout, look="flat")
 print(json.dumps(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss))
 """
 

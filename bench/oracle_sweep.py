@@ -56,19 +56,19 @@ def _town(name: str, towns_dir: Path):
     return open_town(asset)  # also puts it in the asset cache, where workers find it by hash
 
 
-def _sample(job: tuple[str, str, int, int, str]) -> tuple[str, str, list[str], float]:
+def _sample(job: tuple[str, str, int, int, str, str]) -> tuple[str, str, list[str], float]:
     """Worker: ``n`` episodes of one town and difficulty (as ``agos episodes sample`` samples them)."""
     from agos.runtime.codec import to_json
     from agos.world.episodes.sampling import sample_episode
     from agos.world.sim.scene import Scene
 
-    name, difficulty, n, seed, towns_dir = job
+    name, difficulty, n, seed, towns_dir, look = job
     start = time.perf_counter()
-    if _WORKER.get("town_name") != name:
+    if _WORKER.get("town_name") != (name, look):
         if "scene" in _WORKER:
             _WORKER["scene"].close()
         town = _town(name, Path(towns_dir))
-        _WORKER.update(town_name=name, town=town, scene=Scene(town.layout))
+        _WORKER.update(town_name=(name, look), town=town, scene=Scene(town.layout, look=look), sha=None)
     town, scene = _WORKER["town"], _WORKER["scene"]
     lines = [to_json(sample_episode(town, scene, difficulty, i, seed=seed, stream=DIFFICULTIES.index(difficulty))).decode()  # type: ignore[arg-type]
              for i in range(n)]
@@ -88,14 +88,16 @@ def _play(job: tuple[str, str]) -> str:
 
     config_json, episode_json = job
     spec = from_json(episode_json, EpisodeSpec)
-    if _WORKER.get("sha") != spec.asset_sha256:
+    config = EpisodeConfig.model_validate_json(config_json)
+    if _WORKER.get("sha") != (spec.asset_sha256, config.look):
         if "scene" in _WORKER:
             _WORKER["scene"].close()
         town = town_for(spec.town.generator, spec.town.seed, spec.asset_sha256, town_id=spec.town.town_id)
-        _WORKER.update(sha=spec.asset_sha256, town=town, scene=Scene(town.layout), town_name=None)
+        _WORKER.update(sha=(spec.asset_sha256, config.look), town=town, scene=Scene(town.layout, look=config.look),
+                       town_name=None)
     agents = InProcessAgents({r: make_policy(POLICIES[r], r) for r in ("uav", "ugv")})
     record = EpisodeRunner(_WORKER["scene"], _WORKER["town"], spec, run_id="oracle-sweep", worker_id="sweep",
-                           config=EpisodeConfig.model_validate_json(config_json)).run(agents)
+                           config=config).run(agents)
     return to_json(record).decode()
 
 
@@ -145,7 +147,8 @@ def main(argv: list[str] | None = None) -> int:
     sampled_file = out / ".sampled.jsonl"
     done = {(r["town"], r["difficulty"]): r["lines"] for r in map(json.loads, sampled_file.read_text().splitlines())} \
         if sampled_file.exists() else {}
-    jobs = [(t, d, args.per_cell, args.seed, str(out / "towns")) for t in args.towns for d in DIFFICULTIES
+    config = episode_config(load_config(), policies=POLICIES)  # episodes are sampled in the run's look
+    jobs = [(t, d, args.per_cell, args.seed, str(out / "towns"), config.look) for t in args.towns for d in DIFFICULTIES
             if (t, d) not in done]
     with _progress(console) as bar:
         task = bar.add_task("sampling", total=len(args.towns) * len(DIFFICULTIES), note="", completed=len(done))
@@ -160,7 +163,6 @@ def main(argv: list[str] | None = None) -> int:
 
     # 3. play with the oracle; finished records are appended to records.jsonl at once
     t0 = time.perf_counter()
-    config = episode_config(load_config(), policies=POLICIES)
     records = {json.loads(line)["episode_id"]: json.loads(line) for line in records_file.read_text().splitlines()} \
         if records_file.exists() else {}
     todo = [(config.model_dump_json(), line) for line in episodes if json.loads(line)["episode_id"] not in records]

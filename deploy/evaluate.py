@@ -74,7 +74,7 @@ def generated_episodes(cfg: AgosConfig) -> list[EpisodeSpec]:
     from agos.world.towns.asset import open_town
 
     town = open_town(cfg.run.town)
-    scene = Scene(town.layout)  # episodes are checked solvable by rendering
+    scene = Scene(town.layout, look=cfg.world.look)  # episodes are checked solvable by rendering, in the run's look
     try:
         return generate_episodes(town, scene, per_difficulty=cfg.run.per_difficulty, seed=cfg.run.episode_seed)
     finally:

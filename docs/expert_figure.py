@@ -35,12 +35,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("docs/images/expert_plan.png"))
     args = ap.parse_args(argv)
     town = open_town(args.town)
-    scene = Scene(town.layout)
+    scene = Scene(town.layout, look="flat")
     roads, grid = town.roads, town.uav_grid
     for index in range(12):  # the first episode with a wrong candidate, else the last tried
         spec = sample_episode(town, scene, args.difficulty, index, seed=args.seed, stream=2)
         runner = EpisodeRunner(scene, town, spec, run_id="fig", worker_id="fig",
-                               config=EpisodeConfig(tools=ToolConfig(expert=True)))
+                               config=EpisodeConfig(look="flat", tools=ToolConfig(expert=True)))
         runner._setup()
         try:
             plan = plan_episode(runner.state)

@@ -42,7 +42,7 @@ def label(img: np.ndarray, text: str) -> np.ndarray:
 
 def figures(town: Town, tag: str) -> None:
     cam = sensors.CameraConfig()
-    flat = Scene(town.layout)
+    flat = Scene(town.layout, look="flat")
     spec = sample_episode(town, flat, "hard", 0, seed=5)
     t = spec.target
     # UAV: the active node nearest the target; UGV: the nearest decision anchor

@@ -22,6 +22,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from agos.runtime.links import IDEAL, CommProfile
 
+Look = Literal["flat", "rich"]
+DEFAULT_LOOK: Look = "rich"
+"""The look a run, a sampler or a dataset build uses unless told otherwise."""
+
 TimingMode = Literal["lockstep", "realtime"]
 
 UAV_VISIBLE_REFERENCE_PX = 512
@@ -83,10 +87,10 @@ class EpisodeConfig(_Part):
 
     renderer: Literal["tiny", "egl"] = "tiny"
     """PyBullet renderer; the two differ pixel for pixel."""
-    look: Literal["flat", "rich"] = "flat"
-    """How vehicles are drawn: ``flat`` (boxes) or ``rich`` (triangle meshes by body type,
-    world/towns/vehicles.py). Experimental: episodes are still sampled and checked solvable with the
-    flat look (issue 22 makes rich the default)."""
+    look: Look = DEFAULT_LOOK
+    """How the world is drawn: ``rich`` (the textured city, vehicles as meshes by body type with
+    attributes, drawn shadows: docs/WORLD.md) or ``flat`` (plain colours and boxes: cheaper, for
+    scripted sweeps). Episodes are sampled and checked with a look, and their ids say which."""
     uav_speed_mps: float = Field(10.0, gt=0)
     ugv_speed_mps: float = Field(8.0, gt=0)
     wait_max_s: float = Field(20.0, gt=0)

@@ -36,7 +36,7 @@ def observations() -> list:
     from agos.world.towns.asset import open_town
 
     town = open_town("grid-s7")
-    scene = Scene(town.layout)
+    scene = Scene(town.layout, look="flat")
     spec = generate_episodes(town, scene, per_difficulty=1, seed=1)[0]
     seen: list = []
     inner = InProcessAgents({r: make_policy("heuristic", r) for r in ("uav", "ugv")})

@@ -392,14 +392,14 @@ def lossy_records():
     from agos.world.towns.asset import open_town
 
     town = open_town("grid-s7")
-    scene = Scene(town.layout)
+    scene = Scene(town.layout, look="flat")
     try:
         spec = sample_episode(town, scene, "easy", 0, seed=1)
         records = []
         for _ in range(2):
             agents = InProcessAgents({role: make_policy("heuristic", role) for role in ("uav", "ugv")})
             runner = EpisodeRunner(scene, town, spec, run_id="links", worker_id="w",
-                                   config=EpisodeConfig(comm=load_profile("lossy")))
+                                   config=EpisodeConfig(look="flat", comm=load_profile("lossy")))
             records.append(runner.run(agents))
     finally:
         scene.close()

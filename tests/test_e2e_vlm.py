@@ -47,7 +47,7 @@ def reference(episode_file) -> dict[str, dict]:
     """Each policy's episode in-process against a fault-free stand-in server: the expected record."""
     spec = read_episodes(episode_file)[0]
     town = open_town(spec.town.town_id)
-    scene = Scene(town.layout)
+    scene = Scene(town.layout, look=EpisodeConfig().look)  # as agos eval runs it: the default look
     out = {}
     with StandinServer() as server:
         options = VlmOptions(base_url=server.url, model="agos-standin")

@@ -122,7 +122,8 @@ def test_demo_toml_writes_out_the_defaults() -> None:
 def test_the_look_is_named_in_every_configuration_and_hashed_only_when_not_flat() -> None:
     from agos.runtime.episode_config import EpisodeConfig, config_hash
 
-    flat = EpisodeConfig()
+    assert EpisodeConfig().look == "rich"  # the default
+    flat = EpisodeConfig(look="flat")
     stored = flat.model_dump(mode="json")
     assert stored["look"] == "flat"
     before_the_field = {k: v for k, v in stored.items() if k != "look"}

@@ -19,7 +19,7 @@ from agos.world.towns.asset import build_town
 @pytest.fixture(scope="module")
 def world():
     town = build_town("grid", 7)
-    scene = Scene(town.layout)
+    scene = Scene(town.layout, look="flat")
     episodes = {e.difficulty + e.episode_id[-6:-3]: e for e in generate_episodes(town, scene, per_difficulty=2, seed=1)}
     yield town, scene, episodes
     scene.close()
@@ -164,7 +164,7 @@ def test_every_message_is_written_with_its_declared_types(world) -> None:
             return agents.decide(observations)
 
     record = EpisodeRunner(scene, town, episodes["mid000"], run_id="t", worker_id="w", sink=sink,
-                           config=EpisodeConfig(comm=load_profile("lossy"))).run(Spy())
+                           config=EpisodeConfig(look="flat", comm=load_profile("lossy"))).run(Spy())
     assert record.ledger and sink.messages and seen
     for message in [*seen, *sink.messages, record]:
         payload = encode(message)
@@ -188,8 +188,8 @@ def test_the_map_shows_the_teammate_where_the_link_reported_it(world) -> None:
     from agos.runtime.links import load_profile
 
     town, scene, episodes = world
-    config = EpisodeConfig(comm=load_profile("outage"))  # nothing gets through after 20 s
-    EpisodeRunner(scene, town, episodes["mid001"], run_id="t", worker_id="w", config=config).run(Watching())
+    config = EpisodeConfig(look="flat", comm=load_profile("outage"))  # nothing gets through after 20 s
+    EpisodeRunner(scene, town, episodes["mid000"], run_id="t", worker_id="w", config=config).run(Watching())  # a long one
     late = [(obs, png) for obs, png in seen if obs.sim_time_s > 60.0]
     assert len(late) > 5
     for obs, png in seen[:6] + late[:6]:

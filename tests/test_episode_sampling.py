@@ -53,7 +53,7 @@ def worlds():
     out: dict[str, tuple[Town, Scene]] = {}
     for town_id in (*SOLVE_TOWNS, "deck-s19"):
         town = build_town(*TOWNS[town_id])
-        out[town_id] = (town, Scene(town.layout))
+        out[town_id] = (town, Scene(town.layout, look="flat"))
     yield out
     for _, scene in out.values():
         scene.close()
@@ -246,7 +246,7 @@ def test_a_car_just_inside_a_deck_end_is_hidden_from_an_oblique_uav_view():
     centre = street + [0.0, -1.75]
     network = LaneNetwork({"a": Lane("a", centre, np.full(61, 3.5), covered=True)})
     layout = TownLayout("deck-end", "test", 0, network, decks=[Deck(strip(street, -9.5, 9.5), 6.5, 7.5)])
-    scene = Scene(layout)
+    scene = Scene(layout, look="flat")
     try:
         uid = scene.add_vehicle("sedan", "red", (6.0, -4.75, 0.0), 0.0)  # 6 m inside the deck's west end
         cam = sensors.CameraConfig()
@@ -267,7 +267,8 @@ def agos(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 
 def test_episodes_sample_command(tmp_path, worlds, episodes):
     out = tmp_path / "eps.jsonl"
-    proc = agos("episodes", "sample", "--town", "grid-s7", "--difficulty", "easy", "-n", "2", "--out", str(out), cwd=tmp_path)
+    proc = agos("episodes", "sample", "--town", "grid-s7", "--difficulty", "easy", "-n", "2", "--look", "flat",
+                "--out", str(out), cwd=tmp_path)  # the look of the scenes here (a rich split: test_paper_splits)
     assert proc.returncode == 0, proc.stderr
     lines = out.read_text().splitlines()
     assert len(lines) == 2
@@ -284,7 +285,7 @@ def test_episodes_sample_command(tmp_path, worlds, episodes):
 def split_dir(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("split")
     proc = agos("episodes", "split", "--out", str(out / "d"), "--train", "6", "--val", "3", "--test", "3",
-                "--workers", "2", cwd=out)
+                "--workers", "2", "--look", "flat", cwd=out)
     assert proc.returncode == 0, proc.stderr
     return out / "d"
 

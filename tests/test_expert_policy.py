@@ -53,7 +53,7 @@ def _play(town, scene, spec) -> tuple[EpisodeRecord, dict[str, list[ExpertStep]]
         expert.install()
         agents = InProcessAgents({r: make_policy("expert", r) for r in ("uav", "ugv")})
         record = EpisodeRunner(scene, town, spec, run_id="t", worker_id="t", sink=sink,
-                               config=EpisodeConfig(tools=ToolConfig(expert=True))).run(agents)
+                               config=EpisodeConfig(look="flat", tools=ToolConfig(expert=True))).run(agents)
     finally:
         planner.plan_episode = original  # type: ignore[assignment]
     assert len(plans) == 1, "the world plans once per episode"
@@ -72,7 +72,7 @@ def test_the_expert_succeeds_and_its_decisions_are_the_plan(town_name: str) -> N
         town = freeze(imported_layout(CARLA / f"{town_name}.xodr"))
     else:
         town = open_town(town_name)
-    scene = Scene(town.layout)
+    scene = Scene(town.layout, look="flat")
     try:
         for d, difficulty in enumerate(("easy", "mid", "hard")):
             spec = sample_episode(town, scene, difficulty, 0, seed=3, stream=d)
@@ -106,7 +106,7 @@ def test_the_expert_needs_the_world_plan_and_only_its_runs_get_one() -> None:
     assert EpisodeConfig().config_hash() == EpisodeConfig(tools=ToolConfig(expert=False)).config_hash()
     assert EpisodeConfig(tools=ToolConfig(expert=True)).config_hash() != EpisodeConfig().config_hash()
     town = open_town("tee-s17")
-    scene = Scene(town.layout)
+    scene = Scene(town.layout, look="flat")
     try:
         from agos.world.episodes.sampling import sample_episode
 
@@ -124,7 +124,7 @@ def test_the_expert_needs_the_world_plan_and_only_its_runs_get_one() -> None:
             def end_episode(self, episode_id: str) -> None:
                 pass
 
-        EpisodeRunner(scene, town, spec, run_id="t", worker_id="t", config=EpisodeConfig()).run(
+        EpisodeRunner(scene, town, spec, run_id="t", worker_id="t", config=EpisodeConfig(look="flat")).run(
             InProcessAgents({"uav": Spy(), "ugv": Spy()}))  # type: ignore[dict-item]
         assert seen and all(obs.expert is None for obs in seen)
         with pytest.raises(ValueError, match="policy 'expert'"):

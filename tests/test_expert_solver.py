@@ -223,12 +223,12 @@ def planned() -> list[_Planned]:
     out: list[_Planned] = []
     for name in ("grid-s7", "parks-s23"):
         town = open_town(name)
-        scene = Scene(town.layout)
+        scene = Scene(town.layout, look="flat")
         for d, difficulty in enumerate(("easy", "mid", "hard")):
             for index in range(2):
                 spec = sample_episode(town, scene, difficulty, index, seed=5, stream=d)
                 runner = EpisodeRunner(scene, town, spec, run_id="t", worker_id="t",
-                                       config=EpisodeConfig(tools=ToolConfig(expert=True)))
+                                       config=EpisodeConfig(look="flat", tools=ToolConfig(expert=True)))
                 runner._setup()
                 try:
                     st = runner.state

@@ -46,7 +46,7 @@ SMALL = [
     ("carla2-rich", ["--towns", "{maps}/Town02.xodr,{maps}/Town01.xodr", "--test-town", "parks-s23",
                      "--train", "6", "--val", "0", "--test", "3", "--seed", "2", "--look", "rich"], [1]),
 ]
-PAPER_ARGS = ["--preset", "paper", "--test-town", "parks-s23", "--seed", "1", "--look", "flat"]
+PAPER_ARGS = ["--preset", "paper", "--test-town", "parks-s23", "--seed", "1", "--look", "rich"]
 
 
 def agos_split(out: Path, args: list[str], *, workers: int, cache: Path) -> subprocess.CompletedProcess:
@@ -182,7 +182,7 @@ def test_the_paper_counts_are_spread_evenly_over_towns_and_difficulties() -> Non
     towns = [SplitTown(n, "opendrive", 0, str(i) * 64, n) for i, n in enumerate(PAPER_TRAINVAL_MAPS)]
     test_town = [SplitTown("parks-s23", "parks", 23, "f" * 64, "parks-s23")]
     jobs = plan_jobs(train=PAPER_COUNTS["train"], val=PAPER_COUNTS["val"], test=PAPER_COUNTS["test"],
-                     trainval_towns=towns, test_towns=test_town, seed=1)
+                     trainval_towns=towns, test_towns=test_town, seed=1, look="rich")
     for split, total in PAPER_COUNTS.items():
         cells: dict[tuple[str, str], int] = {}
         for j in jobs:
@@ -221,13 +221,15 @@ def _repin_small() -> None:
                 sys.exit(proc.stderr)
             small[name] = {"args": args, "files": file_hashes(out)}
     pinned["small"] = small
-    pinned.setdefault("paper", {"args": PAPER_ARGS, "command": "", "files": None})
+    if pinned.get("paper", {}).get("files"):  # whatever moved the small files moved the full preset's too
+        print("the full preset's pin is cleared: build it again and --pin-paper it")
+    pinned["paper"] = {"args": PAPER_ARGS, "command": "", "files": None}
     _write(pinned)
 
 
 def _pin_paper(out_dir: Path) -> None:
     manifest = json.loads((out_dir / "manifest.json").read_text())
-    want = {"preset": "paper", "seed": 1, "look": "flat", "counts": PAPER_COUNTS}
+    want = {"preset": "paper", "seed": 1, "look": PAPER_ARGS[PAPER_ARGS.index("--look") + 1], "counts": PAPER_COUNTS}
     got = {k: manifest.get(k) for k in want}
     if got != want or [t["town_id"] for t in manifest["towns"]["test"]] != ["parks-s23"]:
         sys.exit(f"{out_dir} is not the pinned preset's build ({got}); run the command in {PINNED.name}")

@@ -32,7 +32,7 @@ def runs(tmp_path_factory) -> tuple[dict[str, Path], str, list[EpisodeRecord]]:
     from agos.world.towns.asset import open_town
 
     town = open_town("grid-s7")
-    scene = Scene(town.layout)
+    scene = Scene(town.layout, look="flat")
     spec = sample_episode(town, scene, "mid", 0, seed=3)
     root = tmp_path_factory.mktemp("runs")
     dirs, records = {}, []

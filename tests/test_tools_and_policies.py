@@ -88,7 +88,7 @@ def test_policy_names_and_tools() -> None:
 @pytest.fixture(scope="module")
 def world():
     town = open_town("grid-s7")
-    scene = Scene(town.layout)
+    scene = Scene(town.layout, look="flat")
     episodes = generate_episodes(town, scene, per_difficulty=1, seed=1)
     yield town, scene, episodes
     scene.close()
@@ -97,7 +97,7 @@ def world():
 def _run(world, policy: str, spec, sink=None):
     town, scene, _ = world
     tools = tools_for({"uav": policy, "ugv": policy})
-    config = EpisodeConfig(tools=ToolConfig(e2a=tools["e2a"], rgpp=tools["rgpp"], oracle=tools["oracle"]))
+    config = EpisodeConfig(look="flat", tools=ToolConfig(e2a=tools["e2a"], rgpp=tools["rgpp"], oracle=tools["oracle"]))
     agents = InProcessAgents({r: make_policy(policy, r) for r in ("uav", "ugv")})
     return EpisodeRunner(scene, town, spec, run_id="t", worker_id="w", config=config, sink=sink).run(agents)
 
@@ -121,7 +121,7 @@ def test_no_rgpp_removes_go_to_candidate_and_gives_distance_hints(world) -> None
             return self.inner.decide(observations)
 
     town, scene, episodes = world
-    config = EpisodeConfig(tools=ToolConfig(rgpp=False))
+    config = EpisodeConfig(look="flat", tools=ToolConfig(rgpp=False))
     agents = Spy(InProcessAgents({r: make_policy("heuristic:no_rgpp", r) for r in ("uav", "ugv")}))
     record = EpisodeRunner(scene, town, episodes[0], run_id="t", worker_id="w", config=config).run(agents)
     ugv = [o for o in seen if o.role == "ugv"]

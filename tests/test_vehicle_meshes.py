@@ -17,9 +17,11 @@ from agos.world.towns.asset import open_town
 from agos.world.towns.vehicles import RICH_BODY_TYPES, VehicleAttributes, vehicle_mesh
 
 PX = 128
-FLAT_RENDER_SHA = "505b6f23c0c01294"
+FLAT_RENDER_SHA = "f094b358cc59cb57"
 """sha256 (16 hex) of the flat look's renders and decoded reference views in
-test_default_look_renders_as_before, as the scene drew them before the rich look existed."""
+test_the_flat_look_renders_as_before: the boxes as they were before the rich look existed. Re-pinned
+once since, when procedural sidewalks reached round junction corners and buildings moved
+(505b6f23c0c01294 before)."""
 # name -> (eye offset from the vehicle centre, up vector); the vehicle looks along +x
 DIRECTIONS = {
     "front": ((1.0, 0.0, 0.15), (0, 0, 1)), "back": ((-1.0, 0.0, 0.15), (0, 0, 1)),
@@ -127,7 +129,7 @@ def test_attributes_show(rich):
 
 def test_reference_views_use_the_meshes(rich, layout):
     cam = CameraConfig()
-    flat = Scene(layout)
+    flat = Scene(layout, look="flat")
     try:
         alpha = {}
         for look, scene in (("rich", rich), ("flat", flat)):
@@ -153,15 +155,15 @@ def test_rays_hit_rich_vehicles(rich):
         rich.remove(uid)
 
 
-def test_default_look_renders_as_before(layout):
-    """No look given and look='flat' build the same scene, and it renders the bytes it did before
-    the rich look (FLAT_RENDER_SHA)."""
+def test_the_flat_look_renders_as_before(layout):
+    """Two flat scenes render the same bytes, the bytes the boxes had before the rich look
+    (FLAT_RENDER_SHA)."""
     cam = CameraConfig()
     town = open_town("grid-s7")
     anchor = int(town.roads.anchor_array()[0][0])
     xy = tuple(float(v) for v in town.roads.positions_world_m[anchor][:2])
     out = []
-    for scene in (Scene(layout), Scene(layout, look="flat")):
+    for scene in (Scene(layout, look="flat"), Scene(layout, look="flat")):
         uid = scene.add_vehicle("sedan", "red", (xy[0] + 6.0, xy[1], 0.0), 0.0)
         shots = sensors.six_views(scene, xy, 0.0, cam) + [sensors.nadir(scene, xy, 80.0, cam)]
         refs = sensors.reference_views(scene, uid, (xy[0] + 6.0, xy[1], 0.0), 0.0, cam)
@@ -171,7 +173,7 @@ def test_default_look_renders_as_before(layout):
         scene.close()
     assert out[0] == out[1]
     assert digest.hexdigest()[:16] == FLAT_RENDER_SHA
-    flat = Scene(layout)
+    flat = Scene(layout, look="flat")
     with pytest.raises(ValueError, match="look='rich'"):
         flat.add_vehicle("sedan", "red", (0.0, 0.0, 0.0), 0.0, attributes=VehicleAttributes(rack=True))
     flat.close()

@@ -61,11 +61,10 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 def _add_look(parser: argparse.ArgumentParser) -> None:
     """``--look``: the look the episodes are sampled and checked with (rich episodes differ); its
     default is the episode configuration's, so the files match what ``agos eval`` draws by default."""
-    from agos.runtime.episode_config import EpisodeConfig
+    from agos.runtime.episode_config import DEFAULT_LOOK
 
-    default = EpisodeConfig.model_fields["look"].default
-    parser.add_argument("--look", choices=["flat", "rich"], default=default,
-                        help=f"vehicle look to sample and check with (default {default}, [world] look's default)")
+    parser.add_argument("--look", choices=["flat", "rich"], default=DEFAULT_LOOK,
+                        help=f"the look to sample and check with (default {DEFAULT_LOOK}, as [world] look)")
 
 
 def run(args: argparse.Namespace) -> int:

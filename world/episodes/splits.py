@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from agos.runtime.codec import from_json, to_json
+from agos.runtime.episode_config import DEFAULT_LOOK
 from agos.runtime.process import interruptible_imap
 from agos.runtime.schemas import Difficulty, EpisodeSpec
 from agos.world.episodes.sampling import DIFFICULTIES, write_episodes
@@ -135,7 +136,7 @@ class SplitPlan:
     val: int = PAPER_COUNTS["val"]
     test: int = PAPER_COUNTS["test"]
     seed: int = 1
-    look: str = "flat"
+    look: str = DEFAULT_LOOK
     preset: str | None = None
 
     def jobs(self, chunk: int = CHUNK) -> list[Job]:
@@ -151,11 +152,11 @@ class Job:
     start: int
     count: int
     seed: int
-    look: str = "flat"
+    look: str
 
 
 def plan_jobs(*, train: int, val: int, test: int, trainval_towns: list[SplitTown], test_towns: list[SplitTown],
-              seed: int, look: str = "flat", chunk: int = CHUNK) -> list[Job]:
+              seed: int, look: str, chunk: int = CHUNK) -> list[Job]:
     """Each split's total spread over its (town, difficulty) cells, the first cells taking one
     more where it does not divide; each cell cut into chunks of ``chunk`` episodes."""
     jobs: list[Job] = []

@@ -97,12 +97,17 @@ MOVES = frozenset({"MOVE_TO_UAV_WAYPOINT", "MOVE_TO_ROAD_WAYPOINT", "GO_TO_CANDI
 
 
 class EpisodeRunner:
-    """Runs one :class:`EpisodeSpec` in a :class:`Scene` of its town."""
+    """Runs one :class:`EpisodeSpec` in a :class:`Scene` of its town. Without ``config``, the
+    defaults in the scene's look; a ``config`` of another look than the scene's is refused (the
+    record would name a look its pictures were not drawn in)."""
 
     def __init__(self, scene: Scene, town: Town, spec: EpisodeSpec, *, run_id: str, worker_id: str,
                  config: EpisodeConfig | None = None, sink: EpisodeSink | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        config = config or EpisodeConfig()
+        config = config or EpisodeConfig(look=scene.look)
+        if config.look != scene.look:
+            raise ValueError(f"episode {spec.episode_id}: the configuration's look is {config.look!r} but the scene "
+                             f"was built {scene.look!r}; build the scene with look=config.look")
         if config.decision_budget is not None:  # a configured budget replaces the episode's own
             spec = msgspec.structs.replace(spec, decision_budget=config.decision_budget)
         self.state = EpisodeState(scene, town, spec, run_id=run_id, worker_id=worker_id, config=config)

@@ -100,7 +100,7 @@ class RenderResult:
 class Scene:
     """A town in a private PyBullet DIRECT client."""
 
-    def __init__(self, layout: TownLayout, *, renderer: str = "tiny", look: str = "flat") -> None:
+    def __init__(self, layout: TownLayout, *, look: str, renderer: str = "tiny") -> None:
         if look not in LOOKS:
             raise ValueError(f"unknown look {look!r}; known: {', '.join(LOOKS)}")
         self.look = look

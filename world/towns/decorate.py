@@ -106,26 +106,32 @@ def _point_at(line: np.ndarray, s: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _Occupancy:
-    """Points already taken (lamps, trees) and building footprints, on a 4 m hash grid."""
+    """Discs already taken (lamps, trees) on a 4 m hash grid, and building footprints on a 16 m one.
+
+    :meth:`free` looks in every cell a clash could come from: discs up to ``radius`` plus the
+    largest radius added so far away, footprints up to ``radius`` away (a footprint is filed under
+    every cell its bounding box touches)."""
+
+    POINT_CELL_M = 4.0
+    RECT_CELL_M = 16.0
 
     def __init__(self, buildings: list[Building]) -> None:
         self.points: dict[tuple[int, int], list[tuple[np.ndarray, float]]] = {}
+        self.max_radius_m = 0.0
         self.rects = [(footprint(b.center_world_m, b.size_m[:2], b.yaw_rad), b) for b in buildings]
         self.rect_grid: dict[tuple[int, int], list[int]] = {}
         for k, (corners, _) in enumerate(self.rects):
-            lo, hi = np.floor(corners.min(axis=0) / 16), np.floor(corners.max(axis=0) / 16)
-            for i in range(int(lo[0]), int(hi[0]) + 1):
-                for j in range(int(lo[1]), int(hi[1]) + 1):
-                    self.rect_grid.setdefault((i, j), []).append(k)
+            for cell in _cells(corners.min(axis=0), corners.max(axis=0), self.RECT_CELL_M):
+                self.rect_grid.setdefault(cell, []).append(k)
 
     def free(self, q: np.ndarray, radius: float) -> bool:
-        ci, cj = int(np.floor(q[0] / 4)), int(np.floor(q[1] / 4))
-        for i in range(ci - 1, ci + 2):
-            for j in range(cj - 1, cj + 2):
-                for p, r in self.points.get((i, j), []):
-                    if float(np.hypot(*(p - q))) < radius + r:
-                        return False
-        for k in self.rect_grid.get((int(np.floor(q[0] / 16)), int(np.floor(q[1] / 16))), []):
+        reach = radius + self.max_radius_m
+        for cell in _cells(q - reach, q + reach, self.POINT_CELL_M):
+            for p, r in self.points.get(cell, []):
+                if float(np.hypot(*(p - q))) < radius + r:
+                    return False
+        near = {k for cell in _cells(q - radius, q + radius, self.RECT_CELL_M) for k in self.rect_grid.get(cell, [])}
+        for k in sorted(near):
             b = self.rects[k][1]
             c, s = math.cos(b.yaw_rad), math.sin(b.yaw_rad)
             rel = q - np.asarray(b.center_world_m)
@@ -135,4 +141,13 @@ class _Occupancy:
         return True
 
     def add(self, q: np.ndarray, radius: float) -> None:
-        self.points.setdefault((int(np.floor(q[0] / 4)), int(np.floor(q[1] / 4))), []).append((q.copy(), radius))
+        (cell,) = _cells(q, q, self.POINT_CELL_M)
+        self.points.setdefault(cell, []).append((q.copy(), radius))
+        self.max_radius_m = max(self.max_radius_m, radius)
+
+
+def _cells(lo: np.ndarray, hi: np.ndarray, cell_m: float) -> list[tuple[int, int]]:
+    """The grid cells (``cell_m`` square) that the box from ``lo`` to ``hi`` touches."""
+    i0, j0 = (int(v) for v in np.floor(np.asarray(lo) / cell_m))
+    i1, j1 = (int(v) for v in np.floor(np.asarray(hi) / cell_m))
+    return [(i, j) for i in range(i0, i1 + 1) for j in range(j0, j1 + 1)]

@@ -20,7 +20,7 @@ import numpy as np
 
 from agos.world.towns.placement import Tree
 
-DRESSING_VERSION = 1
+DRESSING_VERSION = 2
 
 
 @dataclass(frozen=True)

@@ -153,12 +153,12 @@ def plan_to_lanes(plan: StreetPlan) -> PlanGeometry:
     degree = plan.degree()
     lanes: dict[str, Lane] = {}
     surfaces: list[Surface] = []
-    lines: list[np.ndarray] = []
     leaving: dict[int, list[tuple[str, np.ndarray, int]]] = {j: [] for j in range(len(plan.nodes))}
     arriving: dict[int, list[tuple[str, np.ndarray, int]]] = {j: [] for j in range(len(plan.nodes))}
+    lines = [street_polyline(plan, street) for street in plan.streets]
+    gaps = {j: _gaps_around(plan, j, lines) for j in range(len(plan.nodes))}
     for k, street in enumerate(plan.streets):
-        line = street_polyline(plan, street)
-        lines.append(line)
+        line = lines[k]
         core = trim(line, JUNCTION_SETBACK_M, JUNCTION_SETBACK_M)
         for direction, (j_from, j_to, pts) in enumerate(((street.a, street.b, core), (street.b, street.a, core[::-1]))):
             lane = _lane(f"s{k}.{direction}", offset(pts, LANE_WIDTH_M / 2), road_id=f"s{k}", parking=True,
@@ -174,9 +174,12 @@ def plan_to_lanes(plan: StreetPlan) -> PlanGeometry:
         surfaces.append(Surface("marking_yellow", strip(inner, -0.08, 0.08)))
         for side in (-1, 1):
             surfaces.append(Surface("marking_white", strip(inner, side * LANE_WIDTH_M - 0.06, side * LANE_WIDTH_M + 0.06)))
-            walk = trim(line, JUNCTION_SETBACK_M - 1.0, JUNCTION_SETBACK_M - 1.0)
-            lo, hi = sorted((side * ROAD_HALF_WIDTH_M, side * (ROAD_HALF_WIDTH_M + SIDEWALK_WIDTH_M)))
-            surfaces.append(Surface("sidewalk", strip(walk, lo, hi)))
+            # the line's right side (+1) faces the street clockwise of it at node a, counter-clockwise at b
+            start = _sidewalk_start_m(gaps[street.a].get((k, "cw" if side > 0 else "ccw")))
+            end = _sidewalk_start_m(gaps[street.b].get((k, "ccw" if side > 0 else "cw")))
+            if _length(line) - start - end >= 2.0:
+                lo, hi = sorted((side * ROAD_HALF_WIDTH_M, side * (ROAD_HALF_WIDTH_M + SIDEWALK_WIDTH_M)))
+                surfaces.append(Surface("sidewalk", strip(trim(line, start, end), lo, hi)))
 
     for j in range(len(plan.nodes)):
         for in_id, d_in, k_in in arriving[j]:
@@ -191,6 +194,7 @@ def plan_to_lanes(plan: StreetPlan) -> PlanGeometry:
                 lanes[conn.lane_id] = conn
                 lanes[in_id].successors.append(conn.lane_id)
         surfaces.append(Surface("junction", _junction_patch(np.asarray(plan.nodes[j]), plan, j, lines), "convex"))
+        surfaces.extend(_corner_pieces(np.asarray(plan.nodes[j]), plan, j, lines))
     network = LaneNetwork(lanes)
     network.check()
     return PlanGeometry(network, surfaces, lines)
@@ -210,6 +214,110 @@ def _junction_patch(centre: np.ndarray, plan: StreetPlan, j: int, lines: list[np
             corners.extend(offset(head, side * ROAD_HALF_WIDTH_M)[[0, -1]])
     hull = cv2.convexHull(np.asarray(corners, dtype=np.float32)).reshape(-1, 2).astype(float)
     return hull if _signed_area(hull) > 0 else hull[::-1]
+
+
+def _leaving(plan: StreetPlan, j: int, lines: list[np.ndarray]) -> list[tuple[float, int, np.ndarray]]:
+    """(heading in rad, street index, centre line from node ``j`` outwards) of every street at ``j``,
+    by heading. The heading is the chord to the point ``ROAD_HALF_WIDTH_M`` out, where kerbs meet."""
+    out = []
+    for k, street in enumerate(plan.streets):
+        for end in ("a", "b"):  # a loop street leaves its node twice
+            if getattr(street, end) != j:
+                continue
+            line = lines[k] if end == "a" else lines[k][::-1]
+            d = _point_at_arc(line, ROAD_HALF_WIDTH_M) - line[0]
+            out.append((math.atan2(d[1], d[0]), k, line))
+    return sorted(out, key=lambda t: t[0])
+
+
+def _gaps_around(plan: StreetPlan, j: int, lines: list[np.ndarray]) -> dict[tuple[int, str], float]:
+    """{(street, "ccw" | "cw"): angle in rad to the next street on that side at node ``j``};
+    no entry at a dead end."""
+    around = _leaving(plan, j, lines)
+    gaps: dict[tuple[int, str], float] = {}
+    if len(around) < 2:
+        return gaps
+    for i, (heading, k, _) in enumerate(around):
+        gaps[(k, "ccw")] = (around[(i + 1) % len(around)][0] - heading) % (2 * math.pi)
+        gaps[(k, "cw")] = (heading - around[i - 1][0]) % (2 * math.pi)
+    return gaps
+
+
+def _sidewalk_start_m(gap_rad: float | None) -> float:
+    """How far from the junction centre a sidewalk starts, given the angle to the neighbouring
+    street on its side: where its kerb meets that street's kerb (6 m at a right angle), so the two
+    sidewalks meet at the corner, or at an acute corner where its outer edge does (further out: its
+    end must not reach the other road; :func:`_corner_pieces` fills the tip); at the centre where
+    the neighbour is straight ahead or the corner is reflex; as before at a dead end."""
+    if gap_rad is None:
+        return JUNCTION_SETBACK_M - 1.0
+    if gap_rad >= math.pi - 1e-3:
+        return 0.0
+    kerbs_meet = ROAD_HALF_WIDTH_M / math.tan(gap_rad / 2)
+    outer_meets_kerb = (ROAD_HALF_WIDTH_M + (ROAD_HALF_WIDTH_M + SIDEWALK_WIDTH_M) * math.cos(gap_rad)) / math.sin(gap_rad)
+    return max(kerbs_meet, outer_meets_kerb)
+
+
+def _corner_pieces(centre: np.ndarray, plan: StreetPlan, j: int, lines: list[np.ndarray]) -> list[Surface]:
+    """Sidewalk where two neighbouring streets' sidewalks do not reach each other at node ``j``:
+    round the outside of a reflex corner (the bend at a grid's edge, the back of a Y), from one
+    sidewalk's start round the junction patch to the next one's and out to where their outer edges
+    meet; and the tip of an acute corner, from the kerbs' meeting point to where the sidewalks'
+    ends cross. Each is a strip whose first half runs along the road (the kerb)."""
+    around = _leaving(plan, j, lines)
+    out: list[Surface] = []
+    if len(around) < 2:
+        return out
+    far = ROAD_HALF_WIDTH_M + SIDEWALK_WIDTH_M
+    for i, (heading, _, line_a) in enumerate(around):
+        next_heading, _, line_b = around[(i + 1) % len(around)]
+        gap = (next_heading - heading) % (2 * math.pi)
+        # street a's left side (negative right offset) faces street b's right side
+        if gap > math.pi + 1e-3:
+            kerb_a, outer_a = (offset(line_a[:3], -d)[0] for d in (ROAD_HALF_WIDTH_M, far))
+            kerb_b, outer_b = (offset(line_b[:3], d)[0] for d in (ROAD_HALF_WIDTH_M, far))
+            corner = _meet(outer_a, line_a[0] - line_a[2], outer_b, line_b[0] - line_b[2])
+            if corner is None or float(np.linalg.norm(corner - centre)) > 3 * far:
+                corner = (outer_a + outer_b) / 2
+            kerb = np.stack([kerb_a, (kerb_a + kerb_b) / 2, kerb_b])
+            outer = np.stack([outer_a, corner, outer_b])
+        elif gap < math.pi / 2 - 1e-3:
+            start = _sidewalk_start_m(gap)
+            tip = _kerb_point(line_a, ROAD_HALF_WIDTH_M / math.tan(gap / 2), -ROAD_HALF_WIDTH_M)
+            start_a, start_b = _kerb_point(line_a, start, -ROAD_HALF_WIDTH_M), _kerb_point(line_b, start, ROAD_HALF_WIDTH_M)
+            outward_a = _kerb_point(line_a, start, -far) - start_a
+            outward_b = _kerb_point(line_b, start, far) - start_b
+            ends_cross = _meet(start_a, outward_a, start_b, outward_b)  # where the sidewalks' ends meet
+            kerb = np.stack([start_a, tip, start_b])
+            outer = np.repeat(((start_a + start_b) / 2 if ends_cross is None else ends_cross)[None], 3, axis=0)
+        else:
+            continue
+        poly = np.concatenate([kerb, outer[::-1]])
+        out.append(Surface("sidewalk", poly if _signed_area(poly) > 0 else poly[::-1]))
+    return out
+
+
+def _kerb_point(line: np.ndarray, arc_m: float, right_m: float) -> np.ndarray:
+    """The point ``right_m`` to the right of ``line`` at arc length ``arc_m`` along it."""
+    d = _point_at_arc(line, arc_m + 0.5) - _point_at_arc(line, max(0.0, arc_m - 0.5))
+    d /= max(float(np.linalg.norm(d)), 1e-9)
+    return _point_at_arc(line, arc_m) + np.array([d[1], -d[0]]) * right_m
+
+
+def _meet(p: np.ndarray, dp: np.ndarray, q: np.ndarray, dq: np.ndarray) -> np.ndarray | None:
+    """Where the rays from ``p`` along ``dp`` and from ``q`` along ``dq`` cross, or None."""
+    cross = dp[0] * dq[1] - dp[1] * dq[0]
+    if abs(cross) < 1e-9:
+        return None
+    t = ((q[0] - p[0]) * dq[1] - (q[1] - p[1]) * dq[0]) / cross
+    u = ((q[0] - p[0]) * dp[1] - (q[1] - p[1]) * dp[0]) / cross
+    return p + dp * t if t >= 0 and u >= 0 else None
+
+
+def _point_at_arc(points: np.ndarray, s_m: float) -> np.ndarray:
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    return np.array([np.interp(s_m, arc, points[:, 0]), np.interp(s_m, arc, points[:, 1])])
 
 
 def _length(points: np.ndarray) -> float:
