@@ -28,7 +28,7 @@ from agos.deploy.configure import episode_config
 from agos.deploy.human import CONSOLE_NAMES, start_console
 from agos.deploy.launcher import Launcher, free_port, wait_listening
 from agos.deploy.orchestrator import Orchestrator
-from agos.deploy.presence import LOST_IN_A_ROW, PRESENCE_EVERY_S, LossStreak, Stall, look, missing_lines
+from agos.deploy.presence import LOST_IN_A_ROW, LossStreak, Stall, look, missing_lines
 from agos.evaluator.metrics import by_difficulty
 from agos.evaluator.store import ResultStore, results_path
 from agos.evaluator.table import results_table
@@ -312,7 +312,7 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
             task = progress.add_task("episodes", total=orch.total, completed=len(orch.stored), sr="-", dps="-")
             fresh = 0
             window: deque[tuple[float, int]] = deque()  # (time, decisions seen): the rate over the last 10 s
-            watch = Stall(PRESENCE_EVERY_S)
+            watch = Stall(cfg.run.presence_check_s)
             losses = LossStreak(LOST_IN_A_ROW)
             unstored_checks = workerless_checks = 0
             while not orch.finished and not stop.is_set():
@@ -348,7 +348,7 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
                     elif unstored_checks >= LOST_IN_A_ROW:
                         missing = (f"no evaluator stored the records of {', '.join(orch.unacknowledged())}", "evaluator")
                     if missing is not None:
-                        console.print(f"[red]stopping: {missing[0]} ({LOST_IN_A_ROW} checks {PRESENCE_EVERY_S:.0f} s "
+                        console.print(f"[red]stopping: {missing[0]} ({LOST_IN_A_ROW} checks {cfg.run.presence_check_s:g} s "
                                       f"apart); start one with `agos {missing[1]} --connect {own.connect} --run "
                                       f"{plan.run_id}` and resume with `agos eval --resume {plan.run_dir}`", highlight=False)
                         orch.publish_manifest("interrupted")

@@ -71,10 +71,6 @@ def elsewhere_line(p: Presence, run_id: str) -> str | None:
     return f"agent services are serving other runs: {others}; is --run {run_id} the run they were started with?"
 
 
-PRESENCE_EVERY_S = 15.0
-"""While a run makes no progress, how often ``agos eval`` checks who is missing and says so."""
-
-
 class Stall:
     """Says when a run has made no progress for another ``every_s`` seconds."""
 
@@ -97,7 +93,7 @@ class Stall:
 LOST_IN_A_ROW = 3
 """Episodes lost in a row to one infrastructure cause after which ``agos eval`` stops (exit 3): a
 missing agent or a broken endpoint would otherwise cost every remaining episode its wait. Also the
-presence checks in a row (``PRESENCE_EVERY_S`` apart) that find no world worker, or records that no
+presence checks in a row (``[run] presence_check_s`` apart) that find no world worker, or records that no
 evaluator stores, after which it stops the same way (``--resume`` goes on once they are up)."""
 
 

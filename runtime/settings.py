@@ -64,6 +64,10 @@ class RunSettings(_Section):
     agent_wait_s: float = Field(30.0, gt=0)
     """How long a world worker waits for both agent services at an episode's first decision
     before it records the episode as failed, naming the missing role."""
+    presence_check_s: float = Field(15.0, gt=0)
+    """While a run makes no progress, how often ``agos eval`` checks which processes are missing and
+    says so; after three such checks in a row with no world worker, or with records no evaluator
+    stored, it stops (exit 3)."""
     workers: int = Field(1, ge=1)
 
 

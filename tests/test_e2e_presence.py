@@ -15,6 +15,8 @@ from agos.deploy.launcher import free_port, wait_listening
 
 pytestmark = pytest.mark.e2e
 AGOS = [sys.executable, "-m", "agos.deploy.cli"]
+FAST_CHECKS = {"AGOS_RUN__PRESENCE_CHECK_S": "5"}
+"""Presence checks 5 s apart rather than 15, for the tests that wait for three of them."""
 
 
 def test_eval_names_the_missing_processes_and_runs_with_agents(tmp_path, sample_mid_episodes) -> None:
@@ -120,7 +122,8 @@ class _Procs:
 
 def test_eval_without_an_evaluator_says_so_and_stops(tmp_path, sample_mid_episodes) -> None:
     """World and agents but no evaluator: the console names the missing evaluator and its start command
-    within 30 s, and once records have waited unstored for three checks the run stops with exit 3."""
+    within 30 s, and once records have waited unstored for three checks the run stops with exit 3
+    (checks 5 s apart here: ``[run] presence_check_s``)."""
     procs = _Procs(tmp_path, 17900)
     try:
         procs.start("world", "--connect", procs.endpoint, "--run", "unstored")
@@ -129,7 +132,7 @@ def test_eval_without_an_evaluator_says_so_and_stops(tmp_path, sample_mid_episod
         started = time.monotonic()
         ev = subprocess.Popen([*AGOS, "eval", "--connect", procs.endpoint, "--run", "unstored", "--split",
                                str(sample_mid_episodes(3, 7)), "--runs-dir", "runs"], cwd=tmp_path,
-                              env={**os.environ, "PYTHONUNBUFFERED": "1"}, stdout=subprocess.PIPE,
+                              env={**os.environ, "PYTHONUNBUFFERED": "1", **FAST_CHECKS}, stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True)
         procs.procs.append(ev)
         assert ev.stdout is not None
@@ -215,7 +218,7 @@ def test_a_wrong_port_is_one_line_and_exit_2_in_every_command(tmp_path, sample_m
 
 def test_eval_without_a_world_worker_stops_after_three_checks(tmp_path, sample_mid_episodes) -> None:
     """Evaluator and agents but no world worker: the start command within 30 s, exit 3 after three
-    presence checks (45 s), with the resume command."""
+    presence checks (5 s apart here), with the resume command."""
     procs = _Procs(tmp_path, 18300)
     try:
         procs.start("evaluator", "--connect", procs.endpoint, "--runs-dir", "runs")
@@ -223,7 +226,7 @@ def test_eval_without_a_world_worker_stops_after_three_checks(tmp_path, sample_m
             procs.start("agent", "--role", role, "--connect", procs.endpoint, "--run", "workerless")
         out = subprocess.run([*AGOS, "eval", "--connect", procs.endpoint, "--run", "workerless", "--split",
                               str(sample_mid_episodes(1, 7)), "--runs-dir", "runs"], cwd=tmp_path,
-                             capture_output=True, text=True, timeout=120)
+                             capture_output=True, text=True, timeout=120, env={**os.environ, **FAST_CHECKS})
         text = " ".join(out.stdout.split())
         assert out.returncode == 3, text
         assert f"no world worker serves run workerless: start one with `agos world --connect {procs.endpoint}" in text
