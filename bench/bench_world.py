@@ -2,7 +2,8 @@
 
 1. Observation cost: a UAV observation (nadir render + RGB/grid/depth/semantic frames + map)
    and a six-view observation (six renders + frames) against bare ``getCameraImage`` calls of
-   the same views. Goal: at most 1.15x.
+   the same views. Goal: at most 1.15x. In the flat look, so that the ratio is agos's own overhead;
+   what the rich (default) look costs against the flat one is ``bench/bench_look.py``.
 2. Import time of the largest CARLA town (OpenDRIVE -> frozen asset), against parsing its XML.
 3. World-process memory: peak RSS of a process holding the largest CARLA town's scene against
    a process that imported agos and PyBullet only.
