@@ -63,6 +63,17 @@ def pixel_to_ground(u: float, v: float, world_from_camera: np.ndarray, intr: Cam
     return (float(p[0]), float(p[1]))
 
 
+def depth_to_world(depth_m: np.ndarray, intr: CameraIntrinsics, world_from_camera: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float32 world points of a metric depth image (z along the optical axis, OpenCV
+    camera: x right, y down)."""
+    h, w = depth_m.shape
+    us, vs = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+    z = depth_m.astype(np.float32)
+    cam = np.stack([(us - intr.cx_px) / intr.fx_px * z, (vs - intr.cy_px) / intr.fy_px * z, z], -1)
+    pose = np.asarray(world_from_camera, dtype=np.float32).reshape(4, 4)
+    return cam @ pose[:3, :3].T + pose[:3, 3]
+
+
 def parse_cell(cell: str) -> tuple[int, int]:
     """``"C4"`` -> (row 2, col 3); raises ValueError for anything else."""
     if (len(cell) != 2 or cell[0].upper() not in GRID_ROWS or not cell[1].isdigit()

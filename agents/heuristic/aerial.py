@@ -27,6 +27,7 @@ import numpy as np
 
 from agos.agents.heuristic.paint import MEAN_HUE_TOLERANCE, hue_match, mean_hue_error, near_hue, shade_score
 from agos.agents.heuristic.perception import AerialDetection, TargetProfile
+from agos.runtime.camera import depth_to_world
 from agos.runtime.schemas import CameraIntrinsics
 
 GROUND_KERNEL_M = 4.0
@@ -84,13 +85,8 @@ def surface_heights(depth_m: np.ndarray, intrinsics: CameraIntrinsics, world_fro
     narrower than that in some direction (a vehicle, a lamp post, a rooftop unit) is removed,
     wider surfaces (roads, plazas, roofs) stay.
     """
-    h, w = depth_m.shape
-    us, vs = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    z = depth_m.astype(np.float32)
-    cam = np.stack([(us - intrinsics.cx_px) / intrinsics.fx_px * z, (vs - intrinsics.cy_px) / intrinsics.fy_px * z, z], -1)
-    pose = np.asarray(world_from_camera, dtype=np.float32).reshape(4, 4)
-    xyz = cam @ pose[:3, :3].T + pose[:3, 3]
-    street_depth = float(np.percentile(z, 90))  # most of a nadir view is at street level or above
+    xyz = depth_to_world(depth_m, intrinsics, world_from_camera)
+    street_depth = float(np.percentile(depth_m.astype(np.float32), 90))  # most of a nadir view is at street level or above
     metres_per_px = max(street_depth, 1.0) / intrinsics.fy_px
     zw = np.ascontiguousarray(xyz[:, :, 2])
     ground = _opening(zw, GROUND_KERNEL_M / metres_per_px)

@@ -25,6 +25,7 @@ import numpy as np
 
 from agos.agents.heuristic.paint import MEAN_HUE_TOLERANCE, hue_match, mean_hue_error, near_hue, shade_score
 from agos.agents.heuristic.perception import TargetProfile
+from agos.runtime.camera import depth_to_world
 from agos.runtime.schemas import CameraIntrinsics
 
 MIN_HEIGHT_M = 0.25
@@ -149,11 +150,8 @@ def _parts(view: GroundView, profile: TargetProfile, min_pixels: int) -> list[_P
     """Standing objects of one view with at least ``min_pixels`` // 4 paint-hued pixels."""
     depth = view.depth_m.astype(np.float32)
     h, w = depth.shape
-    i = view.intrinsics
-    us, vs = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    cam = np.stack([(us - i.cx_px) / i.fx_px * depth, (vs - i.cy_px) / i.fy_px * depth, depth], -1)
+    xyz = depth_to_world(depth, view.intrinsics, view.world_from_camera)
     pose = np.asarray(view.world_from_camera, dtype=np.float32).reshape(4, 4)
-    xyz = cam @ pose[:3, :3].T + pose[:3, 3]
     height = xyz[:, :, 2] - _street_level(xyz[:, :, 2], depth)
     distance = np.hypot(xyz[:, :, 0] - pose[0, 3], xyz[:, :, 1] - pose[1, 3])
     body = profile.body_height_m or profile.paint_top_m
@@ -173,7 +171,7 @@ def _parts(view: GroundView, profile: TargetProfile, min_pixels: int) -> list[_P
         dist = float(np.median(distance[oy, ox]))
         parts.append(_Part(
             [view.name], xyz[oy, ox, :2], height[oy, ox], hsv[:, :, 2][obj & paint].astype(np.float32),
-            hsv[:, :, 0][obj & wide], shade_score(obj, view.rgb, height, xyz), dist, dist / i.fy_px,
+            hsv[:, :, 0][obj & wide], shade_score(obj, view.rgb, height, xyz), dist, dist / view.intrinsics.fy_px,
             cut=bool(ox.min() == 0 or ox.max() == w - 1) and len(ox) < CUT_MEASURED_SHARE * h * w,
             top_cut=bool(oy.min() == 0)))
     return parts
