@@ -156,7 +156,8 @@ def plan_to_lanes(plan: StreetPlan) -> PlanGeometry:
     leaving: dict[int, list[tuple[str, np.ndarray, int]]] = {j: [] for j in range(len(plan.nodes))}
     arriving: dict[int, list[tuple[str, np.ndarray, int]]] = {j: [] for j in range(len(plan.nodes))}
     lines = [street_polyline(plan, street) for street in plan.streets]
-    gaps = {j: _gaps_around(plan, j, lines) for j in range(len(plan.nodes))}
+    around = [_leaving(plan, j, lines) for j in range(len(plan.nodes))]  # each node's streets, by heading
+    gaps = [_gaps_around(streets) for streets in around]
     for k, street in enumerate(plan.streets):
         line = lines[k]
         core = trim(line, JUNCTION_SETBACK_M, JUNCTION_SETBACK_M)
@@ -194,7 +195,7 @@ def plan_to_lanes(plan: StreetPlan) -> PlanGeometry:
                 lanes[conn.lane_id] = conn
                 lanes[in_id].successors.append(conn.lane_id)
         surfaces.append(Surface("junction", _junction_patch(np.asarray(plan.nodes[j]), plan, j, lines), "convex"))
-        surfaces.extend(_corner_pieces(np.asarray(plan.nodes[j]), plan, j, lines))
+        surfaces.extend(_corner_pieces(np.asarray(plan.nodes[j]), around[j]))
     network = LaneNetwork(lanes)
     network.check()
     return PlanGeometry(network, surfaces, lines)
@@ -230,10 +231,9 @@ def _leaving(plan: StreetPlan, j: int, lines: list[np.ndarray]) -> list[tuple[fl
     return sorted(out, key=lambda t: t[0])
 
 
-def _gaps_around(plan: StreetPlan, j: int, lines: list[np.ndarray]) -> dict[tuple[int, str], float]:
-    """{(street, "ccw" | "cw"): angle in rad to the next street on that side at node ``j``};
-    no entry at a dead end."""
-    around = _leaving(plan, j, lines)
+def _gaps_around(around: list[tuple[float, int, np.ndarray]]) -> dict[tuple[int, str], float]:
+    """{(street, "ccw" | "cw"): angle in rad to the next street on that side} at a node whose
+    streets (:func:`_leaving`) are ``around``; no entry at a dead end."""
     gaps: dict[tuple[int, str], float] = {}
     if len(around) < 2:
         return gaps
@@ -258,13 +258,13 @@ def _sidewalk_start_m(gap_rad: float | None) -> float:
     return max(kerbs_meet, outer_meets_kerb)
 
 
-def _corner_pieces(centre: np.ndarray, plan: StreetPlan, j: int, lines: list[np.ndarray]) -> list[Surface]:
-    """Sidewalk where two neighbouring streets' sidewalks do not reach each other at node ``j``:
+def _corner_pieces(centre: np.ndarray, around: list[tuple[float, int, np.ndarray]]) -> list[Surface]:
+    """Sidewalk where two neighbouring streets' sidewalks do not reach each other at a node
+    (at ``centre``, its streets :func:`_leaving` it ``around``):
     round the outside of a reflex corner (the bend at a grid's edge, the back of a Y), from one
     sidewalk's start round the junction patch to the next one's and out to where their outer edges
     meet; and the tip of an acute corner, from the kerbs' meeting point to where the sidewalks'
     ends cross. Each is a strip whose first half runs along the road (the kerb)."""
-    around = _leaving(plan, j, lines)
     out: list[Surface] = []
     if len(around) < 2:
         return out
