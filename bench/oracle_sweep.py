@@ -24,6 +24,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -56,20 +57,27 @@ def _town(name: str, towns_dir: Path):
     return open_town(asset)  # also puts it in the asset cache, where workers find it by hash
 
 
+def _scene(key: tuple, town_of: Callable[[], Any], look: str) -> tuple[Any, Any]:
+    """The worker's (town, scene) for ``key``, built by ``town_of`` in ``look`` when the key changes
+    (one scene at a time per worker process)."""
+    from agos.world.sim.scene import Scene
+
+    if _WORKER.get("key") != key:
+        if "scene" in _WORKER:
+            _WORKER["scene"].close()
+        town = town_of()
+        _WORKER.update(key=key, town=town, scene=Scene(town.layout, look=look))
+    return _WORKER["town"], _WORKER["scene"]
+
+
 def _sample(job: tuple[str, str, int, int, str, str]) -> tuple[str, str, list[str], float]:
     """Worker: ``n`` episodes of one town and difficulty (as ``agos episodes sample`` samples them)."""
     from agos.runtime.codec import to_json
     from agos.world.episodes.sampling import sample_episode
-    from agos.world.sim.scene import Scene
 
     name, difficulty, n, seed, towns_dir, look = job
     start = time.perf_counter()
-    if _WORKER.get("town_name") != (name, look):
-        if "scene" in _WORKER:
-            _WORKER["scene"].close()
-        town = _town(name, Path(towns_dir))
-        _WORKER.update(town_name=(name, look), town=town, scene=Scene(town.layout, look=look), sha=None)
-    town, scene = _WORKER["town"], _WORKER["scene"]
+    town, scene = _scene(("name", name, look), lambda: _town(name, Path(towns_dir)), look)
     lines = [to_json(sample_episode(town, scene, difficulty, i, seed=seed, stream=DIFFICULTIES.index(difficulty))).decode()  # type: ignore[arg-type]
              for i in range(n)]
     return name, difficulty, lines, time.perf_counter() - start
@@ -83,21 +91,16 @@ def _play(job: tuple[str, str]) -> str:
     from agos.runtime.episode_config import EpisodeConfig
     from agos.runtime.schemas import EpisodeSpec
     from agos.world.sim.engine import EpisodeRunner
-    from agos.world.sim.scene import Scene
     from agos.world.towns.asset import town_for
 
     config_json, episode_json = job
     spec = from_json(episode_json, EpisodeSpec)
     config = EpisodeConfig.model_validate_json(config_json)
-    if _WORKER.get("sha") != (spec.asset_sha256, config.look):
-        if "scene" in _WORKER:
-            _WORKER["scene"].close()
-        town = town_for(spec.town.generator, spec.town.seed, spec.asset_sha256, town_id=spec.town.town_id)
-        _WORKER.update(sha=(spec.asset_sha256, config.look), town=town, scene=Scene(town.layout, look=config.look),
-                       town_name=None)
+    town, scene = _scene(("sha", spec.asset_sha256, config.look),
+                         lambda: town_for(spec.town.generator, spec.town.seed, spec.asset_sha256,
+                                          town_id=spec.town.town_id), config.look)
     agents = InProcessAgents({r: make_policy(POLICIES[r], r) for r in ("uav", "ugv")})
-    record = EpisodeRunner(_WORKER["scene"], _WORKER["town"], spec, run_id="oracle-sweep", worker_id="sweep",
-                           config=config).run(agents)
+    record = EpisodeRunner(scene, town, spec, run_id="oracle-sweep", worker_id="sweep", config=config).run(agents)
     return to_json(record).decode()
 
 
