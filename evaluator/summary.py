@@ -1,4 +1,4 @@
-"""The episode summary: what every metric is computed from (DESIGN.md §7, a contract).
+"""The episode summary: what every metric is computed from (a contract: docs/ARCHITECTURE.md §8, fields in docs/METRICS.md).
 
 One JSON object per episode. :class:`~agos.runtime.schemas.EpisodeRecord` (what the world
 submits and the evaluator stores) carries every field, so a run directory and a JSONL file of

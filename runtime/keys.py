@@ -1,4 +1,4 @@
-"""The zenoh key space of agos, built in one place (DESIGN.md §3, a contract).
+"""The zenoh key space of agos, built in one place (a contract: docs/ARCHITECTURE.md §2).
 
 No other module writes a key literal: every publisher, subscriber, queryable and liveliness
 token asks this module for its key, so the layout can be read (and changed) here alone.

@@ -1,4 +1,4 @@
-"""Link models between the UAV and the UGV (DESIGN.md §5): seeded, in simulated time.
+"""Link models between the UAV and the UGV (docs/COMMS.md): seeded, in simulated time.
 
 A :class:`Link` decides, for each transmission, whether and when it arrives. The stages apply
 in this order, each recording why a message was dropped:

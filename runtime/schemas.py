@@ -1,4 +1,4 @@
-"""Wire messages of agos: one ``msgspec.Struct`` per message type (DESIGN.md §4, a contract).
+"""Wire messages of agos: one ``msgspec.Struct`` per message type (a contract: docs/ARCHITECTURE.md §8).
 
 Every payload on the bus is a msgpack map with ``type`` (the tag of the message's struct) and ``v``
 (schema version). Messages here are plain data: numbers, strings, lists, maps and raw bytes, so
@@ -346,7 +346,7 @@ class TownRef(Part, kw_only=True):
 
 
 class EpisodeSpec(Message, tag="episode_spec", kw_only=True):
-    """One episode (DESIGN.md §6, a contract). JSON, one per line in a split file."""
+    """One episode (a contract: docs/ARCHITECTURE.md §8). JSON, one per line in a split file."""
 
     episode_id: str
     """Versioned id, e.g. ``grid-s7-easy-000-v1``."""
@@ -392,7 +392,7 @@ class LedgerEntry(Part, kw_only=True):
 
 
 class LinkStats(Part, kw_only=True):
-    """Per-episode summary of the ledger (DESIGN.md §7 ``link`` field)."""
+    """Per-episode summary of the ledger (the episode summary's ``link`` field)."""
 
     profile: str
     sent: int
@@ -452,7 +452,7 @@ class RoleTraceStats(Part, kw_only=True):
 
 
 class EpisodeRecord(Message, tag="episode_record", kw_only=True):
-    """World -> evaluator: the episode summary (DESIGN.md §7 fields plus provenance)."""
+    """World -> evaluator: the episode summary (the episode-summary fields plus provenance)."""
 
     run_id: str
     episode_id: str

@@ -1,4 +1,4 @@
-"""Key layout of agos/runtime/keys.py (DESIGN.md §3)."""
+"""Key layout of agos/runtime/keys.py."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""One episode on a discrete-event simulation clock (DESIGN.md §2).
+"""One episode on a discrete-event simulation clock.
 
 Each role becomes *ready* when its previous action completes. At the earliest ready time the
 runner builds an observation for every ready role, asks the :class:`DecisionSource` for all of
