@@ -51,7 +51,7 @@ class _Dispatch:
     The observation and result subscriptions may call in from different threads: one lock
     serialises decoding and, for inline policies, every policy call."""
 
-    def __init__(self, bus: ZenohBus, policy: Policy, run_id: str, loop: asyncio.AbstractEventLoop,
+    def __init__(self, bus: Bus, policy: Policy, run_id: str, loop: asyncio.AbstractEventLoop,
                  on_loop: Callable[[Observation], None]) -> None:
         self.bus, self.policy, self.run_id, self.loop, self.on_loop = bus, policy, run_id, loop, on_loop
         self.inline = bool(getattr(policy, "inline", False))
@@ -194,7 +194,7 @@ def _policy_failed(obs: Observation) -> Action:
     return action_for(obs, "WAIT", rationale="policy error (see agent log)")
 
 
-def publish_action(bus: ZenohBus, run_id: str, obs: Observation, action: Action, started: float) -> None:
+def publish_action(bus: Bus, run_id: str, obs: Observation, action: Action, started: float) -> None:
     """Stamp the policy's wall-clock latency (realtime mode charges it in simulated time), check the
     answer as the world will read it (structs are built without checks) and send it; one the world
     would refuse is logged and replaced by a legal WAIT."""
@@ -216,12 +216,12 @@ def _stamped(action: Action, latency_s: float) -> bytes:
     return payload
 
 
-def end_episode(bus: ZenohBus, policy: Policy, run_id: str, episode_id: str) -> None:
+def end_episode(bus: Bus, policy: Policy, run_id: str, episode_id: str) -> None:
     policy.end_episode(episode_id)
     bus.forget(keys.episode_prefix(run_id, episode_id))
 
 
-async def serve_async(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag, *, concurrency: int) -> int:
+async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, concurrency: int) -> int:
     loop = asyncio.get_running_loop()
     limit = asyncio.Semaphore(concurrency)
     executor = ThreadPoolExecutor(max_workers=concurrency, thread_name_prefix="policy")
@@ -242,7 +242,7 @@ async def serve_async(bus: ZenohBus, policy: Policy, run_id: str, stop: StopFlag
     agent_id = unique_id(policy.role)
     dispatch = _Dispatch(bus, policy, run_id, loop, on_loop)
     episodes = _EpisodeSubscriptions(bus, run_id, policy.role, agent_id, dispatch, loop)
-    bus.watch_liveliness(keys.episode_live(run_id, "*", "*"), episodes)  # type: ignore[arg-type]
+    bus.watch_liveliness(keys.episode_live(run_id, "*", "*"), episodes)
     bus.declare_token(keys.live(run_id, "agent", agent_id))
     announce("agent", agent_id, run_id)
     log.info("%s agent (%s) serving run %s, up to %d decisions at once%s", policy.role, policy.name, run_id,
@@ -275,8 +275,5 @@ def main(cfg: AgosConfig, *, role: Role, policy_name: str | None = None, concurr
             return 3
         log.info("VLM endpoint %s serves %s (checked: model listed, %s-sized requests accepted)",
                  cfg.vlm.base_url, cfg.vlm.model, role)
-    bus = ZenohBus.from_settings(cfg.zenoh)
-    try:
+    with ZenohBus.from_settings(cfg.zenoh) as bus:
         return asyncio.run(serve_async(bus, policy, cfg.run.run_id, stop, concurrency=concurrency))
-    finally:
-        bus.close()

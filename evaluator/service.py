@@ -25,7 +25,7 @@ from agos.evaluator.metrics import by_difficulty
 from agos.evaluator.store import ResultStore, results_path
 from agos.evaluator.table import results_table
 from agos.runtime import keys
-from agos.runtime.bus import Inbox, ZenohBus
+from agos.runtime.bus import Bus, Inbox, ZenohBus
 from agos.runtime.codec import DecodeError, decode
 from agos.runtime.health import announce
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
@@ -37,7 +37,7 @@ log = logging.getLogger("agos.evaluator")
 
 
 class Evaluator:
-    def __init__(self, bus: ZenohBus, runs_dir: Path) -> None:
+    def __init__(self, bus: Bus, runs_dir: Path) -> None:
         self.bus, self.runs_dir = bus, runs_dir
         self._stores: dict[str, ResultStore] = {}
         self._serving: set[str] = set()
@@ -120,7 +120,7 @@ class Evaluator:
             store.close()
 
 
-def serve(bus: ZenohBus, runs_dir: Path, stop: StopFlag, *, announce_run: str | None = None) -> int:
+def serve(bus: Bus, runs_dir: Path, stop: StopFlag, *, announce_run: str | None = None) -> int:
     """Store every run's records until stopped. ``announce_run``: declare the token under this run at
     once (its healthcheck, before the run's first message) and say so for ``agos health evaluator``."""
     evaluator = Evaluator(bus, runs_dir)
@@ -145,8 +145,5 @@ def serve(bus: ZenohBus, runs_dir: Path, stop: StopFlag, *, announce_run: str | 
 def main(cfg: AgosConfig) -> int:
     setup_logging("evaluator")
     stop = install_stop_handlers()
-    bus = ZenohBus.from_settings(cfg.zenoh)
-    try:
+    with ZenohBus.from_settings(cfg.zenoh) as bus:
         return serve(bus, cfg.run.runs_dir, stop, announce_run=cfg.run.run_id)
-    finally:
-        bus.close()

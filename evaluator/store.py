@@ -29,6 +29,9 @@ CREATE TABLE IF NOT EXISTS episodes (
 
 
 class ResultStore:
+    """The records of one run's ``results.sqlite`` (``create=False``: read only); a context manager
+    that closes the file."""
+
     def __init__(self, path: Path, *, create: bool = True) -> None:
         if create:
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -69,7 +72,14 @@ class ResultStore:
         return list(self._db.execute("SELECT episode_id, record_json FROM episodes ORDER BY run_id, episode_id"))
 
     def close(self) -> None:
+        """Close the database; a second call does nothing."""
         self._db.close()
+
+    def __enter__(self) -> ResultStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def results_path(runs_dir: Path, run_id: str) -> Path:

@@ -26,7 +26,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Generic, Protocol, TypeVar
 
 import zenoh
 
@@ -35,6 +35,8 @@ from agos.runtime.settings import ZenohSettings
 
 log = logging.getLogger(__name__)
 
+T = TypeVar("T")
+
 
 @dataclass(slots=True)  # not frozen: a frozen dataclass costs three times as much to build, per received sample
 class Sample:
@@ -42,22 +44,31 @@ class Sample:
     payload: bytes
 
 
-class Inbox:
-    """A thread-safe queue of samples from one or more subscriptions."""
+class Query(Protocol):
+    """A query a :meth:`Bus.serve` queryable received: answer it with :meth:`reply` (from any thread)."""
+
+    key: str
+    payload: bytes
+
+    def reply(self, payload: bytes) -> None: ...
+
+
+class _Queue(Generic[T]):
+    """A thread-safe queue (what subscriber callbacks hand their items to)."""
 
     def __init__(self) -> None:
-        self._queue: queue.Queue[Sample] = queue.Queue()
+        self._queue: queue.Queue[T] = queue.Queue()
 
-    def put(self, sample: Sample) -> None:
-        self._queue.put(sample)
+    def put(self, item: T) -> None:
+        self._queue.put(item)
 
-    def get(self, timeout_s: float | None = None) -> Sample | None:
+    def get(self, timeout_s: float | None = None) -> T | None:
         try:
             return self._queue.get(timeout=timeout_s)
         except queue.Empty:
             return None
 
-    def drain(self) -> list[Sample]:
+    def drain(self) -> list[T]:
         out = []
         while True:
             try:
@@ -66,28 +77,104 @@ class Inbox:
                 return out
 
 
-class Query(Protocol):
-    key: str
-    payload: bytes
+class Inbox(_Queue[Sample]):
+    """A thread-safe queue of samples from one or more subscriptions."""
 
-    def reply(self, payload: bytes) -> None: ...
+
+class QueryInbox(_Queue[Query]):
+    """A thread-safe queue of the queries a queryable received (:meth:`Bus.serve`)."""
+
+
+class SampleSink(Protocol):
+    """Where a subscription hands its samples: an :class:`Inbox`, or anything with ``put``."""
+
+    def put(self, sample: Sample) -> None: ...
 
 
 class Bus(Protocol):
-    def publish(self, key: str, message: Any) -> None: ...
-    def publish_viz(self, key: str, message: Any) -> None: ...
-    def watched(self, key: str) -> bool: ...
-    def subscribe(self, key_expr: str, inbox: Inbox) -> Any: ...
-    def subscribe_payloads(self, key_expr: str, callback: Callable[[bytes], None]) -> Any: ...
-    def unsubscribe(self, handle: Any) -> None: ...
-    def serve(self, key_expr: str) -> Inbox: ...
-    def request(self, key: str, message: Any, timeout_s: float) -> list[bytes]: ...
-    def wait_for_subscriber(self, key: str, timeout_s: float) -> bool: ...
-    def declare_token(self, key: str) -> Any: ...
-    def undeclare_token(self, handle: Any) -> None: ...
-    def watch_liveliness(self, key_expr: str, inbox: Inbox) -> Any: ...
-    def alive_tokens(self, key_expr: str, timeout_s: float = 1.0) -> list[str]: ...
-    def close(self) -> None: ...
+    """The transport every component talks through: :class:`ZenohBus` in a process, :class:`MemoryBus`
+    in unit tests (STYLE.md item 9). Keys come from runtime/keys.py; a ``message`` is a wire message
+    (encoded with runtime/codec.py) or bytes sent as they are. Callbacks and inboxes are fed from the
+    transport's threads; every method may be called from any thread."""
+
+    def publish(self, key: str, message: Any) -> None:
+        """Control traffic on ``key``: reliable, never dropped (zenoh: congestion control BLOCK, so
+        it may wait for a slow receiver). Every subscription matching ``key`` gets the sample,
+        once, in publishing order."""
+        ...
+
+    def publish_viz(self, key: str, message: Any) -> None:
+        """Visualisation traffic on ``key``: best effort, never waits (zenoh: DROP, express, low
+        priority); a sample nobody can take now is lost."""
+        ...
+
+    def watched(self, key: str) -> bool:
+        """Whether anyone subscribes to ``key`` now, cheaply (asked every decision), so costly
+        visualisation samples are made only for someone. May say False for a round trip after the
+        key's first use."""
+        ...
+
+    def forget(self, key_prefix: str) -> None:
+        """Release what publishing kept per key under ``key_prefix`` (publishers, matching
+        listeners: an episode that is over). Subscriptions and tokens are untouched; publishing
+        on such a key again works as the first time did."""
+        ...
+
+    def subscribe(self, key_expr: str, inbox: SampleSink) -> Any:
+        """Hand every sample published under ``key_expr`` (``*``: one chunk, ``**``: any number)
+        to ``inbox.put`` as a :class:`Sample`, from the transport's thread, until
+        :meth:`unsubscribe`. Returns the handle."""
+        ...
+
+    def subscribe_payloads(self, key_expr: str, callback: Callable[[bytes], None]) -> Any:
+        """As :meth:`subscribe`, but call ``callback(payload)`` with the payload alone (a hot path
+        needing neither the key nor a queue). Returns a handle for :meth:`unsubscribe`."""
+        ...
+
+    def unsubscribe(self, handle: Any) -> None:
+        """End a subscription (:meth:`subscribe`, :meth:`subscribe_payloads`,
+        :meth:`watch_liveliness`); an unknown or already ended handle is ignored."""
+        ...
+
+    def serve(self, key_expr: str) -> QueryInbox:
+        """Declare a queryable on ``key_expr`` for as long as the bus is open; each query to a key
+        it matches is queued in the returned inbox for the caller to answer with
+        ``query.reply(bytes)`` (never inside a transport callback)."""
+        ...
+
+    def request(self, key: str, message: Any, timeout_s: float) -> list[bytes]:
+        """Query ``key`` and return every reply's payload (all queryables' answers, none merged
+        away), waiting at most ``timeout_s``; no queryable, or none answering in time: fewer or none."""
+        ...
+
+    def wait_for_subscriber(self, key: str, timeout_s: float) -> bool:
+        """Wait until some subscription matches ``key`` (the start-up race guard); False if none
+        did within ``timeout_s`` (0: answer at once)."""
+        ...
+
+    def declare_token(self, key: str) -> Any:
+        """A liveliness token on ``key`` until :meth:`undeclare_token` or the bus closes (or the
+        process dies); returns its handle. Two tokens on one key are two handles."""
+        ...
+
+    def undeclare_token(self, handle: Any) -> None:
+        """Withdraw a token of :meth:`declare_token`; an unknown or withdrawn handle is ignored."""
+        ...
+
+    def watch_liveliness(self, key_expr: str, inbox: SampleSink) -> Any:
+        """Hand ``Sample(key, b"+")`` to ``inbox`` when a token's key under ``key_expr`` becomes
+        alive (also at once for those alive now) and ``Sample(key, b"-")`` when its last token
+        goes. Returns a handle for :meth:`unsubscribe`."""
+        ...
+
+    def alive_tokens(self, key_expr: str, timeout_s: float = 1.0) -> list[str]:
+        """The keys under ``key_expr`` with a token alive now, sorted, each once."""
+        ...
+
+    def close(self) -> None:
+        """End every subscription, queryable and token of this bus and release the transport.
+        Idempotent."""
+        ...
 
 
 VIZ_QUEUE_BATCHES = 16
@@ -179,7 +266,7 @@ def open_session(config: zenoh.Config) -> zenoh.Session:
 
 
 class ZenohBus:
-    """A real zenoh session (client of a router by default)."""
+    """A real zenoh session (client of a router by default); a context manager that closes it."""
 
     def __init__(self, config: zenoh.Config) -> None:
         self.session = open_session(config)
@@ -187,6 +274,13 @@ class ZenohBus:
         self._watched: dict[str, _MatchingFlag] = {}
         self._keep: list[Any] = []
         self._lock = threading.Lock()
+        self._closed = False
+
+    def __enter__(self) -> ZenohBus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     @classmethod
     def connect(cls, endpoint: str, *, connect_timeout_s: float = 10.0) -> ZenohBus:
@@ -244,7 +338,7 @@ class ZenohBus:
             for key in [k for k in self._publishers if k.startswith(key_prefix)]:
                 self._publishers.pop(key).undeclare()
 
-    def subscribe(self, key_expr: str, inbox: Inbox) -> Any:
+    def subscribe(self, key_expr: str, inbox: SampleSink) -> Any:
         """Queue every sample under ``key_expr`` into ``inbox``; returns a handle for
         :meth:`unsubscribe`."""
 
@@ -272,13 +366,13 @@ class ZenohBus:
             self._keep.remove(handle)
             handle.undeclare()
 
-    def serve(self, key_expr: str) -> Inbox:
+    def serve(self, key_expr: str) -> QueryInbox:
         """Declare a queryable; its queries are queued in the returned inbox for the caller to
         answer with ``query.reply(bytes)`` (never inside the zenoh callback)."""
-        inbox = Inbox()
+        inbox = QueryInbox()
 
         def on_query(query: zenoh.Query) -> None:
-            inbox.put(_ZenohQuery(query))  # type: ignore[arg-type]
+            inbox.put(_ZenohQuery(query))
 
         self._keep.append(self.session.declare_queryable(key_expr, on_query))
         return inbox
@@ -310,7 +404,7 @@ class ZenohBus:
     def undeclare_token(self, handle: Any) -> None:
         self.unsubscribe(handle)
 
-    def watch_liveliness(self, key_expr: str, inbox: Inbox) -> Any:
+    def watch_liveliness(self, key_expr: str, inbox: SampleSink) -> Any:
         """Queue ``Sample(key, b"+")`` when a token appears (also those alive now) and
         ``Sample(key, b"-")`` when it vanishes (process gone, or its session lost)."""
 
@@ -327,6 +421,10 @@ class ZenohBus:
         return sorted({str(r.ok.key_expr) for r in replies if r.ok is not None})
 
     def close(self) -> None:
+        """Undeclare everything this bus declared and close the session; a second call does nothing."""
+        if self._closed:
+            return
+        self._closed = True
         for obj in self._keep:
             with contextlib.suppress(Exception):
                 obj.undeclare()
@@ -340,13 +438,20 @@ class ZenohBus:
 
 
 class MemoryBus:
-    """In-process fake with the same surface, for unit tests (STYLE.md item 9)."""
+    """In-process fake with the same surface, for unit tests (STYLE.md item 9); a context manager."""
 
     def __init__(self) -> None:
         self.published: list[tuple[str, Any]] = []
-        self._subs: list[tuple[str, Inbox]] = []
+        self._subs: list[tuple[str, SampleSink]] = []
         self._tokens: list[list[str]] = []  # handles: one-item lists, so equal keys stay distinct
-        self._watchers: list[tuple[str, Inbox]] = []
+        self._watchers: list[tuple[str, SampleSink]] = []
+        self._queryables: list[tuple[str, QueryInbox]] = []
+
+    def __enter__(self) -> MemoryBus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     def publish(self, key: str, message: Any) -> None:
         # bytes of their own, as zenoh copies on put (a sender may reuse its buffer: world/sim/worker.py)
@@ -365,18 +470,37 @@ class MemoryBus:
     def forget(self, key_prefix: str) -> None:
         pass
 
-    def subscribe(self, key_expr: str, inbox: Inbox) -> Any:
+    def subscribe(self, key_expr: str, inbox: SampleSink) -> Any:
         handle = (key_expr, inbox)
         self._subs.append(handle)
         return handle
 
     def subscribe_payloads(self, key_expr: str, callback: Callable[[bytes], None]) -> Any:
-        return self.subscribe(key_expr, _Calling(callback))  # type: ignore[arg-type]
+        return self.subscribe(key_expr, _Calling(callback))
 
     def unsubscribe(self, handle: Any) -> None:
         for handles in (self._subs, self._watchers):
             if handle in handles:
                 handles.remove(handle)
+
+    def serve(self, key_expr: str) -> QueryInbox:
+        inbox = QueryInbox()
+        self._queryables.append((key_expr, inbox))
+        return inbox
+
+    def request(self, key: str, message: Any, timeout_s: float) -> list[bytes]:
+        """Queue a query in each matching queryable's inbox and wait, at most ``timeout_s``, until
+        each has replied (another thread answers); the replies so far, in queryable order."""
+        payload = bytes(message) if isinstance(message, (bytes, bytearray)) else encode(message)
+        queries = []
+        for expr, inbox in list(self._queryables):
+            if _matches(expr, key):
+                queries.append(_MemoryQuery(key, payload))
+                inbox.put(queries[-1])
+        deadline = time.monotonic() + timeout_s
+        for query in queries:
+            query.answered.wait(max(0.0, deadline - time.monotonic()))
+        return [reply for query in queries for reply in list(query.replies)]
 
     def wait_for_subscriber(self, key: str, timeout_s: float) -> bool:
         return any(_matches(expr, key) for expr, _ in list(self._subs))
@@ -402,7 +526,7 @@ class MemoryBus:
     def _alive(self, key: str) -> bool:
         return any(token[0] == key for token in self._tokens)
 
-    def watch_liveliness(self, key_expr: str, inbox: Inbox) -> Any:
+    def watch_liveliness(self, key_expr: str, inbox: SampleSink) -> Any:
         handle = (key_expr, inbox)
         self._watchers.append(handle)
         for key in dict.fromkeys(token[0] for token in self._tokens):  # history: the keys alive now, once each
@@ -419,6 +543,20 @@ class MemoryBus:
         self._subs.clear()
         self._watchers.clear()
         self._tokens.clear()
+        self._queryables.clear()
+
+
+class _MemoryQuery:
+    """A query of :meth:`MemoryBus.request`: its replies, and whether one came."""
+
+    def __init__(self, key: str, payload: bytes) -> None:
+        self.key, self.payload = key, payload
+        self.replies: list[bytes] = []
+        self.answered = threading.Event()
+
+    def reply(self, payload: bytes) -> None:
+        self.replies.append(bytes(payload))
+        self.answered.set()
 
 
 class _Calling:
@@ -429,6 +567,11 @@ class _Calling:
 
     def put(self, sample: Sample) -> None:
         self.callback(sample.payload)
+
+
+BUSES: tuple[type[Bus], ...] = (ZenohBus, MemoryBus)
+"""The implementations of :class:`Bus` (mypy checks here that each satisfies it; tests/test_bus.py
+that each has its methods)."""
 
 
 def _matches(expr: str, key: str) -> bool:

@@ -73,13 +73,10 @@ def announced(kind: HealthKind) -> dict[str, str | None] | None:
 
 def token_alive(z: ZenohSettings, key: str, timeout_s: float) -> bool:
     """Whether a liveliness token matching ``key`` is up, asked of the router until ``timeout_s``."""
-    bus = ZenohBus.from_settings(z)
-    try:
+    with ZenohBus.from_settings(z) as bus:
         deadline = time.monotonic() + timeout_s
         while not bus.alive_tokens(key, max(0.1, min(1.0, deadline - time.monotonic()))):
             if time.monotonic() >= deadline:
                 return False
             time.sleep(0.2)
         return True
-    finally:
-        bus.close()

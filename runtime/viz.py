@@ -20,13 +20,16 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 
 from agos.runtime.codec import decode
 from agos.runtime.schemas import ImageFrame, Observation, VizFrame
+
+if TYPE_CHECKING:
+    from agos.runtime.bus import Bus
 
 log = logging.getLogger(__name__)
 THUMB_PX = 160
@@ -91,7 +94,7 @@ class FrameStream:
     frames are made at most every ``min_interval_s``, so watching costs a bounded share of a core.
     """
 
-    def __init__(self, bus: Any, min_interval_s: float = MIN_INTERVAL_S) -> None:
+    def __init__(self, bus: Bus, min_interval_s: float = MIN_INTERVAL_S) -> None:
         self.bus, self.min_interval_s = bus, min_interval_s
         self._pending: dict[str, Observation] = {}
         self._busy = False

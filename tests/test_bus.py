@@ -1,7 +1,10 @@
-"""The in-memory bus fake matches zenoh key expressions like the real one."""
+"""The in-memory bus fake matches zenoh key expressions like the real one, and keeps the ``Bus`` contract."""
+
+import threading
+import time
 
 from agos.runtime import keys
-from agos.runtime.bus import Inbox, MemoryBus, Sample, _matches
+from agos.runtime.bus import BUSES, Bus, Inbox, MemoryBus, Sample, _matches
 from agos.runtime.codec import decode
 from agos.runtime.schemas import ResultAck
 
@@ -54,3 +57,49 @@ def test_memory_bus_liveliness_tokens() -> None:
     assert inbox.drain() == []
     bus.undeclare_token(second)
     assert inbox.drain() == [Sample("agos/r/ep/e1/live/w1", b"-")]
+
+
+def test_both_buses_have_every_method_of_the_protocol() -> None:
+    members = {name for name in vars(Bus) if not name.startswith("_")}
+    assert {"publish", "forget", "serve", "request", "close"} <= members
+    for cls in BUSES:
+        assert all(callable(getattr(cls, name, None)) for name in members), cls
+
+
+def test_memory_bus_queries_are_answered_by_the_queryable() -> None:
+    with MemoryBus() as bus:
+        assert bus.request(keys.jobs("r"), b"nobody serves", timeout_s=1.0) == []
+        queries = bus.serve(keys.asset("*"))
+
+        def answer_one() -> None:
+            query = queries.get(1.0)
+            if query is not None:
+                query.reply(b"<" + query.payload + b">")
+
+        answering = threading.Thread(target=answer_one)
+        answering.start()
+        assert bus.request(keys.asset("abc"), b"q", timeout_s=1.0) == [b"<q>"]
+        answering.join()
+        started = time.monotonic()
+        assert bus.request(keys.asset("abc"), b"q", timeout_s=0.05) == []  # queued, never answered: times out
+        assert time.monotonic() - started < 1.0
+        assert [q.key for q in queries.drain()] == ["agos/assets/abc"]
+
+
+def test_memory_bus_unsubscribe_forget_and_close() -> None:
+    bus = MemoryBus()
+    inbox, payloads = Inbox(), []
+    handle = bus.subscribe(keys.events("r", "*"), inbox)
+    bus.subscribe_payloads(keys.events("r", "*"), payloads.append)
+    bus.forget(keys.episode_prefix("r", "e"))  # subscriptions outlive it
+    bus.publish(keys.events("r", "e"), b"one")
+    bus.unsubscribe(handle)
+    bus.unsubscribe(handle)  # twice: nothing more
+    bus.publish(keys.events("r", "e"), b"two")
+    assert [s.payload for s in inbox.drain()] == [b"one"] and payloads == [b"one", b"two"]
+    bus.declare_token(keys.live("r", "world", "w"))
+    with bus:
+        pass
+    bus.close()  # idempotent
+    bus.publish(keys.events("r", "e"), b"three")
+    assert payloads == [b"one", b"two"] and bus.alive_tokens(keys.live("r", "*", "*")) == []

@@ -31,7 +31,7 @@ from agos.agents.human.server import ConsoleServer
 from agos.agents.human.spectator import SpectatorBoard
 from agos.agents.service import _Dispatch, _EpisodeSubscriptions, publish_action
 from agos.runtime import keys
-from agos.runtime.bus import ZenohBus
+from agos.runtime.bus import Bus, ZenohBus
 from agos.runtime.codec import encode
 from agos.runtime.health import announce, unique_id
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
@@ -58,7 +58,7 @@ class HumanPolicy:
         self.board.forget(episode_id, self.role)
 
 
-async def serve_async(bus: ZenohBus, board: DecisionBoard, run_id: str, stop: StopFlag) -> int:
+async def serve_async(bus: Bus, board: DecisionBoard, run_id: str, stop: StopFlag) -> int:
     """Serve every role of ``board`` on the bus until ``stop``."""
     loop = asyncio.get_running_loop()
     tasks: set[asyncio.Task[None]] = set()
@@ -84,7 +84,7 @@ async def serve_async(bus: ZenohBus, board: DecisionBoard, run_id: str, stop: St
         agent_id = unique_id(role)
         dispatch = _Dispatch(bus, HumanPolicy(role, board), run_id, loop, on_loop)
         episodes = _EpisodeSubscriptions(bus, run_id, role, agent_id, dispatch, loop)
-        bus.watch_liveliness(keys.episode_live(run_id, "*", "*"), episodes)  # type: ignore[arg-type]
+        bus.watch_liveliness(keys.episode_live(run_id, "*", "*"), episodes)
         bus.declare_token(keys.live(run_id, "agent", agent_id))
         announce("agent", agent_id, run_id)
         subscriptions.append((episodes, dispatch))
@@ -122,12 +122,11 @@ def main(cfg: AgosConfig, *, roles: tuple[Role, ...], host: str = "127.0.0.1", p
     server = _serve_page(board, host, port, what)
     if server is None:
         return 2
-    bus = ZenohBus.from_settings(cfg.zenoh)
-    try:
-        return asyncio.run(serve_async(bus, board, cfg.run.run_id, stop))
-    finally:
-        server.close()
-        bus.close()
+    with ZenohBus.from_settings(cfg.zenoh) as bus:
+        try:
+            return asyncio.run(serve_async(bus, board, cfg.run.run_id, stop))
+        finally:
+            server.close()
 
 
 def spectate(cfg: AgosConfig, *, run_id: str | None, host: str = "127.0.0.1", port: int = 8766) -> int:

@@ -98,7 +98,7 @@ class RenderResult:
 
 
 class Scene:
-    """A town in a private PyBullet DIRECT client."""
+    """A town in a private PyBullet DIRECT client; a context manager that disconnects it."""
 
     def __init__(self, layout: TownLayout, *, look: str, renderer: str = "tiny") -> None:
         if look not in LOOKS:
@@ -468,6 +468,13 @@ class Scene:
         return "pybullet-egl" if self.renderer == "egl" else "pybullet-tiny"
 
     def close(self) -> None:
+        """Disconnect the PyBullet client; a second call does nothing."""
         if self.client >= 0:
             pb.disconnect(physicsClientId=self.client)
             self.client = -1
+
+    def __enter__(self) -> Scene:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

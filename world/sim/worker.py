@@ -15,7 +15,7 @@ import time
 import traceback
 
 from agos.runtime import keys
-from agos.runtime.bus import Inbox, Sample, ZenohBus
+from agos.runtime.bus import Bus, Inbox, Sample, ZenohBus
 from agos.runtime.codec import DecodeError, decode, decode_as, encode, encode_into
 from agos.runtime.episode_config import EpisodeConfig, StoredConfigError, read_config
 from agos.runtime.failure_records import failure_record
@@ -57,7 +57,7 @@ class BusSink:
     """Publishes the runner's reports on the episode's keys, and mirrors steps and the
     coordination truth on the visualisation stream (lossy, only while watched)."""
 
-    def __init__(self, bus: ZenohBus, run_id: str, episode_id: str) -> None:
+    def __init__(self, bus: Bus, run_id: str, episode_id: str) -> None:
         self.bus, self.run_id, self.episode_id = bus, run_id, episode_id
 
     def step(self, event: StepEvent) -> None:
@@ -99,7 +99,7 @@ class AgentVanished(RuntimeError):
 class BusDecisionSource:
     """Asks the agent services for decisions over zenoh (lockstep: the sim clock waits)."""
 
-    def __init__(self, bus: ZenohBus, run_id: str, episode_id: str, *, worker_id: str, timeout_s: float,
+    def __init__(self, bus: Bus, run_id: str, episode_id: str, *, worker_id: str, timeout_s: float,
                  stop: StopFlag, agent_wait_s: float = 30.0, frames: FrameStream | None = None, attempt: int = 1,
                  rejections: Rejections | None = None) -> None:
         """``attempt``: the lease's attempt number, stamped on every observation. An action counts only
@@ -237,7 +237,7 @@ class BusDecisionSource:
 
 
 class WorldWorker:
-    def __init__(self, cfg: AgosConfig, bus: ZenohBus, stop: StopFlag, worker_id: str) -> None:
+    def __init__(self, cfg: AgosConfig, bus: Bus, stop: StopFlag, worker_id: str) -> None:
         self.cfg, self.bus, self.stop, self.worker_id = cfg, bus, stop, worker_id
         self.run_id = cfg.run.run_id
         self._scenes: dict[tuple[str, str, str], tuple[Town, Scene]] = {}
@@ -415,8 +415,5 @@ def main(cfg: AgosConfig, *, worker_id: str | None = None) -> int:
     setup_logging("world")
     stop = install_stop_handlers()
     ident = worker_id or unique_id(host_prefix())
-    bus = ZenohBus.from_settings(cfg.zenoh)
-    try:
+    with ZenohBus.from_settings(cfg.zenoh) as bus:
         return WorldWorker(cfg, bus, stop, keys.check_chunk(ident, what="worker id")).serve()
-    finally:
-        bus.close()
