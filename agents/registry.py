@@ -52,7 +52,7 @@ def make_policy(name: str, role: Role, *, vlm: VlmOptions | None = None, dataset
 
         return RandomPolicy(role)
     if base.startswith("standin-"):
-        from agos.agents.standin import FixedLatencyPolicy
+        from agos.agents.standin_policy import FixedLatencyPolicy
 
         return FixedLatencyPolicy(role, parse_standin(base))
     raise ValueError(f"unknown policy {name!r}; known: {KNOWN}")

@@ -2,6 +2,8 @@
 
 ``standin-200ms`` waits 200 ms (asynchronously, like a remote model) and then takes a plain
 legal action: the first waypoint option if it may move, else WAIT. It never looks at images.
+Not to be confused with ``agos vlm-standin`` (:mod:`agos.agents.vlm.standin`), a stand-in *model
+server* that VLM policies ask over HTTP; this is a policy of its own that asks nothing.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 A real evaluation is paced by the model. This bench runs a split through the real ``agos eval``
 (router, evaluator, two agent services, world workers: the processes ``agos eval`` starts) with the
 ``standin-<L>ms`` policy, which sleeps L seconds per decision like a remote model and then takes a
-plain legal action (agents/standin.py), and prints the wall time from the command's start to its
+plain legal action (agents/standin_policy.py), and prints the wall time from the command's start to its
 final table, start-up included, against two floors measured in the same run:
 
 * model floor = max(longest chain × L, total rounds × L / concurrent episodes). A *round* is one

@@ -22,7 +22,7 @@ import pytest
 from agos.agents.inprocess import InProcessAgents
 from agos.agents.names import tools_for
 from agos.agents.registry import make_policy
-from agos.agents.vlm.standin_server import StandinServer
+from agos.agents.vlm.standin.server import StandinServer
 from agos.deploy.launcher import free_port, wait_listening
 from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.runtime.settings import VlmOptions

@@ -15,7 +15,7 @@ from agos.agents.vlm import protocol
 from agos.agents.vlm.agos_prompts import ugv_prompt, ugv_stage
 from agos.agents.vlm.baseline_prompts import anchor_from_messages
 from agos.agents.vlm.request import Memory
-from agos.agents.vlm.standin_server import StandinServer
+from agos.agents.vlm.standin.server import StandinServer
 from agos.runtime.codec import to_json
 from agos.runtime.schemas import MessageRecord
 from agos.runtime.settings import VlmOptions

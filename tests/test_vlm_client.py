@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from agos.agents.vlm.client import VlmClient, VlmError, image_part
-from agos.agents.vlm.standin_server import StandinServer
+from agos.agents.vlm.standin.server import StandinServer
 
 MODEL = "stand-in-vl"
 

@@ -22,18 +22,9 @@ import pytest
 
 from agos.agents.vlm.client import VlmClient, VlmError, image_part
 from agos.agents.vlm.protocol import AERIAL, SIX_VIEWS, SplitRequest, image_caption, state_text
-from agos.agents.vlm.standin_server import (
-    FAULT_KINDS,
-    FaultSpecError,
-    StandinServer,
-    default_responder,
-    draw_outcome,
-    fault_sequence,
-    image_size,
-    image_tokens,
-    parse_faults,
-    wait_responder,
-)
+from agos.agents.vlm.standin.faults import FAULT_KINDS, FaultSpecError, draw_outcome, fault_sequence, parse_faults
+from agos.agents.vlm.standin.requests import image_size, image_tokens
+from agos.agents.vlm.standin.server import StandinServer, default_responder, wait_responder
 
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = "agos-standin"
@@ -423,7 +414,7 @@ def test_image_sizes_and_tokens() -> None:
 
 def test_default_responder_is_the_brain_or_a_wait_fallback() -> None:
     responder = default_responder()
-    assert responder is wait_responder or (responder.__module__, responder.__name__) == ("agos.agents.vlm.standin_brain", "respond")
+    assert responder is wait_responder or (responder.__module__, responder.__name__) == ("agos.agents.vlm.standin.brain", "respond")
     assert wait_responder(SplitRequest(system="", text="", state=None, images={}))["action"] == "WAIT"
 
 

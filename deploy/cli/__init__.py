@@ -222,7 +222,7 @@ def build_parser() -> argparse.ArgumentParser:
     certs.add_argument("--days", type=int, default=365, help="validity (default 365)")
     certs.add_argument("--force", action="store_true", help="replace an existing CA and every certificate")
 
-    from agos.agents.vlm.standin_server import add_parser as add_standin_parser
+    from agos.agents.vlm.standin.cli import add_parser as add_standin_parser
 
     add_standin_parser(sub)
     return parser
@@ -405,9 +405,9 @@ def _run_unconfigured(args: argparse.Namespace) -> int:
 
         return evaluator_cli.run(args)
     if args.command == "vlm-standin":
-        from agos.agents.vlm import standin_server
+        from agos.agents.vlm.standin import cli as standin_cli
 
-        return standin_server.run(args)
+        return standin_cli.run(args)
     if args.command == "certs":
         from agos.deploy.certs import main as certs_main
 

@@ -150,7 +150,8 @@ def run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, para
     if options is None or vlm_standin is None:
         return _run_sweep(episodes_file, out_dir, config=config, param=param, values=values, seeds=seeds,
                           policies=policies, workers=workers, progress=progress, vlm=options)
-    from agos.agents.vlm.standin_server import DEFAULT_MODELS, StandinServer, parse_faults
+    from agos.agents.vlm.standin.faults import parse_faults
+    from agos.agents.vlm.standin.server import DEFAULT_MODELS, StandinServer
 
     with StandinServer(faults=parse_faults(vlm_standin)) as server:
         options = options.model_copy(update={"base_url": server.url, "model": DEFAULT_MODELS[0]})
