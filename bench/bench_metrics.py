@@ -10,13 +10,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 from agos.evaluator.metrics import aggregate
 from agos.evaluator.summary import read_jsonl
-from agos.evaluator.synthetic import synthetic_summaries, write_jsonl
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the synthetic summaries are a test helper
+from support.synthetic import synthetic_summaries, write_jsonl
 
 
 def parse_only(path: Path) -> int:

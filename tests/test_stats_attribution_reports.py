@@ -13,7 +13,8 @@ from agos.evaluator.attribution import OUTCOMES, attribute, outcome_counts
 from agos.evaluator.reports import RunResults, write_report
 from agos.evaluator.stats import COMPARED, Comparison, compare, pair, sign_test
 from agos.evaluator.summary import EpisodeSummary
-from agos.evaluator.synthetic import synthetic_summaries
+
+from support.synthetic import synthetic_summaries
 
 
 def ep(**kw: Any) -> EpisodeSummary:

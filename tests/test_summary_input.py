@@ -12,8 +12,9 @@ import pytest
 
 from agos.evaluator.store import ResultStore
 from agos.evaluator.summary import EpisodeSummary, SummaryError, read_jsonl, read_run
-from agos.evaluator.synthetic import synthetic_summaries, write_jsonl
 from agos.runtime.schemas import EpisodeRecord
+
+from support.synthetic import synthetic_summaries, write_jsonl
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -162,7 +163,7 @@ def test_metrics_piped_into_head_prints_no_traceback(tmp_path) -> None:
     import subprocess
     import sys
 
-    from agos.evaluator.synthetic import synthetic_summaries, write_jsonl
+    from support.synthetic import synthetic_summaries, write_jsonl
 
     path = tmp_path / "s.jsonl"
     write_jsonl(path, synthetic_summaries(3000, seed=1))

@@ -1,4 +1,4 @@
-"""Synthetic episode summaries with known rates, for benchmarks and statistical tests."""
+"""Synthetic episode summaries with known rates, for benchmarks and statistical tests (not shipped)."""
 
 from __future__ import annotations
 
