@@ -15,7 +15,7 @@ One sampled split (``agos episodes sample`` per town, the build's look), then, o
 3. **Breakdown** (in this process, the same episodes): seconds spent rendering the views the
    dataset stores (observations, the six views, views between decisions, references: rendered and
    encoded as the world does), planning the expert, writing (agents/dataset/writer.py: images,
-   decisions.jsonl, AGOS-Agent's prompt and the export line) and assembling (deploy/dataset.py:
+   decisions.jsonl, AGOS-Agent's prompt and the export line) and assembling (deploy/dataset/build.py:
    hashes, episode.json, the rename). Image step = (render + write + assemble) / render.
 
 Goal: the image step within 1.2x of rendering the same views bare. Every ratio is against a
@@ -158,7 +158,7 @@ def breakdown(split: Path, look: str, capture_every_m: float, work: Path) -> dic
     """Play ``split`` in this process with the dataset writer, timing render, plan, write and assemble."""
     from agos.agents.dataset.writer import DatasetWriter
     from agos.agents.inprocess import InProcessAgents
-    from agos.deploy.dataset import Assembler
+    from agos.deploy.dataset.build import Assembler
     from agos.runtime.episode_config import EpisodeConfig, ToolConfig
     from agos.world import expert
     from agos.world.episodes.sampling import read_episodes
@@ -278,7 +278,7 @@ def _doc(c: Command) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from agos.deploy.launcher import free_port
+    from agos.deploy.run.launcher import free_port
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--towns", nargs="+", default=["grid-s7"],

@@ -17,7 +17,7 @@ final table, start-up included, against two floors measured in the same run:
 
 ratio = wall / max(floors). Goal: the paper's 210-episode test split (or a stated stratified
 sample of it, ``--episodes N``) within 1.25x of the larger floor on 2 cores, with the number of
-world workers chosen by ``agos eval --workers auto`` (deploy/concurrency.py).
+world workers chosen by ``agos eval --workers auto`` (deploy/run/concurrency.py).
 
 The split is the paper's test split (``agos episodes split --train 0 --val 0 --test 210``, 70
 episodes per difficulty on the held-out town), made once and cached in bench/.cache. A sample
@@ -52,7 +52,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from agos.deploy.launcher import free_port, wait_listening
+from agos.deploy.run.launcher import free_port, wait_listening
 from agos.runtime import keys
 from agos.runtime.bus import Sample, ZenohBus
 from agos.runtime.codec import DecodeError, decode

@@ -16,7 +16,7 @@ import subprocess
 import sys
 import time
 
-from agos.deploy.launcher import free_port, wait_listening
+from agos.deploy.run.launcher import free_port, wait_listening
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, ZenohBus
 from agos.runtime.codec import encode

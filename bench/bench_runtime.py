@@ -37,7 +37,7 @@ from pathlib import Path
 
 import msgspec
 
-from agos.deploy.launcher import free_port, wait_listening
+from agos.deploy.run.launcher import free_port, wait_listening
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, ZenohBus
 from agos.runtime.codec import decode, encode

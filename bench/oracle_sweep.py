@@ -110,7 +110,7 @@ def _progress(console: Console) -> Progress:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from agos.deploy.configure import episode_config
+    from agos.deploy.run.configure import episode_config
     from agos.runtime.settings import load_config
     from agos.world.towns.procedural import TOWNS
 

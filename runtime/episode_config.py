@@ -3,7 +3,7 @@
 Speeds, action durations, image sizes and camera fields of view, the CONFIRM checker's thresholds,
 the decision budget and timeout, the link profile, the timing mode and the world-side tools of the
 run's policies. The orchestrator builds it once per run (defaults < TOML file < ``AGOS_WORLD__…``
-environment < flags, in :mod:`agos.deploy.configure`), sends it whole in every job grant, and the
+environment < flags, in :mod:`agos.deploy.run.configure`), sends it whole in every job grant, and the
 world runs the episode with exactly that and stores it, with its :meth:`EpisodeConfig.config_hash`,
 in the record. So two workers started with different local settings still run the same episodes,
 and records made under different configurations are never pooled silently (``agos metrics``

@@ -505,6 +505,10 @@ class EpisodeRecord(Message, tag="episode_record", kw_only=True):
     ``timing_mode``, ``tools`` and ``renderer`` above repeat parts of it for readers)."""
     config_hash: str = ""
     """``EpisodeConfig.config_hash()`` of ``config``: records pool only under one hash."""
+    provenance: dict[str, Any] = {}
+    """What made the record (runtime/provenance.py): the agos commit and whether its tree was dirty,
+    the uv.lock's sha256, the Python and package versions of the process that wrote it. Beside
+    ``config``, never in it: not hashed, not scored; empty in records written before it existed."""
 
     @property
     def candidate_tools(self) -> bool:

@@ -1,4 +1,4 @@
-"""``agos eval --workers auto``: the concurrency rule (deploy/concurrency.py), the latencies policy
+"""``agos eval --workers auto``: the concurrency rule (deploy/run/concurrency.py), the latencies policy
 names carry, and how bench/bench_eval.py counts decision rounds. No wall-clock figures here."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 
 from agos.agents.names import known_latency_s, parse_standin
 from agos.deploy.cli import build_parser
-from agos.deploy.concurrency import CPU_PER_ROUND_S, HEADROOM, auto_workers, run_latency_s
+from agos.deploy.run.concurrency import CPU_PER_ROUND_S, HEADROOM, auto_workers, run_latency_s
 from agos.runtime.schemas import Pose, StepEvent
 
 

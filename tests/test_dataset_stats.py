@@ -18,8 +18,8 @@ from rich.console import Console
 from agos.agents.dataset.writer import DatasetWriter
 from agos.agents.inprocess import InProcessAgents
 from agos.deploy.cli import main
-from agos.deploy.dataset import Assembler
-from agos.deploy.dataset_stats import _bins, _nice_step, read_dataset
+from agos.deploy.dataset.build import Assembler
+from agos.deploy.dataset.stats import _bins, _nice_step, read_dataset
 from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.world import expert
 from agos.world.episodes.sampling import sample_episode

@@ -18,7 +18,7 @@ import msgpack
 import pytest
 import zenoh
 
-from agos.deploy.launcher import free_port
+from agos.deploy.run.launcher import free_port
 from agos.runtime.bus import zenoh_config
 
 pytestmark = pytest.mark.e2e

@@ -22,7 +22,7 @@ import msgpack
 import pytest
 import zenoh
 
-from agos.deploy.launcher import free_port, wait_listening
+from agos.deploy.run.launcher import free_port, wait_listening
 from agos.runtime import keys
 from agos.runtime.bus import zenoh_config
 

@@ -9,8 +9,8 @@ import time
 
 import pytest
 
-from agos.deploy.certs import credential_env, make_certs
-from agos.deploy.launcher import free_port, wait_listening
+from agos.deploy.ops.certs import credential_env, make_certs
+from agos.deploy.run.launcher import free_port, wait_listening
 
 pytestmark = pytest.mark.e2e
 AGOS = [sys.executable, "-m", "agos.deploy.cli"]

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from agos.deploy.launcher import free_port, wait_listening
+from agos.deploy.run.launcher import free_port, wait_listening
 
 pytestmark = pytest.mark.e2e
 AGOS = [sys.executable, "-m", "agos.deploy.cli"]

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from agos.deploy.launcher import free_port, wait_listening
+from agos.deploy.run.launcher import free_port, wait_listening
 
 pytestmark = pytest.mark.e2e
 AGOS = [sys.executable, "-m", "agos.deploy.cli"]
@@ -84,7 +84,7 @@ def test_eval_stops_after_three_episodes_lost_to_one_cause(tmp_path, sample_mid_
 
 
 def test_a_loss_streak_counts_one_cause_in_a_row() -> None:
-    from agos.deploy.presence import LossStreak
+    from agos.deploy.run.presence import LossStreak
 
     class R:
         def __init__(self, status: str, error: str | None = None) -> None:

@@ -1,4 +1,4 @@
-"""Recordings (deploy/record.py, deploy/recording.py): a run with ``--record`` writes one rerun file
+"""Recordings (deploy/recording/recorder.py, deploy/recording/episode.py): a run with ``--record`` writes one rerun file
 per episode, read back here with rerun's own reader; a recorder stuck in its handler changes no
 record and holds nothing up; the recorder's queue drops and counts what does not fit.
 
@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-from agos.deploy.launcher import free_port
-from agos.deploy.record import STALL_ENV, BoundedInbox, Recorder
+from agos.deploy.run.launcher import free_port
+from agos.deploy.recording.recorder import STALL_ENV, BoundedInbox, Recorder
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, MemoryBus, Sample
 from agos.runtime.codec import encode

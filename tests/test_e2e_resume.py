@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from agos.deploy.launcher import free_port
+from agos.deploy.run.launcher import free_port
 
 pytestmark = pytest.mark.e2e
 AGOS = [sys.executable, "-m", "agos.deploy.cli"]

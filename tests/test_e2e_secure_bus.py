@@ -20,8 +20,8 @@ import msgspec
 import pytest
 import zenoh
 
-from agos.deploy.certs import credential_env, make_certs
-from agos.deploy.launcher import free_port, wait_listening
+from agos.deploy.ops.certs import credential_env, make_certs
+from agos.deploy.run.launcher import free_port, wait_listening
 from agos.runtime import keys
 from agos.runtime.bus import session_config, zenoh_config
 from agos.runtime.codec import encode

@@ -23,7 +23,7 @@ from agos.agents.inprocess import InProcessAgents
 from agos.agents.names import tools_for
 from agos.agents.registry import make_policy
 from agos.agents.vlm.standin.server import StandinServer
-from agos.deploy.launcher import free_port, wait_listening
+from agos.deploy.run.launcher import free_port, wait_listening
 from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.runtime.settings import VlmOptions
 from agos.world.episodes.sampling import read_episodes

@@ -1,5 +1,5 @@
 """One episode configuration: layered building, its hash, the grant and the record, and the refusal to
-pool records made under different configurations (runtime/episode_config.py, deploy/configure.py,
+pool records made under different configurations (runtime/episode_config.py, deploy/run/configure.py,
 evaluator/pooling.py)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from agos.deploy.configure import episode_config
+from agos.deploy.run.configure import episode_config
 from agos.evaluator.pooling import mixed_configurations
 from agos.evaluator.store import ResultStore
 from agos.evaluator.summary import read_run

@@ -16,8 +16,8 @@ import pytest
 from agos.agents.human.board import MESSAGE_LIMIT, DecisionBoard
 from agos.agents.human.server import ConsoleServer
 from agos.agents.human.view import shown
-from agos.deploy.human import parse_duration
-from agos.deploy.orchestrator import STUCK_MARGIN_S, Orchestrator
+from agos.deploy.run.human import parse_duration
+from agos.deploy.run.orchestrator import STUCK_MARGIN_S, Orchestrator
 from agos.evaluator.human_row import is_human_run
 from agos.runtime.codec import encode_jpeg, encode_png
 from agos.runtime.episode_config import EpisodeConfig

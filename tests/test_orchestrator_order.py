@@ -9,7 +9,7 @@ from unittest.mock import MagicMock
 
 import msgspec
 
-from agos.deploy.orchestrator import LEASE_REPEAT_S, Lease, Orchestrator
+from agos.deploy.run.orchestrator import LEASE_REPEAT_S, Lease, Orchestrator
 from agos.runtime import keys
 from agos.runtime.bus import Sample
 from agos.runtime.codec import encode

@@ -1,4 +1,4 @@
-"""``agos plot`` (deploy/plot.py): trajectory figures from a run's stored records.
+"""``agos plot`` (deploy/reports/plot.py): trajectory figures from a run's stored records.
 
 Two run directories are made in-process (one episode, heuristic and random policies, the world's
 own engine, a real result store), then drawn through the command line; the PNGs are read back and
@@ -15,7 +15,7 @@ import pytest
 from matplotlib.image import imread
 
 from agos.deploy.cli import main
-from agos.deploy.plot import COLOURS
+from agos.deploy.reports.plot import COLOURS
 from agos.evaluator.store import ResultStore
 from agos.runtime.schemas import EpisodeRecord
 

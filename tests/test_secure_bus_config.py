@@ -10,8 +10,8 @@ import zenoh
 from cryptography import x509
 from cryptography.x509.oid import NameOID
 
-from agos.deploy.certs import main as certs_main
-from agos.deploy.certs import make_certs, zenohd_config
+from agos.deploy.ops.certs import main as certs_main
+from agos.deploy.ops.certs import make_certs, zenohd_config
 from agos.runtime import keys
 from agos.runtime.access_control import IDENTITIES, access_control
 from agos.runtime.bus import session_config

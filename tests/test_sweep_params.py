@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from agos.deploy.sweep import handoff_delay, run_sweep, summarize, with_param
+from agos.deploy.run.sweep import handoff_delay, run_sweep, summarize, with_param
 from agos.runtime.codec import to_json
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.links import IDEAL, CommProfile, load_profile

@@ -2,6 +2,6 @@
 the expert's actions and messages, and fine-tuning examples with AGOS-Agent's prompts).
 
 ``writer.py`` wraps the expert policy and writes each decision to disk; ``example.py`` turns one
-decision into a chat example a VLM fine-tuning tool reads. ``agos dataset build`` (deploy/dataset.py)
+decision into a chat example a VLM fine-tuning tool reads. ``agos dataset build`` (deploy/dataset/build.py)
 starts the agents with ``--dataset-out`` and assembles the episodes; docs/DATASET.md has the formats.
 """

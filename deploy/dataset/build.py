@@ -38,7 +38,8 @@ from typing import Any
 from rich.console import Console
 
 from agos.agents.dataset.writer import EPISODES, PARTIAL
-from agos.deploy import evaluate
+from agos.deploy.run import evaluate
+from agos.deploy.run import plan as run_plan
 from agos.runtime.schemas import EpisodeRecord, EpisodeSpec
 from agos.runtime.settings import AgosConfig
 
@@ -114,14 +115,14 @@ def build(cfg: AgosConfig, split: Path, out_dir: Path, *, workers: int, capture_
     if made_from is not None and made_from != split_sha:
         raise DatasetError(f"{out_dir} holds a build of another split (sha256 {made_from[:12]}; {split} is "
                            f"{split_sha[:12]}); give another --out")
-    if (run_dir / evaluate.RUN_FILE).exists():
-        plan = evaluate.resume_plan(run_dir)
+    if (run_dir / run_plan.RUN_FILE).exists():
+        plan = run_plan.resume_plan(run_dir)
         console.print(f"resuming the build in {out_dir}", highlight=False)
     else:
         run = cfg.run.model_copy(update={"episodes_file": split, "policy_uav": "expert", "policy_ugv": "expert"})
         world = cfg.world.model_copy(update={"capture_every_m": capture_every_m, "look": look})
         cfg = cfg.model_copy(update={"run": run, "world": world})
-        plan = evaluate.new_plan(cfg, run_dir=run_dir, comm="ideal", timing_mode="lockstep", stamp=False,
+        plan = run_plan.new_plan(cfg, run_dir=run_dir, comm="ideal", timing_mode="lockstep", stamp=False,
                                  workers=workers, dataset_out=out_dir)
     assembler = Assembler(out_dir, {s.episode_id: s for s in plan.episodes}, console)
     _write_manifest(out_dir, plan, split, split_sha)  # the split's hash first: a resume checks it
@@ -160,7 +161,7 @@ def _episode_doc(spec: EpisodeSpec, record: EpisodeRecord, expert: dict[str, dic
     }
 
 
-def _write_manifest(out_dir: Path, plan: evaluate.RunPlan, split: Path, split_sha: str) -> dict[str, Any]:
+def _write_manifest(out_dir: Path, plan: run_plan.RunPlan, split: Path, split_sha: str) -> dict[str, Any]:
     episodes: dict[str, Any] = {}
     decisions = images = size = 0
     for ep_dir in sorted((out_dir / EPISODES).glob("*/")):

@@ -2,7 +2,7 @@
 
     agos dataset stats DIR [--out FIGURE.png] [--markdown]
 
-Contract: reads only what ``agos dataset build`` assembled (deploy/dataset.py): each
+Contract: reads only what ``agos dataset build`` assembled (deploy/dataset/build.py): each
 ``DIR/episodes/<episode>/`` with ``episode.json``, ``files.sha256`` and per role ``decisions.jsonl``
 and ``export.jsonl``, plus ``manifest.json`` for sizes when it lists the episode, and the sizes of
 ``DIR/export.jsonl`` (and its lines) and the run directory. Episodes still in ``.partial`` are not
@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from agos.agents.dataset.writer import EPISODES
-from agos.deploy.dataset import EPISODE_FILE, EXPORT, HASHES, MANIFEST, ROLES
+from agos.deploy.dataset.build import EPISODE_FILE, EXPORT, HASHES, MANIFEST, ROLES
 
 DIFFICULTIES = ("easy", "mid", "hard")
 DEFAULT_FIGURE = "stats.png"

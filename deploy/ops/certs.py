@@ -149,21 +149,22 @@ def credential_env(certs: Path, identity: str) -> dict[str, str]:
 
 class RunCredentials:
     """A throwaway CA and certificates for one local secured run (``agos eval/demo --secure``): made in
-    a private temporary directory, handed to each child by environment variables naming its files
-    (never on a command line), removed when the run ends."""
+    a private temporary directory, handed to each child as the ``[zenoh]`` settings naming its files
+    (which reach it as environment variables, never on a command line: deploy/run/children.py),
+    removed when the run ends."""
 
     def __init__(self) -> None:
         self.dir = Path(tempfile.mkdtemp(prefix="agos-certs-"))
         make_certs(self.dir)
 
-    def env(self, identity: str) -> dict[str, str]:
-        """The environment that gives a child process ``identity``'s credentials."""
-        return credential_env(self.dir, identity)
+    def files(self, identity: str) -> dict[str, Path]:
+        """``identity``'s credentials as ``[zenoh]`` settings: ``ca_file``, ``cert_file``, ``key_file``."""
+        return {"ca_file": self.dir / "ca.pem", "cert_file": self.dir / f"{identity}.pem",
+                "key_file": self.dir / f"{identity}.key"}
 
     def settings(self, z: ZenohSettings, identity: str, endpoint: str) -> ZenohSettings:
         """``z`` connecting to ``endpoint`` as ``identity`` (for this process's own session)."""
-        return z.model_copy(update={"connect": endpoint, "ca_file": self.dir / "ca.pem",
-                                    "cert_file": self.dir / f"{identity}.pem", "key_file": self.dir / f"{identity}.key"})
+        return z.model_copy(update={"connect": endpoint, **self.files(identity)})
 
     def close(self) -> None:
         shutil.rmtree(self.dir, ignore_errors=True)

@@ -44,7 +44,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 from PIL import Image
 
-from agos.deploy.episode_map import EpisodeMap, MapFrame
+from agos.deploy.reports.episode_map import EpisodeMap, MapFrame
 from agos.runtime.camera import GRID_COLS, GRID_ROWS, parse_cell
 from agos.runtime.schemas import (
     CoordinationState,
@@ -84,7 +84,7 @@ class EpisodeRecording:
 
     def __init__(self, out_dir: Path, run_id: str, episode_id: str, *, full: bool,
                  map_source: Callable[[EpisodeSpec], EpisodeMap] | None = None) -> None:
-        """``map_source``: the episode's map from its spec (deploy/episode_map.py); None: no town drawn."""
+        """``map_source``: the episode's map from its spec (deploy/reports/episode_map.py); None: no town drawn."""
         self.path = out_dir / f"{episode_id}.rrd"
         self.run_id, self.episode_id, self.full = run_id, episode_id, full
         self.map_source = map_source

@@ -9,7 +9,7 @@ the ``observer`` identity, which may hear nothing else), so it is never in the w
 path: the world publishes the stream with congestion control DROP whoever listens. Its zenoh
 callbacks only put samples into a bounded queue (:class:`BoundedInbox`: at most ``QUEUE_SAMPLES``
 samples and ``QUEUE_BYTES`` bytes), which drops and counts what does not fit; decoding and writing
-happen on the recorder's own thread (:class:`EpisodeRecording`, deploy/recording.py). A recorder
+happen on the recorder's own thread (:class:`EpisodeRecording`, deploy/recording/episode.py). A recorder
 that falls behind therefore loses visualisation samples, and says how many at exit, in its log and
 in ``DIR/recorder.json``; it never slows the run.
 
@@ -24,8 +24,10 @@ An episode's file is finished ``LATE_S`` seconds after the copy of its record ar
 record, and that copy travels at a higher priority than the stream's, so it can overtake it); then
 every open recording is closed (its outcome then says no record arrived).
 
-Test hook: ``AGOS_RECORDER_STALL_S=N`` makes the handler sleep N seconds at the first sample, as a
-recorder stuck in its work would (tests/test_e2e_record.py).
+Fault injection: ``AGOS_FAULT_RECORDER_STALL_S=N`` in the recorder's environment makes its handler
+stop for N seconds at the first sample, as a recorder stuck in its work would, to show that a
+stuck recorder never slows the run (docs/VIEWING.md; tests/test_e2e_record.py). It is not a setting:
+nothing but a fault test sets it.
 """
 
 from __future__ import annotations
@@ -40,10 +42,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from agos.deploy.episode_map import EpisodeMap, episode_map
-from agos.deploy.recording import MAP_PX, EpisodeRecording
+from agos.deploy.recording.episode import MAP_PX, EpisodeRecording
+from agos.deploy.reports.episode_map import EpisodeMap, episode_map
 from agos.runtime import keys
-from agos.runtime.bus import Inbox, Sample, ZenohBus
+from agos.runtime.bus import Bus, Inbox, Sample, ZenohBus
 from agos.runtime.codec import DecodeError, decode
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.rejections import Rejections
@@ -56,7 +58,8 @@ QUEUE_BYTES = 128 * 2**20
 DRAIN_S = 5.0
 LATE_S = 2.0
 STATUS_FILE = "recorder.json"
-STALL_ENV = "AGOS_RECORDER_STALL_S"
+STALL_ENV = "AGOS_FAULT_RECORDER_STALL_S"
+"""The fault-injection variable (see the module docstring)."""
 
 
 def _kind(key: str) -> tuple[str, str]:
@@ -95,7 +98,7 @@ class BoundedInbox(Inbox):
 class Recorder:
     """Subscribes to one run's visualisation stream and keeps one :class:`EpisodeRecording` per episode."""
 
-    def __init__(self, bus: ZenohBus, run_id: str, out_dir: Path, *, full: bool = False,
+    def __init__(self, bus: Bus, run_id: str, out_dir: Path, *, full: bool = False,
                  map_source: Callable[[EpisodeSpec], EpisodeMap] | None = None, inbox: BoundedInbox | None = None) -> None:
         self.bus, self.run_id, self.out_dir, self.full = bus, run_id, out_dir, full
         self.map_source = map_source
@@ -155,10 +158,10 @@ class Recorder:
     def handle(self, sample: Sample, stop: StopFlag | None = None) -> None:
         """One sample of the stream, on the recorder's thread."""
         if self.stall_s > 0 and stop is not None:
-            log.warning("test hook %s: the handler sleeps %.0f s", STALL_ENV, self.stall_s)
+            log.warning("fault injection %s: the handler stops for %.0f s", STALL_ENV, self.stall_s)
             started = time.monotonic()
             stopped = stop.wait(self.stall_s)
-            log.warning("test hook %s: %s after %.1f s of the stall", STALL_ENV,
+            log.warning("fault injection %s: %s after %.1f s of the stall", STALL_ENV,
                         "stopped while stuck" if stopped else "the handler goes on", time.monotonic() - started)
             self.stall_s = 0.0
         episode, kind = _kind(sample.key)

@@ -8,7 +8,7 @@ Contract: a panel shows one episode of one run: the town around the episode regi
 UGV's paths from their starts (the UGV's along the roads it drove), every candidate polygon
 coloured by its final status, the target (ground truth), and where the UGV confirmed or rejected;
 the title gives the policies and the outcome. ``compare`` draws two runs' panels on one map extent,
-side by side. Data: deploy/plot_data.py (the record's step log); map: deploy/episode_map.py.
+side by side. Data: deploy/reports/plot_data.py (the record's step log); map: deploy/reports/episode_map.py.
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ import textwrap
 from pathlib import Path
 from typing import Any
 
-from agos.deploy.episode_map import EpisodeMap, episode_map
-from agos.deploy.plot_data import EpisodeView, PlotError, first_finished, load_episode
+from agos.deploy.reports.episode_map import EpisodeMap, episode_map
+from agos.deploy.reports.plot_data import EpisodeView, PlotError, first_finished, load_episode
 
 __all__ = ["COLOURS", "PlotError", "plot_compare", "plot_episode"]
 

@@ -44,7 +44,7 @@ class EpisodeView:
     policies: dict[str, str]
     uav_path_world_m: list[Point] = field(default_factory=list)
     ugv_path_world_m: list[Point] = field(default_factory=list)
-    """Both start after the first decision; the starts come from the town (deploy/episode_map.py)."""
+    """Both start after the first decision; the starts come from the town (deploy/reports/episode_map.py)."""
     candidates: dict[str, list[Point]] = field(default_factory=dict)
     """Candidate id -> its ground polygon."""
     ugv_events: list[Event] = field(default_factory=list)

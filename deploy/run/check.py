@@ -31,7 +31,7 @@ import msgspec
 from rich.console import Console
 from rich.table import Table
 
-from agos.deploy.presence import elsewhere_line, look
+from agos.deploy.run.presence import elsewhere_line, look
 from agos.runtime.bus import ZenohBus
 from agos.runtime.process import install_stop_handlers
 from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role, StepEvent
@@ -105,7 +105,7 @@ class StepChecks:
 
 def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "heuristic",
               console: Console | None = None) -> int:
-    from agos.deploy.configure import episode_config
+    from agos.deploy.run.configure import episode_config
     from agos.world.episodes.sampling import generate_episodes
     from agos.world.sim.engine import EpisodeRunner
     from agos.world.sim.scene import Scene

@@ -1,4 +1,4 @@
-"""``agos demo``: an evaluation run on the embedded defaults (see :mod:`agos.deploy.evaluate`).
+"""``agos demo``: an evaluation run on the embedded defaults (see :mod:`agos.deploy.run.evaluate`).
 
 Six generated episodes on ``grid-s7`` (two per difficulty), heuristic agents, ideal link,
 lockstep, one world worker; every process separate, on a router it starts (7447 or a free port).
@@ -10,14 +10,16 @@ from pathlib import Path
 
 from rich.console import Console
 
-from agos.deploy import evaluate
+from agos.deploy.run import evaluate
+from agos.deploy.run.local import Recording
+from agos.deploy.run.plan import new_plan
 from agos.runtime.settings import AgosConfig
 
 
 def main(cfg: AgosConfig, *, config_path: Path | None = None, port: int | None = None, attach: bool = False,
          console: Console | None = None, comm: str = "ideal", timing_mode: str = "lockstep", secure: bool = False,
-         recording: evaluate.Recording | None = None) -> int:
-    """``recording``: ``--record DIR``, a recorder writes each episode as a rerun file (deploy/record.py)."""
-    plan = evaluate.new_plan(cfg, run_dir=None, comm=comm, timing_mode=timing_mode, stamp=not attach)
+         recording: Recording | None = None) -> int:
+    """``recording``: ``--record DIR``, a recorder writes each episode as a rerun file (deploy/recording/recorder.py)."""
+    plan = new_plan(cfg, run_dir=None, comm=comm, timing_mode=timing_mode, stamp=not attach)
     return evaluate.run(cfg, plan, workers=cfg.run.workers, attach=attach, port=port, config_path=config_path,
                         console=console, secure=secure, recording=recording)

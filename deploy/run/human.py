@@ -13,10 +13,11 @@ from collections.abc import Callable
 from rich.console import Console
 
 from agos.agents.names import is_human
-from agos.deploy.launcher import Launcher, free_port, wait_listening
+from agos.deploy.run.launcher import SERVER_START_S, Launcher, free_port, wait_listening
 from agos.runtime import keys
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.schemas import Role
+from agos.runtime.settings import AgosConfig
 
 CONSOLE_PORT = 8765
 """Where ``agos human`` serves its page unless told (or the next free port, in ``agos eval``)."""
@@ -40,21 +41,19 @@ def human_roles(policies: dict[str, str]) -> tuple[Role, ...]:
     return tuple(r for r in keys.ROLES if is_human(policies[r]))
 
 
-def start_console(launcher: Launcher, policies: dict[str, str], common: list[str], config: EpisodeConfig,
-                  console: Console, env: Callable[[str], dict[str, str] | None]) -> tuple[Role, ...] | None:
+def start_console(launcher: Launcher, policies: dict[str, str], config: EpisodeConfig, console: Console, *,
+                  settings: Callable[[Role], AgosConfig], secured: bool) -> tuple[Role, ...] | None:
     """Start ``agos human`` for the roles a person plays (none: nothing started) and say where the
-    page is: one console for both roles, or, on a secured bus (``env`` gives each identity its
-    credentials), one per role, each with its role's certificate. Returns those roles, or None when
-    a page did not come up."""
+    page is: one console for both roles, or, on a ``secured`` bus, one per role, each with its role's
+    certificate. ``settings(role)``: the settings of the console of ``role`` (deploy/run/local.py).
+    Returns those roles, or None when a page did not come up."""
     roles = human_roles(policies)
-    secured = any(env(f"agent-{r}") is not None for r in roles)
     consoles = [(f"human-{r}", (r,)) for r in roles] if secured else [("human", roles)] if roles else []
     for name, played in consoles:
         port = free_port(CONSOLE_PORT)
         which = "both" if len(played) == 2 else played[0]
-        launcher.start(name, ["human", "--role", which, "--port", str(port), *common],
-                       env=env(f"agent-{played[0]}") if secured else None)
-        if not wait_listening("127.0.0.1", port, 30.0):
+        launcher.start(name, ["human", "--role", which, "--port", str(port)], settings(played[0]))
+        if not wait_listening("127.0.0.1", port, SERVER_START_S):
             console.print(f"[red]the human console did not listen on port {port}; see {launcher.log_dir / (name + '.log')}")
             return None
         console.print(f"human console: http://127.0.0.1:{port}/ ({' and '.join(r.upper() for r in played)}; each decision "

@@ -2,7 +2,8 @@
 
 Each child runs ``python -m agos.deploy.cli ...`` in its own session (a terminal Ctrl-C
 reaches only the launcher, which then stops the children in order) with its output in
-``<log_dir>/<name>.log``. On Linux a child also dies with its parent.
+``<log_dir>/<name>.log``. On Linux a child also dies with its parent. A child's settings travel in
+its environment (deploy/run/children.py), its command line holds only the command's arguments.
 """
 
 from __future__ import annotations
@@ -16,9 +17,20 @@ import sys
 import time
 from pathlib import Path
 
+from agos.deploy.run.children import child_environ
 from agos.runtime.process import die_with_parent
+from agos.runtime.settings import AgosConfig
 
 log = logging.getLogger("agos.launcher")
+
+STOP_GRACE_S = 8.0
+"""How long the children have, together, to exit after SIGTERM before each one left is killed."""
+ROUTER_PORT = 7447
+"""The router port a local run prefers (zenoh's default), else a free one."""
+ROUTER_START_S = 15.0
+"""How long a local run waits for its router to listen."""
+SERVER_START_S = 30.0
+"""How long a local run waits for a server child (the VLM stand-in, a human console) to listen."""
 
 
 class Launcher:
@@ -29,16 +41,18 @@ class Launcher:
             log_dir.mkdir(parents=True, exist_ok=True)
         self.children: dict[str, subprocess.Popen] = {}
 
-    def start(self, name: str, args: list[str], env: dict[str, str] | None = None) -> subprocess.Popen:
-        """Start ``agos ARGS`` as ``name``; ``env``: variables added to this process's environment
-        (credentials travel there, never in ``args``, which any user can read in a process listing)."""
+    def start(self, name: str, args: list[str], settings: AgosConfig | None = None) -> subprocess.Popen:
+        """Start ``agos ARGS`` as ``name``. ``settings``: the child's settings, which reach it as its
+        environment (:func:`~agos.deploy.run.children.child_environ`; credentials travel there, never
+        in ``args``, which any user can read in a process listing); None: it inherits this process's."""
         # Appended, never truncated: a resumed run keeps the logs of its earlier attempts.
         out = (self.log_dir / f"{name}.log").open("ab")
         out.write(f"===== agos {args[0]} started {time.strftime('%Y-%m-%d %H:%M:%S')} =====\n".encode())
         out.flush()
         proc = subprocess.Popen([sys.executable, "-m", "agos.deploy.cli", *args], stdout=out,
                                 stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
-                                preexec_fn=die_with_parent, env={**os.environ, **env} if env else None)
+                                preexec_fn=die_with_parent,
+                                env=None if settings is None else child_environ(settings, os.environ))
         out.close()
         self.children[name] = proc
         return proc
@@ -47,7 +61,7 @@ class Launcher:
         """Children that have exited, with their exit codes."""
         return {n: p.returncode for n, p in self.children.items() if p.poll() is not None}
 
-    def stop_all(self, order: list[str] | None = None, grace_s: float = 8.0) -> None:
+    def stop_all(self, order: list[str] | None = None, grace_s: float = STOP_GRACE_S) -> None:
         names = order or list(reversed(self.children))
         for name in names:
             proc = self.children.get(name)
@@ -66,7 +80,7 @@ class Launcher:
                 proc.wait()
 
 
-def free_port(preferred: int = 7447, host: str = "127.0.0.1") -> int:
+def free_port(preferred: int = ROUTER_PORT, host: str = "127.0.0.1") -> int:
     """``preferred`` if nothing listens there, else a free port chosen by the kernel."""
     for port in (preferred, 0):
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:

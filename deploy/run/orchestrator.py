@@ -26,7 +26,7 @@ from datetime import UTC, datetime
 from typing import Literal
 
 from agos.runtime import keys
-from agos.runtime.bus import Inbox, ZenohBus
+from agos.runtime.bus import Bus, Inbox
 from agos.runtime.codec import DecodeError, decode, encode
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.failure_records import failure_record
@@ -49,6 +49,9 @@ log = logging.getLogger("agos.orchestrator")
 LEASE_REPEAT_S = 5.0
 """How often current lease notices (and records not yet acknowledged) are published again, for an
 evaluator that started, or restarted, after they were first sent."""
+STUCK_AFTER_S = 180.0
+"""Wall time without a step event after which a leased episode counts as stuck and is leased again
+(``agos eval --stuck-after``), unless its decision timeout and ``STUCK_MARGIN_S`` are longer."""
 STUCK_MARGIN_S = 60.0
 """An episode counts as stuck only after its decision timeout and this much more without progress."""
 
@@ -63,9 +66,9 @@ class Lease:
 
 
 class Orchestrator:
-    def __init__(self, bus: ZenohBus, run_id: str, episodes: list[EpisodeSpec], *, policies: dict[str, str],
+    def __init__(self, bus: Bus, run_id: str, episodes: list[EpisodeSpec], *, policies: dict[str, str],
                  config: EpisodeConfig | None = None,
-                 stuck_after_s: float = 180.0, max_attempts: int = 3, already_stored: set[str] | None = None,
+                 stuck_after_s: float = STUCK_AFTER_S, max_attempts: int = 3, already_stored: set[str] | None = None,
                  resumed: bool = False, clock=time.monotonic) -> None:
         self.bus, self.run_id = bus, run_id
         self.policies = policies

@@ -139,7 +139,7 @@ def run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, para
               progress: Callable[[], None] | None = None, vlm: VlmOptions | None = None,
               vlm_standin: str | None = None) -> list[dict]:
     """Run every episode at every (value, link seed) point: ``config`` (from
-    :func:`agos.deploy.configure.episode_config`) with its comm profile's ``param`` set to the value
+    :func:`agos.deploy.run.configure.episode_config`) with its comm profile's ``param`` set to the value
     and ``link_seed`` to the seed. VLM policies ask ``vlm``'s endpoint, or, with ``vlm_standin`` (a
     fault string, "" for none), a stand-in server started here for the sweep's duration."""
     from agos.agents.names import needs_vlm

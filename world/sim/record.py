@@ -14,6 +14,7 @@ import math
 
 from agos.runtime.episode_config import CameraConfig, ConfirmConfig
 from agos.runtime.geometry import distance_to_polygon
+from agos.runtime.provenance import provenance
 from agos.runtime.schemas import ActionName, CandidateOutcome, EpisodeRecord, LoggedStep, Role, VehicleSpec
 from agos.runtime.traces import trace_stats
 from agos.world.sim.evidence import nearest_verifying_anchor
@@ -55,7 +56,7 @@ def episode_record(st: EpisodeState, wall_time_s: float) -> EpisodeRecord:
         link=st.channel.stats(st.candidates), ledger=st.channel.ledger, confirm_rejection=st.confirm_failure,
         tools=cfg.tools.model_dump(),
         config=cfg.model_dump(mode="json"), config_hash=cfg.config_hash(),
-        agent_stats=trace_stats(st.traces), decision_traces=st.traces, step_log=st.step_log)
+        agent_stats=trace_stats(st.traces), decision_traces=st.traces, step_log=st.step_log, provenance=provenance())
 
 
 def logged_step(st: EpisodeState, role: Role, decision_index: int, applied: ActionName, candidate_id: str | None,

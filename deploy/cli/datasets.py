@@ -1,0 +1,67 @@
+"""The dataset commands' parser (deploy/dataset/; docs/DATASET.md).
+
+    agos dataset build --split FILE --out DIR ...   the expert's trajectories, actions, messages and images
+    agos dataset stats DIR                          counts and the statistics figure (reads files only)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from agos.deploy.cli.common import Command, by_subcommand, with_settings
+from agos.runtime.settings import AgosConfig
+
+
+def _add_dataset(sub: Any) -> None:
+    ds = sub.add_parser("dataset", help="AGOS-Dataset: expert trajectories, actions, messages and images (docs/DATASET.md)")
+    ds_sub = ds.add_subparsers(dest="dataset_command", required=True)
+    dsb = ds_sub.add_parser("build", help="build (or resume) the dataset of an episode split with leased world workers")
+    dsb.add_argument("--config", type=Path)
+    dsb.add_argument("--split", type=Path, required=True, help="JSONL episode file (e.g. a split's train.jsonl)")
+    dsb.add_argument("--out", type=Path, required=True, help="dataset directory (run the command again to resume)")
+    dsb.add_argument("--workers", type=int, default=1, help="local world worker processes (default 1)")
+    dsb.add_argument("--look", choices=["rich", "flat"], default="rich",
+                     help="how the world draws the episodes (default rich: the textured city the dataset is for)")
+    dsb.add_argument("--capture-every", type=float, default=10.0, metavar="M",
+                     help="also render each role's camera every M metres between decisions (default 10)")
+    dsb.add_argument("--connect", help="attach to a router and processes started by hand (agents with --dataset-out DIR)")
+    dsb.add_argument("--run", dest="run_id", help="run id (with --connect)")
+    dsb.add_argument("--port", type=int)
+    dss = ds_sub.add_parser("stats", help="counts per difficulty and the dataset's statistics figure (reads files only)")
+    dss.add_argument("dir", type=Path, help="dataset directory (the --out of agos dataset build)")
+    dss.add_argument("--out", type=Path, help="figure PNG (default DIR/stats.png)")
+    dss.add_argument("--markdown", action="store_true", help="print the table as markdown (to paste)")
+
+
+def _build(args: argparse.Namespace, cfg: AgosConfig) -> int:
+    from agos.deploy.dataset import build
+    from agos.deploy.run.plan import RunDirError
+    from agos.world.episodes.sampling import read_episodes
+
+    if args.connect and not args.run_id:
+        print("dataset error: --connect needs --run RUN (the run id the attached processes serve)", file=sys.stderr)
+        return 2
+    if args.capture_every <= 0:
+        print(f"dataset error: --capture-every {args.capture_every}: give a distance in metres above 0", file=sys.stderr)
+        return 2
+    try:
+        read_episodes(args.split)  # a bad split fails here, before any process starts
+        return build.build(cfg, args.split, args.out, workers=args.workers, capture_every_m=args.capture_every,
+                           look=args.look, attach=args.connect is not None, port=args.port, config_path=args.config)
+    except (build.DatasetError, RunDirError) as exc:
+        print(f"dataset error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _stats(args: argparse.Namespace) -> int:
+    """``agos dataset stats``: reads files only, no settings."""
+    from agos.deploy.dataset import stats
+
+    return stats.main(args.dir, args.out, markdown=args.markdown)
+
+
+DATASET = Command(("dataset",), _add_dataset, by_subcommand("dataset_command", {"build": with_settings(_build),
+                                                                             "stats": _stats}))

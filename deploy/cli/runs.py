@@ -1,0 +1,204 @@
+"""The run commands' parsers (deploy/run/): what each parses, then the run it calls.
+
+    agos demo                       the whole system on this machine
+    agos eval --split FILE ...      policies on an episode file: leases, fault tolerance, resume
+    agos sweep --split FILE ...     a comm-profile parameter grid x link seeds
+    agos check agent ...            a short conformance episode against attached agent services
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from agos.deploy.cli.common import Command, by_subcommand, connection_flags, vlm_flags, with_settings
+from agos.deploy.cli.recordings import add_record_flags, recording_of
+from agos.deploy.run.orchestrator import STUCK_AFTER_S
+from agos.runtime.settings import AgosConfig
+
+
+def _duration(value: str) -> float:
+    from agos.deploy.run.human import parse_duration
+
+    try:
+        return parse_duration(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _workers(value: str) -> int | str:
+    """``--workers``: a number, or ``auto``."""
+    if value == "auto":
+        return value
+    try:
+        return int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{value!r}: give a number of workers or auto") from None
+
+
+def _add_demo(sub: Any) -> None:
+    demo = sub.add_parser("demo", help="run router, evaluator, agents and world workers locally")
+    demo.add_argument("--config", type=Path)
+    demo.add_argument("--workers", type=int, help="world worker processes (default 1)")
+    demo.add_argument("--port", type=int, help="router port (default 7447, or a free one)")
+    demo.add_argument("--episodes", type=Path, help="JSONL episode file instead of generated episodes")
+    demo.add_argument("--per-difficulty", type=int, help="generated episodes per difficulty (default 2)")
+    demo.add_argument("--runs-dir", type=Path)
+    demo.add_argument("--connect", help="attach to this router and only orchestrate: processes were started by hand")
+    demo.add_argument("--run", dest="run_id", help="run id of the hand-started processes (with --connect)")
+    demo.add_argument("--secure", action="store_true",
+                      help="mutual TLS and default-deny access control on the bus, with a CA made for this run")
+    add_record_flags(demo)
+
+
+def _demo(args: argparse.Namespace, cfg: AgosConfig) -> int:
+    from agos.deploy.run import demo
+
+    try:
+        return demo.main(cfg, config_path=args.config, port=args.port, attach=args.connect is not None,
+                         secure=args.secure, recording=recording_of(args))
+    except ValueError as exc:  # a policy or profile name, a run directory: before any process starts
+        print(f"demo error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _add_eval(sub: Any) -> None:
+    ev = sub.add_parser("eval", help="evaluate policies on an episode file: leases, fault tolerance, resume")
+    ev.add_argument("--config", type=Path)
+    ev.add_argument("--split", type=Path, help="JSONL episode file (e.g. a split's val.jsonl); default: generate")
+    ev.add_argument("--policy", help="policy of both roles (default heuristic)")
+    ev.add_argument("--policy-uav")
+    ev.add_argument("--policy-ugv")
+    ev.add_argument("--comm", default="ideal", help="comm profile name (deploy/comm) or TOML file")
+    ev.add_argument("--timing", choices=["lockstep", "realtime"], default="lockstep")
+    ev.add_argument("--workers", type=_workers, help="local world worker processes (default 1), or auto: as many "
+                    "episodes at once as keep the cores busy while the model thinks (deploy/run/concurrency.py)")
+    ev.add_argument("--model-latency", type=float, metavar="S",
+                    help="seconds per decision of the run's model, for --workers auto (VLM policies; "
+                         "standin-<N>ms and scripted policies say theirs)")
+    ev.add_argument("--run-dir", type=Path, help="run directory (default <runs-dir>/<run>-<UTC time>)")
+    ev.add_argument("--runs-dir", type=Path, help="parent of run directories (default runs)")
+    ev.add_argument("--resume", type=Path, metavar="DIR", help="continue a run directory, skipping stored episodes")
+    ev.add_argument("--connect", help="attach to a router and processes started by hand instead of starting them")
+    ev.add_argument("--run", dest="run_id", help="run id (with --connect; default: the run directory's name)")
+    ev.add_argument("--port", type=int)
+    ev.add_argument("--secure", action="store_true",
+                    help="mutual TLS and default-deny access control on the bus, with a CA made for this run "
+                         "(with --connect: use your AGOS_ZENOH__* credentials and a tls/ endpoint instead)")
+    ev.add_argument("--stuck-after", type=float, default=STUCK_AFTER_S,
+                    help="re-lease an episode without progress for this long (s)")
+    add_record_flags(ev)
+    ev.add_argument("--decision-timeout", type=_duration, metavar="DURATION",
+                    help="how long the world waits for each decision before it applies WAIT: 90, 30m, 2h "
+                         "(default [world] decision_timeout_s, 60 s; a person playing needs minutes or hours)")
+    vlm_flags(ev)
+    ev.add_argument("--vlm-standin", nargs="?", const="", metavar="FAULTS",
+                    help="start the offline stand-in VLM server for this run (optionally with faults, "
+                         "e.g. 429=0.1,500=0.05); VLM policies then use it")
+
+
+def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
+    from agos.deploy.run import evaluate
+    from agos.deploy.run import plan as run_plan
+    from agos.runtime.links import ProfileError
+
+    recording = recording_of(args)  # a bad flag fails before a run directory is made
+    try:
+        if args.resume:
+            plan = run_plan.resume_plan(args.resume)
+        else:
+            run_dir = args.run_dir
+            if run_dir is None and args.connect and args.run_id:
+                run_dir = cfg.run.runs_dir / args.run_id
+            plan = run_plan.new_plan(cfg, run_dir=run_dir, comm=args.comm, timing_mode=args.timing, stamp=True,
+                                     vlm_standin=args.vlm_standin, workers=args.workers)
+    except (run_plan.RunDirError, ProfileError, ValueError) as exc:
+        print(f"eval error: {exc}", file=sys.stderr)
+        return 2
+    if args.resume and args.workers is None:  # a resumed run keeps the worker count it was started with
+        args.workers = plan.workers
+    workers = args.workers if isinstance(args.workers, int) else cfg.run.workers
+    if args.workers == "auto" and not args.connect:
+        from agos.agents.names import needs_vlm
+        from agos.deploy.run.concurrency import choose_workers
+
+        to_run = len(plan.episodes) - len(run_plan.stored_episodes(plan.run_dir))
+        asks_model = any(needs_vlm(p) for p in plan.policies.values())  # at most [vlm] concurrency requests at once
+        choice = choose_workers(plan.policies, to_run, model_latency_s=args.model_latency,
+                                model_concurrency=cfg.vlm.concurrency if asks_model else None)
+        workers = choice.workers
+        print(f"world workers: {workers} ({choice.why})")
+    return evaluate.run(cfg, plan, workers=workers, attach=args.connect is not None, port=args.port,
+                        config_path=args.config, stuck_after_s=args.stuck_after, secure=args.secure,
+                        recording=recording)
+
+
+def _add_sweep(sub: Any) -> None:
+    sw = sub.add_parser("sweep", help="a comm-profile parameter grid x link seeds: table and plots with CIs")
+    sw.add_argument("--config", type=Path, help="TOML settings file: its [world] section shapes the episodes")
+    sw.add_argument("--split", type=Path, required=True, help="JSONL episode file")
+    sw.add_argument("--comm", default="ideal", help="base profile")
+    sw.add_argument("--param", default="loss.p",
+                    help="dotted profile field (loss.p, latency.mean_s, bandwidth.bits_per_s, range.max_range_m, "
+                         "loss.p_bad_to_good ...), beacon_s, or loss.burst_len / blackouts.duration_s (docs/COMMS.md)")
+    sw.add_argument("--values", default="0,0.1,0.2,0.3,0.4,0.5", help="comma-separated values")
+    sw.add_argument("--seeds", default="0,1", help="comma-separated link seeds")
+    sw.add_argument("--policy", default="heuristic")
+    sw.add_argument("--workers", type=int, default=2)
+    sw.add_argument("--out", type=Path, required=True)
+    vlm_flags(sw)
+    sw.add_argument("--vlm-standin", nargs="?", const="", metavar="FAULTS",
+                    help="start the offline stand-in VLM server for the sweep (optionally with faults); "
+                         "VLM policies then use it")
+
+
+def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from agos.deploy.run.configure import episode_config
+    from agos.deploy.run.sweep import run_sweep
+    from agos.runtime.links import ProfileError
+    from agos.world.episodes.sampling import read_episodes
+
+    try:
+        values = [float(v) for v in args.values.split(",")]
+        seeds = [int(v) for v in args.seeds.split(",")]
+        total = len(values) * len(seeds) * len(read_episodes(args.split))
+        config = episode_config(cfg, policies={"uav": args.policy, "ugv": args.policy}, comm=args.comm)
+        with Progress(TextColumn("[bold]sweep"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()) as bar:
+            task = bar.add_task("episodes", total=total)
+            table = run_sweep(args.split, args.out, config=config, param=args.param, values=values, seeds=seeds,
+                              policies=(args.policy, args.policy), workers=args.workers,
+                              progress=lambda: bar.advance(task), vlm=cfg.vlm, vlm_standin=args.vlm_standin)
+    except (ProfileError, ValueError) as exc:
+        print(f"sweep error: {exc}", file=sys.stderr)
+        return 2
+    print((args.out / "sweep.md").read_text())
+    print(f"{len(table)} points -> {args.out}/sweep.csv, sweep.md, sweep.png")
+    return 0
+
+
+def _add_check(sub: Any) -> None:
+    check = sub.add_parser("check", help="conformance checks")
+    check_sub = check.add_subparsers(dest="check_what", required=True)
+    check_agent = check_sub.add_parser("agent", help="a short conformance episode against attached agent services")
+    connection_flags(check_agent)
+    check_agent.add_argument("--budget", type=int, default=16, help="decisions in the check episode (default 16)")
+    check_agent.add_argument("--town", default="grid-s7", help="procedural town of the check episode")
+    check_agent.add_argument("--policy", default="heuristic",
+                             help="policy the agents run, for the world's tools (baseline: no candidates; ablations)")
+    check_agent.add_argument("--agent-wait", type=float, help="seconds to wait for each role's service (default 30)")
+
+
+def _check_agent(args: argparse.Namespace, cfg: AgosConfig) -> int:
+    from agos.deploy.run.check import run_check
+
+    return run_check(cfg, budget=args.budget, town_name=args.town, policy=args.policy)
+
+
+DEMO = Command(("demo",), _add_demo, with_settings(_demo))
+EVAL = Command(("eval",), _add_eval, with_settings(_eval))
+SWEEP = Command(("sweep",), _add_sweep, with_settings(_sweep))
+CHECK = Command(("check",), _add_check, by_subcommand("check_what", {"agent": with_settings(_check_agent)}))

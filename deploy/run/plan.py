@@ -1,0 +1,146 @@
+"""A run's plan and its directory: what ``agos eval`` (``demo``, ``dataset build``) runs, made new or
+read back for ``--resume``.
+
+A run directory holds ``run.json`` (policies, comm profile, timing mode, episode source, the whole
+episode configuration), ``episodes.jsonl`` (the exact episodes), ``results.sqlite`` (written by the
+evaluator) and ``logs/``. ``agos eval --resume DIR`` re-reads the first two and leases only the
+episodes not yet stored.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from agos.agents.names import needs_vlm
+from agos.deploy.run.configure import episode_config
+from agos.evaluator.store import ResultStore
+from agos.runtime.episode_config import EpisodeConfig, StoredConfigError, read_config
+from agos.runtime.schemas import EpisodeSpec
+from agos.runtime.settings import AgosConfig
+
+RUN_FILE = "run.json"
+STANDIN_MODEL = "agos-standin"
+"""The model name of the stand-in VLM server a run starts itself (``--vlm-standin``)."""
+
+class RunDirError(ValueError):
+    """A run directory that cannot be created or resumed; the message names it and why."""
+
+
+@dataclass
+class RunPlan:
+    run_dir: Path
+    episodes: list[EpisodeSpec]
+    policies: dict[str, str]
+    config: EpisodeConfig
+    """Everything that shapes the run's episodes; sent whole in every job grant."""
+    resumed: bool = False
+    vlm: dict[str, Any] = field(default_factory=dict)
+    """VLM policies: ``base_url`` and ``model``, or ``standin`` (its fault string) for a stand-in server
+    the run starts itself. Stored in run.json (never an API key)."""
+    workers: int | str | None = None
+    """``--workers`` as the run was started with (a count or ``auto``): what ``--resume`` uses again."""
+    dataset_out: Path | None = None
+    """A dataset build (deploy/dataset/build.py): the agents it starts write every decision there."""
+
+    @property
+    def run_id(self) -> str:
+        return self.run_dir.name
+
+
+def generated_episodes(cfg: AgosConfig) -> list[EpisodeSpec]:
+    from agos.world.episodes.sampling import generate_episodes
+    from agos.world.sim.scene import Scene
+    from agos.world.towns.asset import open_town
+
+    town = open_town(cfg.run.town)
+    scene = Scene(town.layout, look=cfg.world.look)  # episodes are checked solvable by rendering, in the run's look
+    try:
+        return generate_episodes(town, scene, per_difficulty=cfg.run.per_difficulty, seed=cfg.run.episode_seed)
+    finally:
+        scene.close()
+
+
+def vlm_plan(cfg: AgosConfig, policies: dict[str, str], standin: str | None) -> dict[str, Any]:
+    """Where the run's VLM policies get their model; {} when no policy needs one."""
+    if not any(needs_vlm(p) for p in policies.values()):
+        return {}
+    if standin is not None:
+        return {"standin": standin, "model": STANDIN_MODEL}
+    if not cfg.vlm.base_url or not cfg.vlm.model:
+        names = ", ".join(sorted({p for p in policies.values() if needs_vlm(p)}))
+        raise RunDirError(f"policy {names} asks a VLM: give --vlm-base-url URL --model NAME, or --vlm-standin for the "
+                          "offline stand-in server")
+    return {"base_url": cfg.vlm.base_url, "model": cfg.vlm.model}
+
+
+def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: str, stamp: bool,
+             vlm_standin: str | None = None, workers: int | str | None = None, dataset_out: Path | None = None) -> RunPlan:
+    """A new run directory with its run.json and episodes.jsonl. ``workers``: the command's
+    ``--workers`` (a count or ``auto``), stored for ``--resume``; ``dataset_out``: see :class:`RunPlan`."""
+    from agos.world.episodes.sampling import read_episodes, write_episodes
+
+    # Everything that can be wrong with the command fails before episodes are generated.
+    if run_dir is None:
+        run_id = f"{cfg.run.run_id}-{datetime.now(UTC).strftime('%Y%m%d-%H%M%S')}" if stamp else cfg.run.run_id
+        run_dir = cfg.run.runs_dir / run_id
+    if (run_dir / "results.sqlite").exists():
+        raise RunDirError(f"{run_dir}: already holds results; resume it with: agos eval --resume {run_dir}")
+    policies = {"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv}
+    config = episode_config(cfg, policies=policies, comm=comm, timing_mode=timing_mode)  # bad names fail here
+    vlm = vlm_plan(cfg, policies, vlm_standin)
+    if cfg.run.episodes_file:
+        from agos.world.towns.asset import check_towns
+
+        episodes = read_episodes(cfg.run.episodes_file)
+        check_towns(episodes, str(cfg.run.episodes_file))
+    else:
+        episodes = generated_episodes(cfg)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_episodes(run_dir / "episodes.jsonl", episodes)
+    plan = RunPlan(run_dir, episodes, policies, config, vlm=vlm, workers=workers, dataset_out=dataset_out)
+    (run_dir / RUN_FILE).write_text(json.dumps({
+        "run_id": plan.run_id, "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "policies": plan.policies, "comm": config.comm.name, "timing_mode": config.timing_mode, "episodes": len(episodes),
+        "vlm": vlm, "workers": workers, "config_hash": config.config_hash(),
+        **({"dataset_out": str(dataset_out)} if dataset_out is not None else {}),
+        "episode_config": config.model_dump(mode="json"),
+        "episode_source": str(cfg.run.episodes_file or f"generated: {cfg.run.town}, {cfg.run.per_difficulty}/difficulty, "
+                                                         f"seed {cfg.run.episode_seed}"),
+    }, indent=2) + "\n")
+    return plan
+
+
+def resume_plan(run_dir: Path) -> RunPlan:
+    from agos.world.episodes.sampling import read_episodes
+
+    path = run_dir / RUN_FILE
+    if not path.exists():
+        raise RunDirError(f"{run_dir}: no {RUN_FILE}; not an agos run directory")
+    meta = json.loads(path.read_text())
+    if "episode_config" not in meta:
+        raise RunDirError(f"{path}: made by an agos without episode configurations; start a new run")
+    try:
+        config = read_config(meta["episode_config"], where=str(path))
+    except StoredConfigError as exc:
+        raise RunDirError(str(exc)) from None
+    return RunPlan(run_dir, read_episodes(run_dir / "episodes.jsonl"), meta["policies"], config, resumed=True,
+                   vlm=meta.get("vlm", {}), workers=meta.get("workers"),
+                   dataset_out=Path(meta["dataset_out"]) if meta.get("dataset_out") else None)
+
+
+def stored_episodes(run_dir: Path) -> set[str]:
+    """Episodes of a run directory with a ``finished`` record: a resume skips them and plays the rest,
+    including episodes stored as infrastructure failures (a missing agent, a crashed world)."""
+    path = run_dir / "results.sqlite"
+    if not path.exists():
+        return set()
+    store = ResultStore(path, create=False)
+    try:
+        return store.finished_ids()
+    finally:
+        store.close()
+
