@@ -2,8 +2,9 @@
 read back for ``--resume``.
 
 A run directory holds ``run.json`` (policies, comm profile, timing mode, episode source, the whole
-episode configuration), ``episodes.jsonl`` (the exact episodes), ``results.sqlite`` (written by the
-evaluator) and ``logs/``. ``agos eval --resume DIR`` re-reads the first two and leases only the
+episode configuration, and the provenance: agos commit, uv.lock hash and package versions, outside the
+configuration's hash: runtime/provenance.py), ``episodes.jsonl`` (the exact episodes),
+``results.sqlite`` (written by the evaluator) and ``logs/``. ``agos eval --resume DIR`` re-reads the first two and leases only the
 episodes not yet stored.
 """
 
@@ -19,6 +20,7 @@ from agos.agents.names import needs_vlm
 from agos.deploy.run.configure import episode_config
 from agos.evaluator.store import ResultStore
 from agos.runtime.episode_config import EpisodeConfig, StoredConfigError, read_config
+from agos.runtime.provenance import provenance
 from agos.runtime.schemas import EpisodeSpec
 from agos.runtime.settings import AgosConfig
 
@@ -110,6 +112,7 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
         "episode_config": config.model_dump(mode="json"),
         "episode_source": str(cfg.run.episodes_file or f"generated: {cfg.run.town}, {cfg.run.per_difficulty}/difficulty, "
                                                          f"seed {cfg.run.episode_seed}"),
+        "provenance": provenance(),  # what made this run's numbers; not part of config_hash
     }, indent=2) + "\n")
     return plan
 
