@@ -62,7 +62,7 @@ from agos.world.sim.evidence import target_points
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import Town, open_town
 from agos.world.towns.catalog import BODY_TYPES, VIVID_COLOURS, body_type
-from agos.world.towns.vehicles import (
+from agos.world.towns.look.vehicles import (
     ATTRIBUTE_BODY_TYPES,
     RICH_BODY_TYPES,
     ROOF_COLOUR,

@@ -20,7 +20,7 @@ import numpy as np
 from agos.world.sim.scene import STUDIO_OFFSET_M, Scene
 from agos.world.towns.asset import open_town
 from agos.world.towns.catalog import BODY_TYPES
-from agos.world.towns.vehicles import RICH_BODY_TYPES, ROOF_COLOUR, VehicleAttributes, contrast_colour, vehicle_mesh
+from agos.world.towns.look.vehicles import RICH_BODY_TYPES, ROOF_COLOUR, VehicleAttributes, contrast_colour, vehicle_mesh
 
 OUT = Path("docs/images")
 TILE_PX = 256

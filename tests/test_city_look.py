@@ -1,4 +1,4 @@
-"""The rich look's city (world/towns/city.py and the modules it gathers): deterministic textures,
+"""The rich look's city (world/towns/look/city.py and the modules it gathers): deterministic textures,
 the asset hash covering the dressing, and masks, depth, rays, shadows and the CONFIRM checker
 keeping their meaning in a textured town. The flat look's byte-identity is pinned in
 tests/test_vehicle_meshes.py::test_default_look_renders_as_before."""
@@ -21,9 +21,9 @@ from agos.world.sim.evidence import ground_evidence, nearest_verifying_anchor, t
 from agos.world.sim.scene import SEM_BUILDING, SEM_MARKING, SEM_ROAD, SEM_SIDEWALK, SEM_VEHICLE, Scene, pb
 from agos.world.towns.asset import AssetError, encode_document, open_town, town_document, town_from_document
 from agos.world.towns.dressing import DRESSING_VERSION, Facade
-from agos.world.towns.shadows import clip_convex
-from agos.world.towns.texmesh import convex_decomposition, signed_area
-from agos.world.towns.textures import GENERATORS, texture, texture_file
+from agos.world.towns.look.shadows import clip_convex
+from agos.world.towns.look.texmesh import convex_decomposition, signed_area
+from agos.world.towns.look.textures import GENERATORS, texture, texture_file
 
 CAM = CameraConfig()
 

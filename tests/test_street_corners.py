@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from agos.world.towns.decorate import _Occupancy
+from agos.world.towns.look.decorate import _Occupancy
 from agos.world.towns.placement import Building
 from agos.world.towns.streets import ROAD_HALF_WIDTH_M, SIDEWALK_WIDTH_M, Street, StreetPlan, plan_to_lanes
 

@@ -27,7 +27,7 @@ from agos.world.sim.episode_vehicles import LookMismatch, add_episode_vehicles, 
 from agos.world.sim.scene import Scene, pb
 from agos.world.towns.asset import open_town
 from agos.world.towns.catalog import NEAR_COLOURS, VIVID_COLOURS, colour_rgb
-from agos.world.towns.vehicles import ATTRIBUTE_BODY_TYPES, RICH_BODY_TYPES, ROOF_COLOUR, contrast_colour
+from agos.world.towns.look.vehicles import ATTRIBUTE_BODY_TYPES, RICH_BODY_TYPES, ROOF_COLOUR, contrast_colour
 
 ROOT = Path(__file__).resolve().parents[1]
 OLD_LINE = (

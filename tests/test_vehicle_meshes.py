@@ -1,4 +1,4 @@
-"""The rich look's vehicle meshes (world/towns/vehicles.py) and how the scene draws them; the
+"""The rich look's vehicle meshes (world/towns/look/vehicles.py) and how the scene draws them; the
 default (flat) look must render exactly as before."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from agos.runtime.episode_config import CameraConfig
 from agos.world.sim import sensors
 from agos.world.sim.scene import SEM_VEHICLE, STUDIO_OFFSET_M, Scene
 from agos.world.towns.asset import open_town
-from agos.world.towns.vehicles import RICH_BODY_TYPES, VehicleAttributes, vehicle_mesh
+from agos.world.towns.look.vehicles import RICH_BODY_TYPES, VehicleAttributes, vehicle_mesh
 
 PX = 128
 FLAT_RENDER_SHA = "f094b358cc59cb57"

@@ -20,12 +20,12 @@ from __future__ import annotations
 from itertools import combinations
 
 from agos.world.towns.catalog import BODY_TYPES, NEAR_COLOURS
-from agos.world.towns.vehicles import RICH_BODY_TYPES
+from agos.world.towns.look.vehicles import RICH_BODY_TYPES
 
 LookalikeKind = str
 KINDS: tuple[LookalikeKind, ...] = ("type", "paint", "attribute")
 ATTRIBUTES: tuple[str, ...] = ("roof", "rack", "stripe")
-"""Checkable attributes (:class:`~agos.world.towns.vehicles.VehicleAttributes`); ``plain`` names a
+"""Checkable attributes (:class:`~agos.world.towns.look.vehicles.VehicleAttributes`); ``plain`` names a
 vehicle without them in the pairs below."""
 PLAIN = "plain"
 MIN_CUE_PCT = 90.0

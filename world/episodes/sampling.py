@@ -33,8 +33,8 @@ from agos.world.episodes.lookalikes import ATTRIBUTES, KINDS, separable
 from agos.world.towns.asset import Town
 from agos.world.towns.catalog import BODY_TYPES, NEAR_COLOURS, VIVID_COLOURS
 from agos.world.towns.layout import TownLayout
+from agos.world.towns.look.vehicles import ATTRIBUTE_BODY_TYPES, RICH_BODY_TYPES, ROOF_COLOUR, contrast_colour
 from agos.world.towns.placement import ParkingSlot
-from agos.world.towns.vehicles import ATTRIBUTE_BODY_TYPES, RICH_BODY_TYPES, ROOF_COLOUR, contrast_colour
 
 REGION_SIZE_M: dict[str, float] = {"easy": 150.0, "mid": 300.0, "hard": 300.0}
 DIFFICULTIES: tuple[Difficulty, ...] = ("easy", "mid", "hard")

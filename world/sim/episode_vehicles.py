@@ -12,7 +12,7 @@ from __future__ import annotations
 from agos.runtime.schemas import EpisodeSpec, VehicleSpec
 from agos.world.sim.scene import Scene
 from agos.world.towns.catalog import BODY_TYPES
-from agos.world.towns.vehicles import VehicleAttributes
+from agos.world.towns.look.vehicles import VehicleAttributes
 
 
 class LookMismatch(ValueError):

@@ -14,11 +14,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from agos.world.towns.catalog import CARGO_WHITE, GLASS, TYRE, body_type, colour_rgb
-from agos.world.towns.city import City, build_city, vehicle_shadow_mesh
 from agos.world.towns.layout import TownLayout
-from agos.world.towns.meshes import chunks, slab_mesh, strip_mesh, surface_mesh, vertex_normals
-from agos.world.towns.texmesh import TexMesh, chunked
-from agos.world.towns.vehicles import FIXED_RGB, VehicleAttributes, vehicle_mesh
+from agos.world.towns.look.city import City, build_city, vehicle_shadow_mesh
+from agos.world.towns.look.meshes import chunks, slab_mesh, strip_mesh, surface_mesh, vertex_normals
+from agos.world.towns.look.texmesh import TexMesh, chunked
+from agos.world.towns.look.vehicles import FIXED_RGB, VehicleAttributes, vehicle_mesh
 
 
 def _import_pybullet_quietly():
@@ -63,7 +63,7 @@ STUDIO_OFFSET_M = np.array([10_000.0, 10_000.0, 0.0])
 _PAINTS = {"glass": GLASS, "tyre": TYRE, "cargo": CARGO_WHITE}
 LOOKS: tuple[str, ...] = ("flat", "rich")
 """``flat``: boxes and flat colours (the default, unchanged); ``rich``: vehicles as meshes by body type
-(world/towns/vehicles.py) in a textured city with drawn shadows (world/towns/city.py)."""
+(world/towns/look/vehicles.py) in a textured city with drawn shadows (world/towns/look/city.py)."""
 _FLAT_LIGHT = {"lightDirection": [0.35, 0.25, 1.0], "lightAmbientCoeff": 0.55, "lightDiffuseCoeff": 0.45,
                "lightSpecularCoeff": 0.05}
 RICH_AMBIENT, RICH_DIFFUSE = 0.5, 0.55
@@ -198,7 +198,7 @@ class Scene:
             self.add_vehicle(car.model, car.colour, (*slot.position_world_m, 0.0), slot.yaw_rad)
 
     def _build_rich(self, layout: TownLayout) -> None:
-        """The textured city (world/towns/city.py): one body per material and chunk, the buildings'
+        """The textured city (world/towns/look/city.py): one body per material and chunk, the buildings'
         collision boxes in compound bodies, then the parked traffic with shadows."""
         from agos.world.towns.asset import cache_dir
 

@@ -1,7 +1,7 @@
 """The rich look's random choices, frozen with the town: façade style and ground floor of every
 building, rooftop units, lamp posts, street trees, the sun and the texture seed (data only).
 
-:func:`agos.world.towns.decorate.dress` draws them from the town's seed and id (its own random
+:func:`agos.world.towns.look.decorate.dress` draws them from the town's seed and id (its own random
 stream, so the layout's buildings, parking and traffic are exactly those of a town without
 dressing) and the asset document stores the result (:mod:`agos.world.towns.asset`), so the asset
 hash covers them. What the scene derives from the document alone (markings, kerbs, shadows,

@@ -22,8 +22,8 @@ import cv2
 import networkx as nx
 import numpy as np
 
-from agos.world.towns.decorate import dress
 from agos.world.towns.layout import Deck, TownLayout, park_background
+from agos.world.towns.look.decorate import dress
 from agos.world.towns.placement import (
     ParkingSlot,
     Raster,

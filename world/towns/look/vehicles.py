@@ -26,7 +26,7 @@ from functools import lru_cache
 import numpy as np
 
 from agos.world.towns.catalog import colour_rgb
-from agos.world.towns.texmesh import ccw
+from agos.world.towns.look.texmesh import ccw
 
 MATERIALS: tuple[str, ...] = ("paint", "roof", "stripe", "glass", "dark", "rim", "rack", "cargo", "head", "tail",
                               "plate")

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agos.world.towns.meshes import strip_mesh
+from agos.world.towns.look.meshes import strip_mesh
 
 
 @dataclass
@@ -81,7 +81,7 @@ def flat_polygon(poly: np.ndarray, z: float, tile_m: float, *, up: bool = True) 
 
 def flat_strip(edge_a: np.ndarray, edge_b: np.ndarray, z: float, tile_m: float) -> TexMesh:
     """Quads between two polylines (point i of one facing point i of the other), facing up:
-    :func:`~agos.world.towns.meshes.strip_mesh` with normals and UV = xy / tile."""
+    :func:`~agos.world.towns.look.meshes.strip_mesh` with normals and UV = xy / tile."""
     if len(edge_a) < 2:
         return merge([])
     v, idx = strip_mesh(edge_a, edge_b, z)

@@ -2,7 +2,7 @@
 sidewalks with kerbs, lane markings, stop lines, zebra crossings and parking bays.
 
 Every flat surface is a list of convex pieces on a :class:`Layer` (a material at one height): the
-scene draws the pieces as textured meshes, and :mod:`agos.world.towns.shadows` clips cast shadows
+scene draws the pieces as textured meshes, and :mod:`agos.world.towns.look.shadows` clips cast shadows
 against the same pieces, so a shadow lies a few millimetres above exactly the surface it darkens.
 
 Markings follow from the lane network, for procedural and imported towns alike (pure numpy):
@@ -29,7 +29,7 @@ import numpy as np
 
 from agos.world.towns.lanes import Lane, LaneNetwork
 from agos.world.towns.layout import TownLayout
-from agos.world.towns.texmesh import (
+from agos.world.towns.look.texmesh import (
     TexMesh,
     arc_length,
     ccw,
@@ -42,7 +42,7 @@ from agos.world.towns.texmesh import (
     offset_line,
     simplify_strip,
 )
-from agos.world.towns.textures import TILE_M
+from agos.world.towns.look.textures import TILE_M
 
 CELL_M = 0.5
 SIDEWALK_WIDTH_M = 2.5

@@ -3,7 +3,7 @@
 A building is its footprint box cut in bands: a ground floor of shop fronts or a glass lobby
 (4.5 m), the upper storeys in its façade style (UVs count bays and storeys, each wall fitted with
 a whole number of both, so windows meet the corners), a roof and rooftop units. Meshes come
-grouped by material (the texture names of :mod:`agos.world.towns.textures`), so the scene makes
+grouped by material (the texture names of :mod:`agos.world.towns.look.textures`), so the scene makes
 one shape per material, not per building.
 
 The skyline (:func:`skyline`) is a ring of city blocks around the town's placement area, derived
@@ -21,9 +21,8 @@ import numpy as np
 
 from agos.world.towns.dressing import DRESSING_VERSION, Dressing, Facade, RoofUnit
 from agos.world.towns.layout import TownLayout
-from agos.world.towns.placement import Building
-from agos.world.towns.texmesh import TexMesh, boxes, flat_fans, footprints, walls_batch
-from agos.world.towns.textures import (
+from agos.world.towns.look.texmesh import TexMesh, boxes, flat_fans, footprints, walls_batch
+from agos.world.towns.look.textures import (
     BAYS_PER_TILE,
     FACADE_MODULE_M,
     FACADES,
@@ -32,6 +31,7 @@ from agos.world.towns.textures import (
     STOREYS_PER_TILE,
     TILE_M,
 )
+from agos.world.towns.placement import Building
 
 SKYLINE_DEPTH_M = 220.0
 """How far beyond the placement area the skyline reaches (its first rows hide the rest)."""

@@ -13,8 +13,8 @@ import math
 import numpy as np
 
 from agos.world.towns.dressing import Lamp
+from agos.world.towns.look.texmesh import TexMesh, boxes, flat_polygon, footprints, merge, walls_batch
 from agos.world.towns.placement import Tree
-from agos.world.towns.texmesh import TexMesh, boxes, flat_polygon, footprints, merge, walls_batch
 
 Meshes = dict[str, list[TexMesh]]
 LAMP_HEIGHT_M = 7.0

@@ -11,10 +11,10 @@ import numpy as np
 
 from agos.world.towns.dressing import DRESSING_VERSION, Dressing, Facade, Lamp, RoofUnit, dressing_seed
 from agos.world.towns.layout import TownLayout
+from agos.world.towns.look.streetdressing import sidewalks
+from agos.world.towns.look.texmesh import arc_length, cut, footprint
+from agos.world.towns.look.textures import FACADES, GROUND_FLOORS
 from agos.world.towns.placement import Building, Tree
-from agos.world.towns.streetdressing import sidewalks
-from agos.world.towns.texmesh import arc_length, cut, footprint
-from agos.world.towns.textures import FACADES, GROUND_FLOORS
 
 LAMP_SPACING_M = 40.0
 TREE_SPACING_M = 16.0

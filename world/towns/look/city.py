@@ -1,11 +1,11 @@
 """The rich look's static city, assembled from a town layout: what the scene turns into bodies.
 
-:func:`build_city` gathers the street level (:mod:`~agos.world.towns.streetdressing`), the buildings
-and the skyline (:mod:`~agos.world.towns.facades`), trees and lamp posts
-(:mod:`~agos.world.towns.furniture`) and the cast shadows (:mod:`~agos.world.towns.shadows`) into
+:func:`build_city` gathers the street level (:mod:`~agos.world.towns.look.streetdressing`), the buildings
+and the skyline (:mod:`~agos.world.towns.look.facades`), trees and lamp posts
+(:mod:`~agos.world.towns.look.furniture`) and the cast shadows (:mod:`~agos.world.towns.look.shadows`) into
 one :class:`CityPart` per material and semantic class, each a single merged mesh, so the number of
 bodies stays small whatever the size of the town (render cost grows with it). Textures are
-written once to ``texture_root`` (:func:`~agos.world.towns.textures.texture_file`).
+written once to ``texture_root`` (:func:`~agos.world.towns.look.textures.texture_file`).
 
 Everything random comes from the layout's :class:`~agos.world.towns.dressing.Dressing` (stored in
 the frozen asset) or is derived from it: two towns with the same asset hash build the same city.
@@ -18,16 +18,16 @@ from pathlib import Path
 
 import numpy as np
 
-from agos.world.towns.decorate import dress
 from agos.world.towns.dressing import Dressing
-from agos.world.towns.facades import ground_extent, skyline, skyline_meshes, town_buildings
-from agos.world.towns.furniture import crown_centre, lamp_meshes, tree_meshes
 from agos.world.towns.layout import TownLayout
-from agos.world.towns.shadows import SHADOW_LIFT_M, ShadowSet, building_shadow, mesh_shadow, project, tree_shadows
-from agos.world.towns.streetdressing import Layer, Z, street_level
-from agos.world.towns.texmesh import TexMesh, convex_pieces_mesh, flat_polygon, merge
-from agos.world.towns.textures import FACADES, GROUND_FLOORS, TILE_M, texture_file
-from agos.world.towns.vehicles import VehicleMesh
+from agos.world.towns.look.decorate import dress
+from agos.world.towns.look.facades import ground_extent, skyline, skyline_meshes, town_buildings
+from agos.world.towns.look.furniture import crown_centre, lamp_meshes, tree_meshes
+from agos.world.towns.look.shadows import SHADOW_LIFT_M, ShadowSet, building_shadow, mesh_shadow, project, tree_shadows
+from agos.world.towns.look.streetdressing import Layer, Z, street_level
+from agos.world.towns.look.texmesh import TexMesh, convex_pieces_mesh, flat_polygon, merge
+from agos.world.towns.look.textures import FACADES, GROUND_FLOORS, TILE_M, texture_file
+from agos.world.towns.look.vehicles import VehicleMesh
 
 SHADE_RGB = (0.52, 0.55, 0.64)
 """A surface in shadow: its texture times this (lit by the blue sky only)."""

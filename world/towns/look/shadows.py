@@ -17,8 +17,8 @@ from collections.abc import Iterable
 import cv2
 import numpy as np
 
+from agos.world.towns.look.texmesh import ccw, footprint, signed_area
 from agos.world.towns.placement import Building, Tree
-from agos.world.towns.texmesh import ccw, footprint, signed_area
 
 SHADOW_LIFT_M = 0.006
 """How far above its surface a shadow is drawn."""
