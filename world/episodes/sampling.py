@@ -177,11 +177,11 @@ def _rich_vehicles(rng: np.random.Generator, difficulty: Difficulty, slots: list
         fresh = [o for o in options[kind] if slot_for(o[0]) is not None]
         if not fresh:
             return None
-        look_model, look_colour, look_attrs = fresh[int(rng.integers(len(fresh)))]
-        slot = slot_for(look_model)
+        alike_model, alike_colour, alike_attrs = fresh[int(rng.integers(len(fresh)))]
+        slot = slot_for(alike_model)
         assert slot is not None, "fresh options have a slot"
         used.append(slot.position_world_m)
-        distractors.append(_vehicle(look_model, look_colour, slot, look_attrs))
+        distractors.append(_vehicle(alike_model, alike_colour, slot, alike_attrs))
     return target, distractors
 
 
