@@ -31,7 +31,7 @@ import msgspec
 from rich.console import Console
 from rich.table import Table
 
-from agos.deploy.run.presence import elsewhere_line, look
+from agos.deploy.run.presence import elsewhere_line, who_is_here
 from agos.runtime.bus import ZenohBus
 from agos.runtime.process import install_stop_handlers
 from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role, StepEvent
@@ -136,7 +136,7 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "he
         except MissingAgent as exc:
             v.check("subscribed", False, str(exc))
             console.print(f"[red]{exc}", highlight=False)  # whole: the table cell is cut to its width
-            if line := elsewhere_line(look(bus, run_id), run_id):
+            if line := elsewhere_line(who_is_here(bus, run_id), run_id):
                 console.print(f"[yellow]{line}", highlight=False)
         finally:
             source.close()

@@ -10,10 +10,11 @@ child is started with; the child's command line carries only what is not a setti
 ``--worker-id``, ``--out`` ...). Nothing secret is ever on a command line, which any user can read
 in a process listing.
 
-What the environment cannot carry: a list-valued setting (only ``[world.comm] blackouts``) and a
-setting set to None over a default that is not None (there is none). A child reads ``[world]`` only
-for the failure record of a job grant it cannot read: the run's episode configuration, comm profile
-included, travels whole in every job grant.
+What the environment does not carry: ``[world.comm]`` (a comm profile's fields must come together,
+and ``load_config`` checks each variable on its own; its blackouts are a list), any other list, and
+None over a default that is not None (there is none). A child reads ``[world]`` only for the failure
+record of a job grant it cannot read: the run's episode configuration, comm profile included,
+travels whole in every job grant, and ``agos eval --comm`` names the run's profile.
 """
 
 from __future__ import annotations
@@ -49,11 +50,17 @@ def _text(value: object) -> str | None:
     return None  # None, lists: see the module docstring
 
 
+NOT_CARRIED = ("AGOS_WORLD__COMM",)
+"""Settings the environment does not carry (see the module docstring)."""
+
+
 def _leaves(model: BaseModel, defaults: BaseModel, prefix: str) -> dict[str, str]:
     out: dict[str, str] = {}
     for name in type(model).model_fields:
         value, default = getattr(model, name), getattr(defaults, name)
         variable = f"{prefix}{_SETTING_SEPARATOR}{name.upper()}"
+        if variable in NOT_CARRIED:
+            continue
         if isinstance(value, BaseModel):
             out |= _leaves(value, default, variable)
             continue

@@ -26,7 +26,7 @@ from agos.deploy.run.launcher import ROUTER_PORT, Launcher, free_port
 from agos.deploy.run.local import Recording, launch_all, start_attached_recorder
 from agos.deploy.run.orchestrator import STUCK_AFTER_S, Orchestrator
 from agos.deploy.run.plan import RunPlan, stored_episodes
-from agos.deploy.run.presence import LOST_IN_A_ROW, LossStreak, Stall, look, missing_lines
+from agos.deploy.run.presence import LOST_IN_A_ROW, LossStreak, Stall, missing_lines, who_is_here
 from agos.evaluator.metrics import by_difficulty
 from agos.evaluator.store import ResultStore, results_path
 from agos.evaluator.table import results_table
@@ -116,7 +116,7 @@ class Absences:
         if not self.stall.due(self.orch.decisions + len(self.orch.stored)):
             return None
         run_id = self.plan.run_id
-        present = look(self.bus, run_id)
+        present = who_is_here(self.bus, run_id)
         for line in missing_lines(present, run_id, self.endpoint, self.plan.policies):
             self.console.print(f"[yellow]waiting: {line}", highlight=False)
         self.unstored = self.unstored + 1 if not present.evaluator and self.orch.unacknowledged() else 0
@@ -274,7 +274,7 @@ def _summary(console: Console, plan: RunPlan, orch: Orchestrator | None, attach:
 
 
 def _recording_summary(console: Console, recording: Recording) -> None:
-    """What the recorder wrote and lost (its ``recorder.json``), and how to look at it."""
+    """What the recorder wrote and lost (its ``recorder.json``), and how to open one."""
     from agos.deploy.recording.recorder import STATUS_FILE
 
     try:

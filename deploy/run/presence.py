@@ -28,7 +28,7 @@ class Presence:
     """Other runs with agent services: run -> roles."""
 
 
-def look(bus: Bus, run_id: str, timeout_s: float = 1.0) -> Presence:
+def who_is_here(bus: Bus, run_id: str, timeout_s: float = 1.0) -> Presence:
     """Ask the router for the run's liveliness tokens (and agents of other runs)."""
     worlds = bus.alive_tokens(keys.live(run_id, "world", "*"), timeout_s)
     evaluator = bus.alive_tokens(keys.live(run_id, "evaluator", "*"), timeout_s)
