@@ -3,9 +3,11 @@
 #
 #   docker build -t agos:local .                      # the ordinary way: python:3.11-slim + PyPI
 #
-# Without a reachable package index, build a wheelhouse on a host that has one and install from it:
+# The dependencies are exactly requirements.lock.txt (exported from uv.lock by `make lock`, every
+# file checked by its hash); agos itself is then installed without dependencies. Without a reachable
+# package index, build a wheelhouse on a host that has one and install from it:
 #
-#   pip wheel -w .wheels . "setuptools>=77" wheel     # every dependency and the build backend
+#   pip wheel -w .wheels -r requirements.lock.txt && pip wheel -w .wheels "setuptools>=77" wheel
 #   docker build --build-arg WHEELHOUSE=.wheels -t agos:local .
 #   docker build --build-arg WHEELHOUSE=.wheels --build-arg BASE_IMAGE=agos-base:bookworm -t agos:local .
 #
@@ -13,7 +15,8 @@
 # (`make deploy-test` makes agos-base:bookworm by debootstrap). agos itself is always built from
 # the context's source (so the wheelhouse needs the build backend too, and may be older than the
 # source). It is used only in the build stage: the final image holds the virtual environment
-# /opt/agos and no wheels.
+# /opt/agos, the uv.lock it was installed from (/opt/agos/uv.lock: its sha256 goes into every run's
+# and record's provenance, runtime/provenance.py) and no wheels.
 
 ARG BASE_IMAGE=python:3.11-slim
 
@@ -22,11 +25,11 @@ ARG WHEELHOUSE=
 ENV PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_CACHE_DIR=1 PYTHONDONTWRITEBYTECODE=1
 COPY . /src
 RUN python3 -m venv /opt/agos \
- && if [ -n "$WHEELHOUSE" ]; then \
-        /opt/agos/bin/pip install --no-index --find-links "/src/$WHEELHOUSE" /src; \
-    else \
-        /opt/agos/bin/pip install /src; \
-    fi \
+ && if [ -n "$WHEELHOUSE" ]; then set -- --no-index --find-links "/src/$WHEELHOUSE"; fi \
+ && /opt/agos/bin/pip install "$@" --require-hashes -r /src/requirements.lock.txt \
+ && /opt/agos/bin/pip install "$@" --no-deps /src \
+ && cp /src/uv.lock /opt/agos/uv.lock \
+ && /opt/agos/bin/pip check \
  && /opt/agos/bin/agos --help > /dev/null
 
 FROM ${BASE_IMAGE}

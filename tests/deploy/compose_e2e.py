@@ -5,7 +5,8 @@ Not part of ``make test`` (pytest does not collect this file). Phases, each time
   tools       apt-get installs docker.io, docker-compose and debootstrap when they are missing
   engine      a running engine, or dockerd started here without its bridge and without iptables
   base image  agos-base:bookworm made by debootstrap (kept between runs), or AGOS_DEPLOY_BASE_IMAGE
-  wheelhouse  every dependency as a wheel in .wheels/ (kept while the requirements do not change)
+  wheelhouse  every locked dependency (requirements.lock.txt) as a wheel in .wheels/ (kept while it does
+              not change)
   image       `compose build` of the agos image from that base and wheelhouse (no package index)
   one host    router, evaluator, two agents and 2 world replicas in one project; the eval job runs a
               split to the end; exactly one finished record per episode in the bind-mounted
@@ -230,18 +231,22 @@ def ensure_base_image(work: Path) -> None:
 
 
 def ensure_wheelhouse(work: Path) -> None:
-    """.wheels/: a wheel of every dependency (and of the build backend), for `pip install --no-index`
-    in the image build; agos itself is built from the build context."""
-    meta = tomllib.loads((ROOT / "pyproject.toml").read_text())
-    reqs = sorted([*meta["build-system"]["requires"], *meta["project"]["dependencies"]])
+    """.wheels/: a wheel of every locked dependency (requirements.lock.txt, exported from uv.lock) and
+    of the build backend, for `pip install --no-index` in the image build; agos itself is built from
+    the build context."""
+    build = sorted(tomllib.loads((ROOT / "pyproject.toml").read_text())["build-system"]["requires"])
+    locked = (ROOT / "requirements.lock.txt").read_text()
+    wanted = "\n".join([*build, locked])
     stamp = WHEELS / ".requirements"
-    if stamp.exists() and stamp.read_text() == "\n".join(reqs) and any(WHEELS.glob("*.whl")):
+    if stamp.exists() and stamp.read_text() == wanted and any(WHEELS.glob("*.whl")):
         print(f"{WHEELS.name}/: up to date ({len(list(WHEELS.glob('*.whl')))} wheels)", flush=True)
         return
     WHEELS.mkdir(exist_ok=True)
-    sh([sys.executable, "-m", "pip", "wheel", "-q", "-w", str(WHEELS), *reqs], log=work / "wheels.log", timeout=600,
-       what="pip wheel (dependencies)")
-    stamp.write_text("\n".join(reqs))
+    sh([sys.executable, "-m", "pip", "wheel", "-q", "-w", str(WHEELS), "-r", str(ROOT / "requirements.lock.txt")],
+       log=work / "wheels.log", timeout=600, what="pip wheel (the locked dependencies)")
+    sh([sys.executable, "-m", "pip", "wheel", "-q", "-w", str(WHEELS), *build], log=work / "wheels.log", timeout=300,
+       what="pip wheel (the build backend)")  # apart: a file with hashes makes pip want a hash for every requirement
+    stamp.write_text(wanted)
     print(f"{WHEELS.name}/: {len(list(WHEELS.glob('*.whl')))} wheels", flush=True)
 
 
