@@ -35,20 +35,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("docs/images/expert_plan.png"))
     args = ap.parse_args(argv)
     town = open_town(args.town)
-    scene = Scene(town.layout, look="flat")
-    roads, grid = town.roads, town.uav_grid
-    for index in range(12):  # the first episode with a wrong candidate, else the last tried
-        spec = sample_episode(town, scene, args.difficulty, index, seed=args.seed, stream=2)
-        runner = EpisodeRunner(scene, town, spec, run_id="fig", worker_id="fig",
-                               config=EpisodeConfig(look="flat", tools=ToolConfig(expert=True)))
-        runner._setup()
-        try:
-            plan = plan_episode(runner.state)
-        finally:
-            runner.teardown()
-        if plan.wrong_candidates or args.difficulty != "hard":
-            break
-    scene.close()
+    with Scene(town.layout, look="flat") as scene:
+        roads, grid = town.roads, town.uav_grid
+        for index in range(12):  # the first episode with a wrong candidate, else the last tried
+            spec = sample_episode(town, scene, args.difficulty, index, seed=args.seed, stream=2)
+            runner = EpisodeRunner(scene, town, spec, run_id="fig", worker_id="fig",
+                                   config=EpisodeConfig(look="flat", tools=ToolConfig(expert=True)))
+            runner._setup()
+            try:
+                plan = plan_episode(runner.state)
+            finally:
+                runner.teardown()
+            if plan.wrong_candidates or args.difficulty != "hard":
+                break
     ground = ground_raster(town, spec.region_world_m)
     x0, y0, x1, y1 = spec.region_world_m
     img = np.ones((*ground.shape, 3))

@@ -81,12 +81,8 @@ def sheet(rich: Scene, flat: Scene) -> np.ndarray:
 
 def main() -> None:
     layout = open_town("grid-s7").layout
-    rich, flat = Scene(layout, look="rich"), Scene(layout)
-    try:
+    with Scene(layout, look="rich") as rich, Scene(layout) as flat:
         img = sheet(rich, flat)
-    finally:
-        rich.close()
-        flat.close()
     OUT.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(OUT / "vehicles_rich.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
     print(OUT / "vehicles_rich.png")

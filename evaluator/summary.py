@@ -167,11 +167,10 @@ def read_run(path: Path) -> list[EpisodeSummary]:
             store = ResultStore(path, create=False)
         except sqlite3.Error as exc:
             raise SummaryError(f"{path}: cannot open as a results database ({exc})") from None
-        try:
-            rows = store.raw_records()
-        except sqlite3.Error as exc:
-            raise SummaryError(f"{path}: not an agos results database ({exc})") from None
-        finally:
-            store.close()
+        with store:
+            try:
+                rows = store.raw_records()
+            except sqlite3.Error as exc:
+                raise SummaryError(f"{path}: not an agos results database ({exc})") from None
         return [parse_summary_line(raw, where=f"{path}:{eid}") for eid, raw in rows]
     return read_jsonl(path)

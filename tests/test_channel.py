@@ -392,8 +392,7 @@ def lossy_records():
     from agos.world.towns.asset import open_town
 
     town = open_town("grid-s7")
-    scene = Scene(town.layout, look="flat")
-    try:
+    with Scene(town.layout, look="flat") as scene:
         spec = sample_episode(town, scene, "easy", 0, seed=1)
         records = []
         for _ in range(2):
@@ -401,8 +400,6 @@ def lossy_records():
             runner = EpisodeRunner(scene, town, spec, run_id="links", worker_id="w",
                                    config=EpisodeConfig(look="flat", comm=load_profile("lossy")))
             records.append(runner.run(agents))
-    finally:
-        scene.close()
     return records
 
 

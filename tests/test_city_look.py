@@ -37,9 +37,8 @@ def town():
 def rich(town, tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:  # generated textures go to a cache of this test's own
         mp.setenv("AGOS_ASSET_CACHE", str(tmp_path_factory.mktemp("assets")))
-        scene = Scene(town.layout, look="rich")
-        yield scene
-        scene.close()
+        with Scene(town.layout, look="rich") as scene:
+            yield scene
 
 
 # ----- textures and the frozen dressing ---------------------------------------------------------------
@@ -82,14 +81,11 @@ def test_asset_hash_covers_the_dressing(town):
 
 def test_the_same_asset_renders_the_same_city(rich, town):
     x, y, _ = _road_point(town)
-    again = Scene(town_from_document(town.document).layout, look="rich")
-    try:
+    with Scene(town_from_document(town.document).layout, look="rich") as again:
         shots = [sensors.nadir(s, (x, y), 80.0, CAM).render for s in (rich, again)]
         views = [sensors.ground_view(s, "front", (x, y), 0.3, CAM).render for s in (rich, again)]
         for a, b in (shots, views):
             assert a.rgb.tobytes() == b.rgb.tobytes() and a.depth_m.tobytes() == b.depth_m.tobytes()
-    finally:
-        again.close()
 
 
 def test_geometry_helpers():
@@ -184,11 +180,8 @@ def test_vehicles_in_building_shadow_are_darker_and_the_studio_lights_them(rich,
 def test_confirm_checker_accepts_in_the_rich_town(rich, town):
     from agos.world.episodes.sampling import sample_episode
 
-    flat = Scene(town.layout, look="flat")
-    try:
+    with Scene(town.layout, look="flat") as flat:
         spec = sample_episode(town, flat, "easy", 0, seed=3)
-    finally:
-        flat.close()
     t = spec.target
     uid = rich.add_vehicle(t.model, t.colour, t.position_world_m, t.yaw_rad)
     try:

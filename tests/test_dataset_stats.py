@@ -35,8 +35,7 @@ def dataset(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("dataset")
     expert.install()
     town = open_town("grid-s7")
-    scene = Scene(town.layout, look="flat")
-    try:
+    with Scene(town.layout, look="flat") as scene:
         # seed 4: both UGVs drive (one that starts where it can confirm passes nothing on the way)
         specs = [sample_episode(town, scene, d, 0, seed=4, stream=k) for k, d in enumerate(("easy", "mid"))]
         assembler = Assembler(root, {s.episode_id: s for s in specs}, Console(quiet=True))
@@ -45,8 +44,6 @@ def dataset(tmp_path_factory) -> Path:
             agents = InProcessAgents({r: DatasetWriter(r, root) for r in ("uav", "ugv")})
             record = EpisodeRunner(scene, town, spec, run_id="t", worker_id="t", config=config).run(agents)
             assert assembler.assemble(record) is None, spec.episode_id
-    finally:
-        scene.close()
     with (root / "export.jsonl").open("w") as out:
         for role_export in sorted(root.glob("episodes/*/*/export.jsonl")):
             out.write(role_export.read_text())

@@ -77,13 +77,12 @@ def test_grant_and_record_carry_the_whole_configuration() -> None:
 
 def _store_mixed_run(run_dir: Path) -> None:
     """One run whose records were made under two configurations (e.g. workers of two builds)."""
-    store = ResultStore(run_dir / "results.sqlite")
-    for i, nadir_px in enumerate((512, 512, 256)):
-        config = EpisodeConfig.model_validate({"cameras": {"nadir_px": nadir_px}})
-        record = failure_record("mixed", _spec(f"e{i}"), status="finished", worker_id="w", error="", config=config)
-        record.success, record.final_distance_m = True, 3.0
-        store.add(record)
-    store.close()
+    with ResultStore(run_dir / "results.sqlite") as store:
+        for i, nadir_px in enumerate((512, 512, 256)):
+            config = EpisodeConfig.model_validate({"cameras": {"nadir_px": nadir_px}})
+            record = failure_record("mixed", _spec(f"e{i}"), status="finished", worker_id="w", error="", config=config)
+            record.success, record.final_distance_m = True, 3.0
+            store.add(record)
 
 
 def test_mixed_configurations_are_named(tmp_path: Path) -> None:

@@ -19,10 +19,9 @@ from agos.world.towns.asset import build_town
 @pytest.fixture(scope="module")
 def world():
     town = build_town("grid", 7)
-    scene = Scene(town.layout, look="flat")
-    episodes = {e.difficulty + e.episode_id[-6:-3]: e for e in generate_episodes(town, scene, per_difficulty=2, seed=1)}
-    yield town, scene, episodes
-    scene.close()
+    with Scene(town.layout, look="flat") as scene:
+        episodes = {e.difficulty + e.episode_id[-6:-3]: e for e in generate_episodes(town, scene, per_difficulty=2, seed=1)}
+        yield town, scene, episodes
 
 
 class Recorder(NullSink):

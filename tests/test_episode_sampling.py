@@ -246,15 +246,12 @@ def test_a_car_just_inside_a_deck_end_is_hidden_from_an_oblique_uav_view():
     centre = street + [0.0, -1.75]
     network = LaneNetwork({"a": Lane("a", centre, np.full(61, 3.5), covered=True)})
     layout = TownLayout("deck-end", "test", 0, network, decks=[Deck(strip(street, -9.5, 9.5), 6.5, 7.5)])
-    scene = Scene(layout, look="flat")
-    try:
+    with Scene(layout, look="flat") as scene:
         uid = scene.add_vehicle("sedan", "red", (6.0, -4.75, 0.0), 0.0)  # 6 m inside the deck's west end
         cam = sensors.CameraConfig()
         assert sensors.target_pixels(sensors.nadir(scene, (6.0, -4.75), 80.0, cam), uid) == 0  # straight above
         oblique = sensors.nadir(scene, (-41.754, -10.488), 80.0, cam)  # a UAV node 48 m away, off the deck end
         assert sensors.target_pixels(oblique, uid) == 0
-    finally:
-        scene.close()
 
 
 # -- agos episodes sample / split ----------------------------------------------------------------------

@@ -22,29 +22,28 @@ def record(episode: str, difficulty: str = "easy", **kw) -> EpisodeRecord:
 
 
 def test_store_is_idempotent_per_run_and_episode(tmp_path: Path) -> None:
-    store = ResultStore(tmp_path / "r" / "results.sqlite")
-    assert store.add(record("e1")) is True
-    assert store.add(record("e1", success=False)) is False  # a resubmission changes nothing
-    assert store.add(record("e2")) is True
-    assert store.add(record("e1", run_id="other")) is True
-    assert [r.episode_id for r in store.records("r")] == ["e1", "e2"]
-    assert store.records("r")[0].success is True
-    store.close()
-    reopened = ResultStore(tmp_path / "r" / "results.sqlite")
-    assert len(reopened.records()) == 3
+    with ResultStore(tmp_path / "r" / "results.sqlite") as store:
+        assert store.add(record("e1")) is True
+        assert store.add(record("e1", success=False)) is False  # a resubmission changes nothing
+        assert store.add(record("e2")) is True
+        assert store.add(record("e1", run_id="other")) is True
+        assert [r.episode_id for r in store.records("r")] == ["e1", "e2"]
+        assert store.records("r")[0].success is True
+    with ResultStore(tmp_path / "r" / "results.sqlite") as reopened:
+        assert len(reopened.records()) == 3
 
 
 def test_a_finished_record_replaces_an_infrastructure_failure_never_the_reverse(tmp_path: Path) -> None:
-    store = ResultStore(tmp_path / "results.sqlite")
-    failed = record("e1", status="agent_crashed", termination="error", success=False, error="no UGV agent service")
-    assert store.add(failed) is True
-    assert store.finished_ids() == set()
-    assert store.add(failed) is False  # the same failure again: nothing changes
-    assert store.add(record("e1")) is True  # a resumed run finished it
-    assert store.finished_ids() == {"e1"} and store.records()[0].status == "finished"
-    assert store.add(failed) is False  # nothing replaces a finished record
-    assert store.add(record("e1", success=False)) is False
-    assert store.records()[0].success is True and len(store.records()) == 1
+    with ResultStore(tmp_path / "results.sqlite") as store:
+        failed = record("e1", status="agent_crashed", termination="error", success=False, error="no UGV agent service")
+        assert store.add(failed) is True
+        assert store.finished_ids() == set()
+        assert store.add(failed) is False  # the same failure again: nothing changes
+        assert store.add(record("e1")) is True  # a resumed run finished it
+        assert store.finished_ids() == {"e1"} and store.records()[0].status == "finished"
+        assert store.add(failed) is False  # nothing replaces a finished record
+        assert store.add(record("e1", success=False)) is False
+        assert store.records()[0].success is True and len(store.records()) == 1
 
 
 @pytest.mark.parametrize(("kw", "expected"), [

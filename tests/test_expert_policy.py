@@ -72,8 +72,7 @@ def test_the_expert_succeeds_and_its_decisions_are_the_plan(town_name: str) -> N
         town = freeze(imported_layout(CARLA / f"{town_name}.xodr"))
     else:
         town = open_town(town_name)
-    scene = Scene(town.layout, look="flat")
-    try:
+    with Scene(town.layout, look="flat") as scene:
         for d, difficulty in enumerate(("easy", "mid", "hard")):
             spec = sample_episode(town, scene, difficulty, 0, seed=3, stream=d)
             record, steps, events, texts = _play(town, scene, spec)
@@ -93,8 +92,6 @@ def test_the_expert_succeeds_and_its_decisions_are_the_plan(town_name: str) -> N
             rejected = [c for c in record.candidates if c.status == "rejected"]
             assert len(rejected) == sum(s.action == "REJECT" for s in steps["ugv"])  # each staged wrong candidate
             assert all(c.distance_to_polygon_m > 0 for c in rejected)  # a wrong candidate holds no target
-    finally:
-        scene.close()
 
 
 def test_the_expert_needs_the_world_plan_and_only_its_runs_get_one() -> None:
@@ -106,8 +103,7 @@ def test_the_expert_needs_the_world_plan_and_only_its_runs_get_one() -> None:
     assert EpisodeConfig().config_hash() == EpisodeConfig(tools=ToolConfig(expert=False)).config_hash()
     assert EpisodeConfig(tools=ToolConfig(expert=True)).config_hash() != EpisodeConfig().config_hash()
     town = open_town("tee-s17")
-    scene = Scene(town.layout, look="flat")
-    try:
+    with Scene(town.layout, look="flat") as scene:
         from agos.world.episodes.sampling import sample_episode
 
         spec = sample_episode(town, scene, "easy", 0, seed=3, stream=0)
@@ -129,5 +125,3 @@ def test_the_expert_needs_the_world_plan_and_only_its_runs_get_one() -> None:
         assert seen and all(obs.expert is None for obs in seen)
         with pytest.raises(ValueError, match="policy 'expert'"):
             ExpertPolicy("uav").act(seen[0])
-    finally:
-        scene.close()

@@ -223,28 +223,27 @@ def planned() -> list[_Planned]:
     out: list[_Planned] = []
     for name in ("grid-s7", "parks-s23"):
         town = open_town(name)
-        scene = Scene(town.layout, look="flat")
-        for d, difficulty in enumerate(("easy", "mid", "hard")):
-            for index in range(2):
-                spec = sample_episode(town, scene, difficulty, index, seed=5, stream=d)
-                runner = EpisodeRunner(scene, town, spec, run_id="t", worker_id="t",
-                                       config=EpisodeConfig(look="flat", tools=ToolConfig(expert=True)))
-                runner._setup()
-                try:
-                    st = runner.state
-                    plan, ev = plan_episode(st), Evidence(st)
-                    last = plan.trajectories["ugv"][-1]
-                    annotations = [s for s in plan.steps["uav"] if s.action == "ANNOTATE_CANDIDATE"]
-                    holds = None
-                    if plan.finder == "uav":
-                        holds = ev.candidate_centre(plan.trajectories["uav"][-1].waypoint_id, annotations[-1].cell or "")[1]
-                    out.append(_Planned(st.spec.decision_budget, st.target_xy,
-                                        {n: town.uav_grid.nodes[n].position_world_m[:2] for n in town.uav_grid.nodes},
-                                        plan, plan_episode(st), ev.verifies(st.roads.parse_anchor_id(last.waypoint_id),
-                                                                            last.heading_rad or 0.0), holds))
-                finally:
-                    runner.teardown()
-        scene.close()
+        with Scene(town.layout, look="flat") as scene:
+            for d, difficulty in enumerate(("easy", "mid", "hard")):
+                for index in range(2):
+                    spec = sample_episode(town, scene, difficulty, index, seed=5, stream=d)
+                    runner = EpisodeRunner(scene, town, spec, run_id="t", worker_id="t",
+                                           config=EpisodeConfig(look="flat", tools=ToolConfig(expert=True)))
+                    runner._setup()
+                    try:
+                        st = runner.state
+                        plan, ev = plan_episode(st), Evidence(st)
+                        last = plan.trajectories["ugv"][-1]
+                        annotations = [s for s in plan.steps["uav"] if s.action == "ANNOTATE_CANDIDATE"]
+                        holds = None
+                        if plan.finder == "uav":
+                            holds = ev.candidate_centre(plan.trajectories["uav"][-1].waypoint_id, annotations[-1].cell or "")[1]
+                        out.append(_Planned(st.spec.decision_budget, st.target_xy,
+                                            {n: town.uav_grid.nodes[n].position_world_m[:2] for n in town.uav_grid.nodes},
+                                            plan, plan_episode(st), ev.verifies(st.roads.parse_anchor_id(last.waypoint_id),
+                                                                                last.heading_rad or 0.0), holds))
+                    finally:
+                        runner.teardown()
         if {p.plan.finder for p in out} == {"uav", "ugv"}:
             break
     return out

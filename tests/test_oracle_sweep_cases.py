@@ -79,14 +79,11 @@ class _Steps(NullSink):
 
 def _play(town: Town, spec: EpisodeSpec) -> tuple[EpisodeRecord, list[StepEvent]]:
     assert town.sha256 == spec.asset_sha256, "the town pipeline changed: this case is no longer the same episode"
-    scene = Scene(town.layout, look="flat")
     sink = _Steps()
-    try:
+    with Scene(town.layout, look="flat") as scene:
         config = EpisodeConfig(look="flat", tools=ToolConfig(oracle=True))
         agents = InProcessAgents({r: make_policy("oracle", r) for r in ("uav", "ugv")})
         record = EpisodeRunner(scene, town, spec, run_id="t", worker_id="w", config=config, sink=sink).run(agents)
-    finally:
-        scene.close()
     return record, sink.steps
 
 
@@ -116,8 +113,7 @@ def test_town01_hard_006_oracle_uav_flies_round_a_hole_in_the_active_nodes() -> 
 def test_town01_hard_006_solvability_needs_a_seeing_node_the_uav_can_reach() -> None:
     spec = from_json(TOWN01_HARD_006, EpisodeSpec)
     town = _carla("Town01")
-    scene = Scene(town.layout, look="flat")
-    try:
+    with Scene(town.layout, look="flat") as scene:
         t = spec.target
         uid = scene.add_vehicle(t.model, t.colour, t.position_world_m, t.yaw_rad)
         # the bottom row, where the UAV starts, and the top row, which sees the target: not connected
@@ -127,8 +123,6 @@ def test_town01_hard_006_solvability_needs_a_seeing_node_the_uav_can_reach() -> 
         from_start = check(scene, town, uid, t.position_world_m, t.yaw_rad, split, uav_start=spec.uav_start_waypoint)
         whole = check(scene, town, uid, t.position_world_m, t.yaw_rad, spec.active_uav_waypoints,
                       uav_start=spec.uav_start_waypoint, ugv_start=town.roads.parse_anchor_id(spec.ugv_start_waypoint))
-    finally:
-        scene.close()
     assert anywhere.uav_nodes and not from_start.uav_nodes
     assert whole.solvable
 
@@ -163,7 +157,7 @@ def test_a_world_worker_runs_each_imported_town_in_its_own_scene(tmp_path, monke
     from agos.world.towns.asset import save_town
 
     monkeypatch.setenv("AGOS_ASSET_CACHE", str(tmp_path))
-    worker = WorldWorker(AgosConfig(), MemoryBus(), StopFlag(), "w")  # type: ignore[arg-type]
+    worker = WorldWorker(AgosConfig(), MemoryBus(), StopFlag(), "w")
     try:
         for name in ("Town01", "Town02"):
             town = _carla(name)

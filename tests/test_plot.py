@@ -32,21 +32,19 @@ def runs(tmp_path_factory) -> tuple[dict[str, Path], str, list[EpisodeRecord]]:
     from agos.world.towns.asset import open_town
 
     town = open_town("grid-s7")
-    scene = Scene(town.layout, look="flat")
-    spec = sample_episode(town, scene, "mid", 0, seed=3)
     root = tmp_path_factory.mktemp("runs")
     dirs, records = {}, []
-    for policy in ("heuristic", "random"):
-        agents = InProcessAgents({r: make_policy(policy, r) for r in ("uav", "ugv")})
-        record = EpisodeRunner(scene, town, spec, run_id=policy, worker_id="w").run(agents)
-        run_dir = root / policy
-        write_episodes(run_dir / "episodes.jsonl", [spec])
-        store = ResultStore(run_dir / "results.sqlite")
-        store.add(record)
-        store.close()
-        (run_dir / "run.json").write_text(json.dumps({"policies": {"uav": policy, "ugv": policy}}))
-        dirs[policy], records = run_dir, [*records, record]
-    scene.close()
+    with Scene(town.layout, look="flat") as scene:
+        spec = sample_episode(town, scene, "mid", 0, seed=3)
+        for policy in ("heuristic", "random"):
+            agents = InProcessAgents({r: make_policy(policy, r) for r in ("uav", "ugv")})
+            record = EpisodeRunner(scene, town, spec, run_id=policy, worker_id="w").run(agents)
+            run_dir = root / policy
+            write_episodes(run_dir / "episodes.jsonl", [spec])
+            with ResultStore(run_dir / "results.sqlite") as store:
+                store.add(record)
+            (run_dir / "run.json").write_text(json.dumps({"policies": {"uav": policy, "ugv": policy}}))
+            dirs[policy], records = run_dir, [*records, record]
     return dirs, spec.episode_id, records
 
 

@@ -33,14 +33,11 @@ def _town(name: str) -> Town:
 @pytest.mark.parametrize("name", [*TOWNS, *CARLA_TOWNS])
 def test_sampled_episode_is_solvable(name: str) -> None:
     town = _town(name)
-    scene = Scene(town.layout, look="flat")
-    try:
+    with Scene(town.layout, look="flat") as scene:
         spec = sample_episode(town, scene, "mid", 0, seed=3)
         t = spec.target
         uid = scene.add_vehicle(t.model, t.colour, t.position_world_m, t.yaw_rad)
         result = check(scene, town, uid, t.position_world_m, t.yaw_rad, spec.active_uav_waypoints)
-    finally:
-        scene.close()
     assert result.verifying_anchors, "no decision anchor can verify the target"
     anchor_xy = town.roads.positions_world_m[result.verifying_anchors[0]]
     assert math.dist(anchor_xy, t.position_world_m[:2]) <= 50.0

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -15,8 +13,6 @@ from agos.evaluator.summary import EpisodeSummary, SummaryError, read_jsonl, rea
 from agos.runtime.schemas import EpisodeRecord
 
 from support.synthetic import synthetic_summaries, write_jsonl
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def row(**kw: Any) -> dict[str, Any]:
@@ -113,17 +109,16 @@ def test_missing_file(tmp_path: Path) -> None:
 
 
 def test_run_directory_with_results(tmp_path: Path) -> None:
-    store = ResultStore(tmp_path / "r1" / "results.sqlite")
-    for k, difficulty in enumerate(("hard", "easy")):
-        store.add(EpisodeRecord(
-            run_id="r1", episode_id=f"ep-{k}", difficulty=difficulty, status="finished", termination="confirmed",
-            success=True, ground_observed=True, n_confirm=1, ugv_path_length_m=100.0, shortest_path_length_m=50.0,
-            final_distance_m=4.0, uav_budget=80, uav_first_visible_step=2,
-            candidates=[{"candidate_id": "c", "cell": "x", "center_world_m": [0.0, 0.0], "status": "confirmed",
-                         "distance_to_polygon_m": 0.0, "center_error_m": 1.5}],
-            decisions_uav=3, decisions_ugv=2, sim_time_s=10.0, wall_time_s=1.0, worker_id="w", town_id="t",
-            asset_sha256="0" * 64, seed=1, renderer="r"))
-    store.close()
+    with ResultStore(tmp_path / "r1" / "results.sqlite") as store:
+        for k, difficulty in enumerate(("hard", "easy")):
+            store.add(EpisodeRecord(
+                run_id="r1", episode_id=f"ep-{k}", difficulty=difficulty, status="finished", termination="confirmed",
+                success=True, ground_observed=True, n_confirm=1, ugv_path_length_m=100.0, shortest_path_length_m=50.0,
+                final_distance_m=4.0, uav_budget=80, uav_first_visible_step=2,
+                candidates=[{"candidate_id": "c", "cell": "x", "center_world_m": [0.0, 0.0], "status": "confirmed",
+                             "distance_to_polygon_m": 0.0, "center_error_m": 1.5}],
+                decisions_uav=3, decisions_ugv=2, sim_time_s=10.0, wall_time_s=1.0, worker_id="w", town_id="t",
+                asset_sha256="0" * 64, seed=1, renderer="r"))
     episodes = read_run(tmp_path / "r1")
     assert [(e.episode_id, e.difficulty) for e in episodes] == [("ep-0", "hard"), ("ep-1", "easy")]
     assert episodes[0].candidates[0].center_error_m == 1.5 and episodes[0].candidates[0].status == "confirmed"
@@ -131,15 +126,10 @@ def test_run_directory_with_results(tmp_path: Path) -> None:
 
 
 # ----- the CLI ---------------------------------------------------------------------------------
-def _agos(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "agos.deploy.cli", *args], capture_output=True, text=True,
-                          cwd=REPO, timeout=120)
-
-
-def test_cli_metrics_json(tmp_path: Path) -> None:
+def test_cli_metrics_json(tmp_path: Path, agos) -> None:
     path = tmp_path / "s.jsonl"
     write_jsonl(path, synthetic_summaries(30, seed=5))
-    proc = _agos("metrics", str(path), "--json")
+    proc = agos("metrics", path, "--json")
     assert proc.returncode == 0, proc.stderr
     data = json.loads(proc.stdout)
     assert set(data) == {"easy", "mid", "hard", "overall"}
@@ -147,9 +137,9 @@ def test_cli_metrics_json(tmp_path: Path) -> None:
     assert set(data["overall"]) >= {"SR", "GVA_support", "CErr", "n", "not_scored"}
 
 
-def test_cli_metrics_bad_file(tmp_path: Path) -> None:
+def test_cli_metrics_bad_file(tmp_path: Path, agos) -> None:
     path = write_lines(tmp_path / "bad.jsonl", [row(), row(episode_id="e2", success="yes")])
-    proc = _agos("metrics", str(path), "--json")
+    proc = agos("metrics", path, "--json")
     assert proc.returncode == 2
     assert proc.stdout == ""
     lines = proc.stderr.strip().splitlines()
@@ -157,6 +147,7 @@ def test_cli_metrics_bad_file(tmp_path: Path) -> None:
     assert f"{path}:2" in lines[0] and "success" in lines[0]
 
 
+@pytest.mark.e2e  # a real pipe whose reader leaves: the command as a process
 def test_metrics_piped_into_head_prints_no_traceback(tmp_path) -> None:
     """`agos metrics --json | head`: the reader leaves early (here `true`, which reads nothing and exits
     before agos writes); agos says nothing about it."""

@@ -88,10 +88,9 @@ def test_policy_names_and_tools() -> None:
 @pytest.fixture(scope="module")
 def world():
     town = open_town("grid-s7")
-    scene = Scene(town.layout, look="flat")
-    episodes = generate_episodes(town, scene, per_difficulty=1, seed=1)
-    yield town, scene, episodes
-    scene.close()
+    with Scene(town.layout, look="flat") as scene:
+        episodes = generate_episodes(town, scene, per_difficulty=1, seed=1)
+        yield town, scene, episodes
 
 
 def _run(world, policy: str, spec, sink=None):
@@ -139,17 +138,13 @@ def test_no_e2a_candidate_is_the_uav_footprint(world) -> None:
     assert record.candidates[0].center_error_m > e2a.candidates[0].center_error_m
 
 
-def test_a_misspelt_policy_fails_before_any_process_starts(tmp_path) -> None:
-    import subprocess
-    import sys
-
+def test_a_misspelt_policy_fails_before_any_process_starts(tmp_path, agos) -> None:
     from agos.agents.names import split_name
 
     with pytest.raises(ValueError, match="unknown policy 'heurstic'"):
         split_name("heurstic")
     with pytest.raises(ValueError, match="standin-<milliseconds>ms"):
         split_name("standin-fast")
-    out = subprocess.run([sys.executable, "-m", "agos.deploy.cli", "eval", "--policy", "heurstic", "--run-dir",
-                          str(tmp_path / "r")], capture_output=True, text=True, timeout=60)
+    out = agos("eval", "--policy", "heurstic", "--run-dir", tmp_path / "r")  # in this process: the guard sees a start
     assert out.returncode == 2 and "unknown policy 'heurstic'" in out.stderr, out.stderr
     assert not (tmp_path / "r" / "logs").exists()  # nothing was started

@@ -53,16 +53,14 @@ def town():
 
 @pytest.fixture(scope="module")
 def rich(town):
-    scene = Scene(town.layout, look="rich")
-    yield scene
-    scene.close()
+    with Scene(town.layout, look="rich") as scene:
+        yield scene
 
 
 @pytest.fixture(scope="module")
 def flat(town):
-    scene = Scene(town.layout, look="flat")
-    yield scene
-    scene.close()
+    with Scene(town.layout, look="flat") as scene:
+        yield scene
 
 
 def _spec(target: VehicleSpec, distractors: tuple[VehicleSpec, ...] = ()) -> EpisodeSpec:

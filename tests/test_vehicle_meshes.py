@@ -37,9 +37,8 @@ def layout():
 
 @pytest.fixture(scope="module")
 def rich(layout):
-    scene = Scene(layout, look="rich")
-    yield scene
-    scene.close()
+    with Scene(layout, look="rich") as scene:
+        yield scene
 
 
 def _view(scene: Scene, uid: int, length_m: float, direction: str):
@@ -92,10 +91,11 @@ def test_meshes_and_renders_are_deterministic(rich, layout):
     for material in first.triangles:
         assert first.triangles[material].tobytes() == second.triangles[material].tobytes()
     renders = []
-    for scene in (rich, Scene(layout, look="rich")):
-        uid = _studio_vehicle(scene, "suv", "blue", roof="white", rack=True, stripe="white")
-        renders.append(_view(scene, uid, first.length_m, "front").rgb.tobytes())
-        scene.remove(uid)
+    with Scene(layout, look="rich") as again:
+        for scene in (rich, again):
+            uid = _studio_vehicle(scene, "suv", "blue", roof="white", rack=True, stripe="white")
+            renders.append(_view(scene, uid, first.length_m, "front").rgb.tobytes())
+            scene.remove(uid)
     assert renders[0] == renders[1]
 
 
@@ -129,8 +129,7 @@ def test_attributes_show(rich):
 
 def test_reference_views_use_the_meshes(rich, layout):
     cam = CameraConfig()
-    flat = Scene(layout, look="flat")
-    try:
+    with Scene(layout, look="flat") as flat:
         alpha = {}
         for look, scene in (("rich", rich), ("flat", flat)):
             uid = scene.add_vehicle("sedan", "red", (0.0, 0.0, 0.0), 0.3)
@@ -141,8 +140,6 @@ def test_reference_views_use_the_meshes(rich, layout):
         # different silhouettes: the rich sedan is not the box sedan
         side_r, side_f = alpha["rich"][2], alpha["flat"][2]
         assert np.count_nonzero(side_r & side_f) / np.count_nonzero(side_r | side_f) < 0.9
-    finally:
-        flat.close()
 
 
 def test_rays_hit_rich_vehicles(rich):
@@ -163,19 +160,17 @@ def test_the_flat_look_renders_as_before(layout):
     anchor = int(town.roads.anchor_array()[0][0])
     xy = tuple(float(v) for v in town.roads.positions_world_m[anchor][:2])
     out = []
-    for scene in (Scene(layout, look="flat"), Scene(layout, look="flat")):
-        uid = scene.add_vehicle("sedan", "red", (xy[0] + 6.0, xy[1], 0.0), 0.0)
-        shots = sensors.six_views(scene, xy, 0.0, cam) + [sensors.nadir(scene, xy, 80.0, cam)]
-        refs = sensors.reference_views(scene, uid, (xy[0] + 6.0, xy[1], 0.0), 0.0, cam)
-        out.append([s.render.rgb.tobytes() + s.render.instance.tobytes() + s.render.depth_m.tobytes()
-                    for s in shots] + [f.data for f in refs])
-        digest = hashlib.sha256(b"".join(out[-1][:len(shots)] + [decode_image(f.data).tobytes() for f in refs]))
-        scene.close()
+    for _ in range(2):  # two scenes of their own
+        with Scene(layout, look="flat") as scene:
+            uid = scene.add_vehicle("sedan", "red", (xy[0] + 6.0, xy[1], 0.0), 0.0)
+            shots = sensors.six_views(scene, xy, 0.0, cam) + [sensors.nadir(scene, xy, 80.0, cam)]
+            refs = sensors.reference_views(scene, uid, (xy[0] + 6.0, xy[1], 0.0), 0.0, cam)
+            out.append([s.render.rgb.tobytes() + s.render.instance.tobytes() + s.render.depth_m.tobytes()
+                        for s in shots] + [f.data for f in refs])
+            digest = hashlib.sha256(b"".join(out[-1][:len(shots)] + [decode_image(f.data).tobytes() for f in refs]))
     assert out[0] == out[1]
     assert digest.hexdigest()[:16] == FLAT_RENDER_SHA
-    flat = Scene(layout, look="flat")
-    with pytest.raises(ValueError, match="look='rich'"):
+    with Scene(layout, look="flat") as flat, pytest.raises(ValueError, match="look='rich'"):
         flat.add_vehicle("sedan", "red", (0.0, 0.0, 0.0), 0.0, attributes=VehicleAttributes(rack=True))
-    flat.close()
     with pytest.raises(ValueError, match="unknown look"):
         Scene(layout, look="photoreal")

@@ -165,8 +165,7 @@ def _episodes(args: argparse.Namespace) -> int:
         from agos.world.towns.asset import open_town
 
         town = open_town(resolve_town(args.town).source)
-        scene = Scene(town.layout, look=args.look)
-        try:
+        with Scene(town.layout, look=args.look) as scene:
             if args.per_difficulty:
                 plan = [(d, args.per_difficulty) for d in DIFFICULTIES]
             elif args.difficulty:
@@ -176,8 +175,6 @@ def _episodes(args: argparse.Namespace) -> int:
                 return 2
             episodes = [sample_episode(town, scene, d, i, seed=args.seed, stream=DIFFICULTIES.index(d))
                         for d, n in plan for i in range(n)]
-        finally:
-            scene.close()
         write_episodes(args.out, episodes)
         print(f"wrote {len(episodes)} solvable episodes on {town.town_id} (asset {town.sha256[:12]}, {args.look} look) "
               f"to {args.out}")
