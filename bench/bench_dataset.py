@@ -125,11 +125,8 @@ def config_hash(run_dir: Path) -> str:
 def decisions_by_episode(run_dir: Path) -> dict[str, tuple[int, int]]:
     from agos.evaluator.store import ResultStore
 
-    store = ResultStore(run_dir / "results.sqlite", create=False)
-    try:
+    with ResultStore(run_dir / "results.sqlite", create=False) as store:
         return {r.episode_id: (r.decisions_uav, r.decisions_ugv) for r in store.records()}
-    finally:
-        store.close()
 
 
 def tree_bytes(root: Path) -> int:

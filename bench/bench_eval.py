@@ -179,11 +179,8 @@ def stored_records(run_dir: Path) -> list[EpisodeRecord]:
     path = run_dir / "results.sqlite"
     if not path.exists():
         return []
-    store = ResultStore(path, create=False)
-    try:
+    with ResultStore(path, create=False) as store:
         return store.records()
-    finally:
-        store.close()
 
 
 def watch_events(proc: subprocess.Popen, port: int, run_id: str, log: EventLog) -> ZenohBus | None:
@@ -191,7 +188,7 @@ def watch_events(proc: subprocess.Popen, port: int, run_id: str, log: EventLog) 
     while proc.poll() is None:
         if wait_listening("127.0.0.1", port, 0.2):
             bus = ZenohBus.connect(f"tcp/127.0.0.1:{port}")
-            bus.subscribe(keys.events(run_id, "*"), log)  # type: ignore[arg-type]  # EventLog is an inbox (put)
+            bus.subscribe(keys.events(run_id, "*"), log)  # EventLog is an inbox (put): a SampleSink
             return bus
     return None
 

@@ -75,8 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     small: list[dict] = []
     for name in args.towns:
         town = _town(name)
-        scene = Scene(town.layout, look="flat")
-        try:
+        with Scene(town.layout, look="flat") as scene:
             for d, difficulty in ((1, "mid"), (2, "hard")):
                 for index in range(args.per_cell):
                     spec = sample_episode(town, scene, difficulty, index, seed=args.seed, stream=d)  # type: ignore[arg-type]
@@ -104,8 +103,6 @@ def main(argv: list[str] | None = None) -> int:
                     console.print(f"{spec.episode_id}: {inst.sizes[0]} UAV + {inst.sizes[1]} UGV waypoints, "
                                   f"{len(inst.pairs)} pairs, "
                                   f"makespan {sol.makespan_s:.1f} s, CP-SAT {sol.solve_wall_s:.2f} s")
-        finally:
-            scene.close()
     ratios = [s["ratio"] for s in small]
     table = Table(title=f"small instances: CP-SAT vs the MILP optimum ({len(small)} instances)")
     for col in ("instances", "UAV nodes", "UGV nodes", "MILP proved", "ratio median", "ratio max", "> 1.02",
