@@ -208,11 +208,8 @@ def _stored_records(run_dir: Path) -> Iterator[EpisodeRecord]:
     path = run_dir / "results.sqlite"
     if not path.exists():
         return
-    store = ResultStore(path, create=False)
-    try:
+    with ResultStore(path, create=False) as store:
         yield from store.records()
-    finally:
-        store.close()
 
 
 def _latest_attempt(episode_partial: Path) -> Path | None:

@@ -240,13 +240,10 @@ class Recorder:
 def main(cfg: AgosConfig, out_dir: Path, *, full: bool = False) -> int:
     setup_logging("record")
     stop = install_stop_handlers()
-    bus = ZenohBus.from_settings(cfg.zenoh)
-    try:
+    with ZenohBus.from_settings(cfg.zenoh) as bus:
         recorder = Recorder(bus, cfg.run.run_id, out_dir, full=full,
                             map_source=lambda spec: episode_map(spec, size_px=MAP_PX))
         return recorder.serve(stop)
-    finally:
-        bus.close()
 
 
 def wait_ready(out_dir: Path, timeout_s: float, since: float, alive: Callable[[], bool] = lambda: True) -> bool:

@@ -102,11 +102,8 @@ def first_finished(runs: list[Path]) -> str:
     """The first episode id (in order) with a finished record in every one of ``runs``."""
     shared: set[str] | None = None
     for path in runs:
-        store = ResultStore(run_dir_of(path) / "results.sqlite", create=False)
-        try:
+        with ResultStore(run_dir_of(path) / "results.sqlite", create=False) as store:
             ids = store.finished_ids()
-        finally:
-            store.close()
         shared = ids if shared is None else shared & ids
     if not shared:
         raise PlotError(f"no episode finished in {' and '.join(str(r) for r in runs)}")
@@ -114,11 +111,8 @@ def first_finished(runs: list[Path]) -> str:
 
 
 def _record(run_dir: Path, episode_id: str) -> EpisodeRecord:
-    store = ResultStore(run_dir / "results.sqlite", create=False)
-    try:
+    with ResultStore(run_dir / "results.sqlite", create=False) as store:
         stored = dict(store.raw_records())  # episode id -> JSON: only the one drawn is decoded
-    finally:
-        store.close()
     if episode_id not in stored:
         known = ", ".join(sorted(stored)[:5]) + (" ..." if len(stored) > 5 else "")
         raise PlotError(f"{run_dir.name}: no record of episode {episode_id!r} (stored: {known or 'none'})")

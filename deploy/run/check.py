@@ -121,7 +121,7 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "he
     config = episode_config(cfg, policies={"uav": policy, "ugv": policy}, decision_budget=budget)
     scene = Scene(town.layout, renderer=config.renderer, look=config.look)
     record: EpisodeRecord | None = None
-    try:
+    with bus, scene:
         spec = generate_episodes(town, scene, per_difficulty=1, seed=cfg.run.episode_seed)[0]
         spec = msgspec.structs.replace(spec, episode_id=f"check-{spec.episode_id}")
         console.print(f"checking the agents of run {run_id!r} on {cfg.zenoh.connect}: episode {spec.episode_id}, "
@@ -142,9 +142,6 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "he
             source.close()
         if record is not None:
             v.check("finished", record.status == "finished", f"episode status {record.status}")
-    finally:
-        scene.close()
-        bus.close()
     _report(console, v, record)
     return 0 if v.ok else 1
 

@@ -248,9 +248,8 @@ def _summary(console: Console, plan: RunPlan, orch: Orchestrator | None, attach:
     path = results_path(plan.run_dir.parent, plan.run_id)
     records = []
     if path.exists():
-        store = ResultStore(path)
-        records = store.records(plan.run_id)
-        store.close()
+        with ResultStore(path) as store:
+            records = store.records(plan.run_id)
     elif orch is not None:  # the evaluator stores elsewhere: show what was acknowledged
         records = [orch.records[e] for e in sorted(orch.stored) if e in orch.records]
     if records:

@@ -59,11 +59,8 @@ def generated_episodes(cfg: AgosConfig) -> list[EpisodeSpec]:
     from agos.world.towns.asset import open_town
 
     town = open_town(cfg.run.town)
-    scene = Scene(town.layout, look=cfg.world.look)  # episodes are checked solvable by rendering, in the run's look
-    try:
+    with Scene(town.layout, look=cfg.world.look) as scene:  # episodes are checked solvable by rendering, in the run's look
         return generate_episodes(town, scene, per_difficulty=cfg.run.per_difficulty, seed=cfg.run.episode_seed)
-    finally:
-        scene.close()
 
 
 def vlm_plan(cfg: AgosConfig, policies: dict[str, str], standin: str | None) -> dict[str, Any]:
@@ -141,9 +138,6 @@ def stored_episodes(run_dir: Path) -> set[str]:
     path = run_dir / "results.sqlite"
     if not path.exists():
         return set()
-    store = ResultStore(path, create=False)
-    try:
+    with ResultStore(path, create=False) as store:
         return store.finished_ids()
-    finally:
-        store.close()
 
