@@ -1,4 +1,5 @@
-"""The transport: a zenoh session with the few operations agos needs, and an in-memory fake.
+"""The transport: :class:`Bus`, the few operations agos needs (the protocol every component takes),
+:class:`ZenohBus`, a zenoh session that has them, and :class:`MemoryBus`, an in-memory fake.
 
 Every process is a client of a router (multicast scouting off unless asked). Two kinds of QoS:
 
