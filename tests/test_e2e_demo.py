@@ -44,14 +44,17 @@ def _read_until(proc: subprocess.Popen, marker: str, lines: list[str], timeout_s
 
 
 def _processes_mentioning(text: str) -> list[int]:
+    """Processes whose command line or environment names ``text`` (a run's children get the router's
+    endpoint as AGOS_ZENOH__CONNECT or AGOS_ZENOH__LISTEN in their environment)."""
     pids = []
     for entry in Path("/proc").iterdir():
         if entry.name.isdigit():
             try:
                 cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+                environ = (entry / "environ").read_bytes().replace(b"\0", b" ").decode(errors="replace")
             except OSError:
                 continue
-            if text in cmdline and "pytest" not in cmdline:
+            if (text in cmdline or text in environ) and "pytest" not in cmdline:
                 pids.append(int(entry.name))
     return pids
 

@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-from agos.deploy.run.launcher import free_port
 from agos.deploy.recording.recorder import STALL_ENV, BoundedInbox, Recorder
+from agos.deploy.run.launcher import free_port
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, MemoryBus, Sample
 from agos.runtime.codec import encode
