@@ -5,8 +5,6 @@ evaluator/pooling.py)."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -92,24 +90,20 @@ def test_mixed_configurations_are_named(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("command", [["metrics"], ["report", "--out", "REPORT"]])
-def test_cli_refuses_to_pool_mixed_configurations(tmp_path: Path, command: list[str]) -> None:
+def test_cli_refuses_to_pool_mixed_configurations(tmp_path: Path, command: list[str], agos) -> None:
     _store_mixed_run(tmp_path / "run")
     args = [str(tmp_path / "REPORT") if a == "REPORT" else a for a in command]
-    cli = [sys.executable, "-m", "agos.deploy.cli"]
-    refused = subprocess.run([*cli, args[0], str(tmp_path / "run"), *args[1:]], capture_output=True, text=True,
-                             cwd=REPO, timeout=120)
+    refused = agos(args[0], tmp_path / "run", *args[1:], cwd=REPO)
     assert refused.returncode == 2, refused.stderr
     assert "different configurations" in refused.stderr and "cameras.nadir_px" in refused.stderr
     assert "--allow-mixed" in refused.stderr and refused.stdout == ""
-    pooled = subprocess.run([*cli, args[0], str(tmp_path / "run"), *args[1:], "--allow-mixed"], capture_output=True,
-                            text=True, cwd=REPO, timeout=120)
+    pooled = agos(args[0], tmp_path / "run", *args[1:], "--allow-mixed", cwd=REPO)
     assert pooled.returncode == 0, pooled.stderr
 
 
-def test_compare_checks_each_run(tmp_path: Path) -> None:
+def test_compare_checks_each_run(tmp_path: Path, agos) -> None:
     _store_mixed_run(tmp_path / "a")
-    out = subprocess.run([sys.executable, "-m", "agos.deploy.cli", "compare", str(tmp_path / "a"), str(tmp_path / "a")],
-                         capture_output=True, text=True, cwd=REPO, timeout=120)
+    out = agos("compare", tmp_path / "a", tmp_path / "a", cwd=REPO)
     assert out.returncode == 2 and "cameras.nadir_px" in out.stderr
 
 

@@ -10,9 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import msgspec
@@ -42,7 +39,6 @@ from agos.world.towns.placement import ParkingSlot
 from agos.world.towns.procedural import TEST_TOWNS, TOWNS
 from agos.world.towns.streets import strip
 
-AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 SEED = 1
 SOLVE_TOWNS = ("grid-s7", "tee-s17", "parks-s23")
 CASES = [(t, d) for t in SOLVE_TOWNS for d in DIFFICULTIES]
@@ -257,15 +253,11 @@ def test_a_car_just_inside_a_deck_end_is_hidden_from_an_oblique_uav_view():
 # -- agos episodes sample / split ----------------------------------------------------------------------
 
 
-def agos(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "AGOS_ASSET_CACHE": str(cwd / "cache")}
-    return subprocess.run([*AGOS, *args], capture_output=True, text=True, timeout=300, env=env, cwd=cwd)
-
-
-def test_episodes_sample_command(tmp_path, worlds, episodes):
+def test_episodes_sample_command(tmp_path, worlds, episodes, agos):
     out = tmp_path / "eps.jsonl"
+    cache = {"AGOS_ASSET_CACHE": str(tmp_path / "cache")}
     proc = agos("episodes", "sample", "--town", "grid-s7", "--difficulty", "easy", "-n", "2", "--look", "flat",
-                "--out", str(out), cwd=tmp_path)  # the look of the scenes here (a rich split: test_paper_splits)
+                "--out", out, env=cache, cwd=tmp_path)  # the look of the scenes here (a rich split: test_paper_splits)
     assert proc.returncode == 0, proc.stderr
     lines = out.read_text().splitlines()
     assert len(lines) == 2
@@ -274,16 +266,23 @@ def test_episodes_sample_command(tmp_path, worlds, episodes):
     assert all(e.difficulty == "easy" and e.asset_sha256 == worlds["grid-s7"][0].sha256 for e in parsed)
     # the command samples exactly what the library does for the same seed and stream
     assert lines[0] == to_json(episodes[("grid-s7", "easy")]).decode()
-    check_proc = agos("episodes", "check", str(out), cwd=tmp_path)
+    check_proc = agos("episodes", "check", out, env=cache, cwd=tmp_path)
     assert check_proc.returncode == 0 and "2 valid episodes" in check_proc.stdout
 
 
 @pytest.fixture(scope="module")
 def split_dir(tmp_path_factory) -> Path:
+    """``agos episodes split`` in this process, one worker (that worker counts change no file:
+    test_paper_splits)."""
+    from agos.deploy.cli import main
+
     out = tmp_path_factory.mktemp("split")
-    proc = agos("episodes", "split", "--out", str(out / "d"), "--train", "6", "--val", "3", "--test", "3",
-                "--workers", "2", "--look", "flat", cwd=out)
-    assert proc.returncode == 0, proc.stderr
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("AGOS_ASSET_CACHE", str(out / "cache"))
+        patch.chdir(out)
+        code = main(["episodes", "split", "--out", str(out / "d"), "--train", "6", "--val", "3", "--test", "3",
+                     "--workers", "1", "--look", "flat"])
+    assert code == 0
     return out / "d"
 
 

@@ -81,6 +81,7 @@ def small_builds(tmp_path_factory) -> dict[tuple[str, int], Path]:
     return built
 
 
+@pytest.mark.e2e  # the split's worker processes
 @pytest.mark.parametrize("name,workers", [(n, w) for n, _, ws in SMALL for w in ws])
 def test_small_split_files_match_the_pins(small_builds, name, workers) -> None:
     entry = _pinned()["small"][name]
@@ -92,6 +93,7 @@ def test_small_split_files_match_the_pins(small_builds, name, workers) -> None:
                       f"if the change is intended, {REPIN}"
 
 
+@pytest.mark.e2e  # the split's worker processes
 def test_the_files_do_not_depend_on_the_number_of_workers(small_builds) -> None:
     for name, _, worker_counts in SMALL:
         if len(worker_counts) > 1:
@@ -116,6 +118,7 @@ def test_a_full_paper_preset_build_matches_the_pin() -> None:
 
 # -- what the manifest says ---------------------------------------------------------------------------
 
+@pytest.mark.e2e  # the split's worker processes
 def test_the_manifest_records_towns_look_counts_and_files(small_builds) -> None:
     out = small_builds[("carla2-rich", 1)]
     manifest = json.loads((out / "manifest.json").read_text())
@@ -136,8 +139,11 @@ def test_the_manifest_records_towns_look_counts_and_files(small_builds) -> None:
 
 # -- checks before any sampling: one line, exit 2 -------------------------------------------------------
 
-def _refused(tmp_path: Path, *args: str) -> str:
-    proc = agos_split(tmp_path / "never", list(args), workers=1, cache=tmp_path / "cache")
+def _refused(agos, tmp_path: Path, *args: str) -> str:
+    """``agos episodes split ARGS`` in this process (the guard holds it to starting nothing): its one line."""
+    maps = [] if "--maps" in args else ["--maps", str(CARLA)]
+    proc = agos("episodes", "split", "--out", tmp_path / "never", *args, "--workers", "1", *maps,
+                env={"AGOS_ASSET_CACHE": str(tmp_path / "cache")}, cwd=REPO)
     assert proc.returncode == 2, (proc.returncode, proc.stdout, proc.stderr)
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("episodes error: "), proc.stderr
@@ -145,25 +151,25 @@ def _refused(tmp_path: Path, *args: str) -> str:
     return lines[0]
 
 
-def test_the_paper_preset_needs_a_test_town(tmp_path) -> None:
-    line = _refused(tmp_path, "--preset", "paper")
+def test_the_paper_preset_needs_a_test_town(tmp_path, agos) -> None:
+    line = _refused(agos, tmp_path, "--preset", "paper")
     assert "--test-town" in line and "Town01" in line
 
 
-def test_the_paper_preset_needs_its_maps(tmp_path) -> None:
-    line = _refused(tmp_path, "--preset", "paper", "--test-town", "parks-s23", "--maps", str(tmp_path / "nowhere"))
+def test_the_paper_preset_needs_its_maps(tmp_path, agos) -> None:
+    line = _refused(agos, tmp_path, "--preset", "paper", "--test-town", "parks-s23", "--maps", str(tmp_path / "nowhere"))
     assert str(tmp_path / "nowhere" / "Town01.xodr") in line and "--maps" in line
 
 
-def test_an_unknown_town_is_named(tmp_path) -> None:
-    line = _refused(tmp_path, "--towns", "grid-s7,atlantis", "--test-town", "parks-s23")
+def test_an_unknown_town_is_named(tmp_path, agos) -> None:
+    line = _refused(agos, tmp_path, "--towns", "grid-s7,atlantis", "--test-town", "parks-s23")
     assert "'atlantis'" in line and "agos map import" in line
-    line = _refused(tmp_path, "--towns", "grid-s7", "--test-town", str(tmp_path / "Town99.xodr"))
+    line = _refused(agos, tmp_path, "--towns", "grid-s7", "--test-town", str(tmp_path / "Town99.xodr"))
     assert "Town99.xodr" in line
 
 
-def test_the_test_town_must_be_held_out(tmp_path) -> None:
-    line = _refused(tmp_path, "--towns", "grid-s7,parks-s23")
+def test_the_test_town_must_be_held_out(tmp_path, agos) -> None:
+    line = _refused(agos, tmp_path, "--towns", "grid-s7,parks-s23")
     assert "parks-s23" in line and "--test-town" in line
 
 

@@ -4,10 +4,7 @@ through ``agos map``, and the top-down map."""
 from __future__ import annotations
 
 import json
-import os
 import re
-import subprocess
-import sys
 from collections import Counter
 from pathlib import Path
 
@@ -24,7 +21,6 @@ from agos.world.towns.topdown import COLOURS_BGR, region_map
 MAPS = Path(__file__).resolve().parents[2] / "shared" / "maps"
 TOWN01 = MAPS / "carla" / "Town01.xodr"
 ZERO_WIDTH = MAPS / "opendrive-samples" / "zero_width.xodr"
-AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 
 
 def town(town_id: str) -> asset.Town:
@@ -254,28 +250,27 @@ def test_imported_town_rejects_fetched_bytes_with_the_wrong_hash(tmp_path, monke
         town_for("opendrive", 0, None, town_id="Elsewhere")
 
 
-# -- OpenDRIVE import through the CLI ---------------------------------------------------------------
+# -- OpenDRIVE import through the CLI (in this process: the agos fixture) --------------------------------
 
 
-def agos(*args: str, cache: Path, cwd: Path) -> subprocess.CompletedProcess:
-    import os
-
-    env = {**os.environ, "AGOS_ASSET_CACHE": str(cache)}
-    return subprocess.run([*AGOS, *args], capture_output=True, text=True, timeout=120, env=env, cwd=cwd)
+@pytest.fixture
+def agos_cached(agos, tmp_path):
+    """``agos`` with a private asset cache under ``tmp_path``, run from ``tmp_path``."""
+    return lambda *args: agos(*args, env={"AGOS_ASSET_CACHE": str(tmp_path / "cache")}, cwd=tmp_path)
 
 
 @pytest.mark.skipif(not TOWN01.exists(), reason=f"{TOWN01} not present")
-def test_map_import_is_deterministic_and_info_reports_the_graphs(tmp_path):
+def test_map_import_is_deterministic_and_info_reports_the_graphs(tmp_path, agos_cached):
     outs = []
     for k in range(2):
         out = tmp_path / f"town01-{k}"
-        proc = agos("map", "import", str(TOWN01), "--out", str(out), cache=tmp_path / "cache", cwd=tmp_path)
+        proc = agos_cached("map", "import", TOWN01, "--out", out)
         assert proc.returncode == 0, proc.stderr
         outs.append(out)
     shas = [json.loads((o / "manifest.json").read_text())["sha256"] for o in outs]
     assert shas[0] == shas[1]
     assert (outs[0] / "asset.msgpack").read_bytes() == (outs[1] / "asset.msgpack").read_bytes()
-    proc = agos("map", "info", str(outs[0]), "--json", cache=tmp_path / "cache", cwd=tmp_path)
+    proc = agos_cached("map", "info", outs[0], "--json")
     assert proc.returncode == 0, proc.stderr
     info = json.loads(proc.stdout)
     for key in ("fine_nodes", "fine_edges", "decision_nodes", "decision_edges", "uav_nodes", "median_fine_edge_m",
@@ -291,8 +286,8 @@ def test_map_import_is_deterministic_and_info_reports_the_graphs(tmp_path):
 
 
 @pytest.mark.skipif(not ZERO_WIDTH.exists(), reason=f"{ZERO_WIDTH} not present")
-def test_map_import_of_an_odd_file_warns_and_succeeds(tmp_path):
-    proc = agos("map", "import", str(ZERO_WIDTH), "--out", str(tmp_path / "zw"), cache=tmp_path / "cache", cwd=tmp_path)
+def test_map_import_of_an_odd_file_warns_and_succeeds(tmp_path, agos_cached):
+    proc = agos_cached("map", "import", ZERO_WIDTH, "--out", tmp_path / "zw")
     assert proc.returncode == 0, proc.stderr
     warnings = [line for line in proc.stderr.splitlines() if line.startswith("warning:")]
     assert warnings
@@ -301,10 +296,10 @@ def test_map_import_of_an_odd_file_warns_and_succeeds(tmp_path):
     assert json.loads((tmp_path / "zw" / "manifest.json").read_text())["warnings"] >= len(warnings)
 
 
-def test_map_import_of_a_non_xml_file_fails_with_one_line(tmp_path):
+def test_map_import_of_a_non_xml_file_fails_with_one_line(tmp_path, agos_cached):
     bad = tmp_path / "notes.xodr"
     bad.write_text("this is not xml\n")
-    proc = agos("map", "import", str(bad), "--out", str(tmp_path / "out"), cache=tmp_path / "cache", cwd=tmp_path)
+    proc = agos_cached("map", "import", bad, "--out", tmp_path / "out")
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr
@@ -334,7 +329,8 @@ def test_region_map_has_the_requested_size_and_shows_roads():
     assert not np.all(far == road_rgb, axis=-1).any()
 
 
-def test_eval_refuses_a_split_whose_towns_cannot_be_had_before_starting_anything(tmp_path, sample_mid_episodes) -> None:
+def test_eval_refuses_a_split_whose_towns_cannot_be_had_before_starting_anything(tmp_path, sample_mid_episodes,
+                                                                                  agos_cached) -> None:
     """An unknown generator, a build that hashes otherwise, an imported town not in the cache: one line
     naming the file and the episode, exit 2, no run directory made."""
     lines = sample_mid_episodes(1, 3).read_text().splitlines()
@@ -347,9 +343,7 @@ def test_eval_refuses_a_split_whose_towns_cannot_be_had_before_starting_anything
     }
     for name, (bad, says) in cases.items():
         (tmp_path / name).write_text(json.dumps(bad) + "\n")
-        out = subprocess.run([sys.executable, "-m", "agos.deploy.cli", "eval", "--split", name, "--runs-dir", "runs"],
-                             cwd=tmp_path, capture_output=True, text=True, timeout=60,
-                             env={**os.environ, "AGOS_ASSET_CACHE": str(tmp_path / "cache")})
+        out = agos_cached("eval", "--split", name, "--runs-dir", "runs")  # in this process: nothing may start
         assert out.returncode == 2, out.stdout + out.stderr
         assert out.stderr.startswith(f"eval error: {name}: episode {spec['episode_id']}: ") and says in out.stderr
         assert len(out.stderr.strip().splitlines()) == 1

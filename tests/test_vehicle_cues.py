@@ -219,6 +219,7 @@ def test_reference_views_show_the_attributes(rich):
     assert counts["rack"][1] < counts["plain"][1] - 3, counts  # the cargo box raises the side silhouette
 
 
+@pytest.mark.e2e  # the bench script as a user runs it, so it cannot rot
 def test_bench_cues_quick_runs():
     out = subprocess.run([sys.executable, "bench/bench_cues.py", "--quick"], cwd=ROOT, capture_output=True,
                          text=True, timeout=120)

@@ -36,19 +36,21 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_view_refuses_a_file_that_is_not_a_recording(tmp_path: Path) -> None:
+def test_view_refuses_a_file_that_is_not_a_recording(tmp_path: Path, agos) -> None:
     bad = tmp_path / "x.rrd"
     bad.write_text("not rerun")
-    out = subprocess.run([*AGOS, "view", str(bad)], capture_output=True, text=True, timeout=60)
+    out = agos("view", bad)
     assert out.returncode == 2 and "is not a rerun recording" in out.stderr
 
 
-def test_view_without_a_display_says_how(recording: Path) -> None:
-    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    out = subprocess.run([*AGOS, "view", str(recording)], capture_output=True, text=True, timeout=60, env=env)
+def test_view_without_a_display_says_how(recording: Path, agos, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    out = agos("view", recording)
     assert out.returncode == 0 and f"agos view --web {recording}" in out.stdout
 
 
+@pytest.mark.e2e
 def test_view_web_serves_the_web_viewer(recording: Path) -> None:
     port = _free_port()
     proc = subprocess.Popen([*AGOS, "view", "--web", "--web-port", str(port), str(recording)],

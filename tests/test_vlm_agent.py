@@ -20,6 +20,8 @@ from agos.runtime.codec import to_json
 from agos.runtime.schemas import MessageRecord
 from agos.runtime.settings import VlmOptions
 
+pytestmark = pytest.mark.loopback  # the stand-in server listens on loopback in this process
+
 
 def _agent(url: str, role: str = "uav", name: str = "agos-agent", **kw):
     return make_policy(name, role, vlm=VlmOptions(base_url=url, model="agos-standin", **kw))

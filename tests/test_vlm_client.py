@@ -15,6 +15,8 @@ import pytest
 from agos.agents.vlm.client import VlmClient, VlmError, image_part
 from agos.agents.vlm.standin.server import StandinServer
 
+pytestmark = pytest.mark.loopback  # the stand-in server listens on loopback in this process
+
 MODEL = "stand-in-vl"
 
 

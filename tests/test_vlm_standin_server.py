@@ -26,6 +26,8 @@ from agos.agents.vlm.standin.faults import FAULT_KINDS, FaultSpecError, draw_out
 from agos.agents.vlm.standin.requests import image_size, image_tokens
 from agos.agents.vlm.standin.server import StandinServer, default_responder, wait_responder
 
+pytestmark = pytest.mark.loopback  # the server listens on loopback in this process
+
 ROOT = Path(__file__).resolve().parents[1]
 MODEL = "agos-standin"
 REPLY = {"action": "WAIT", "reason": "nothing visible yet"}
@@ -431,6 +433,7 @@ def _listening_url(proc: subprocess.Popen, lines: list[str]) -> str | None:
     return None
 
 
+@pytest.mark.e2e
 def test_cli_serves_on_a_free_port_and_stops_cleanly() -> None:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "agos.deploy.cli", "vlm-standin", "--port", "0", "--model", "cli-vl",
@@ -451,7 +454,6 @@ def test_cli_serves_on_a_free_port_and_stops_cleanly() -> None:
     assert f"--vlm-base-url {url} --model cli-vl" in text and "stopped after" in text
 
 
-def test_cli_rejects_a_bad_fault_spec_naming_the_entry() -> None:
-    result = subprocess.run([sys.executable, "-m", "agos.deploy.cli", "vlm-standin", "--faults", "429=0.1,flaky=0.2"],
-                            cwd=ROOT, capture_output=True, text=True, timeout=60)
+def test_cli_rejects_a_bad_fault_spec_naming_the_entry(agos) -> None:
+    result = agos("vlm-standin", "--faults", "429=0.1,flaky=0.2")
     assert result.returncode == 2 and "'flaky=0.2'" in result.stderr and "unknown fault 'flaky'" in result.stderr
