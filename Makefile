@@ -5,14 +5,34 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+# Installs come from uv.lock (every package pinned, with hashes). uv itself is a pinned wheel from
+# PyPI in its own folder inside .venv, where `uv sync` leaves it alone.
+UV_VERSION := 0.13.9
+UV     := $(VENV)/uv-$(UV_VERSION)/bin/uv
+UV_ENV := UV_PROJECT_ENVIRONMENT=$(VENV) UV_PYTHON_DOWNLOADS=never
+LOCK_EXPORT := $(UV) export --frozen --no-emit-project --quiet
 
-.PHONY: demo test lint typecheck contracts unit e2e deploy-test clean
+.PHONY: demo test lint lock lock-check typecheck contracts unit e2e deploy-test clean
 
-$(STAMP): pyproject.toml
-	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[dev]"
+$(UV):
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade --target $(VENV)/uv-$(UV_VERSION) "uv==$(UV_VERSION)"
+
+# Exactly the lock's versions (packages not in it are removed), agos itself editable, the dev extra.
+$(STAMP): pyproject.toml uv.lock | $(UV)
+	$(UV_ENV) $(UV) sync --frozen --extra dev --python $(BIN)/python
 	touch $(STAMP)
+
+# After a change to the dependencies in pyproject.toml (needs the network): the lock and its two
+# pip-readable exports, all three committed.
+lock: | $(UV)
+	$(UV) lock
+	$(LOCK_EXPORT) --output-file requirements.lock.txt
+	$(LOCK_EXPORT) --extra dev --output-file requirements-dev.lock.txt
+
+# uv.lock agrees with pyproject.toml (no network: a current lock is checked without resolving).
+lock-check: | $(UV)
+	@$(UV) lock --check --offline --quiet || { echo "uv.lock does not match pyproject.toml: run make lock, commit uv.lock and requirements*.lock.txt" >&2; exit 1; }
 
 demo: $(STAMP)
 	$(BIN)/agos demo
@@ -42,7 +62,7 @@ e2e: $(STAMP)
 deploy-test: $(STAMP)
 	$(BIN)/python tests/deploy/compose_e2e.py
 
-lint: $(STAMP)
+lint: $(STAMP) lock-check
 	$(BIN)/ruff check .
 
 clean:
