@@ -57,6 +57,12 @@ unit: $(STAMP)
 e2e: $(STAMP)
 	$(BIN)/python -m pytest -q -m e2e
 
+# The quick form of every ratio benchmark, then one table of figures against their goals (about four
+# minutes on 2 cores; bench/README.md). Fails only when a bench crashes, never on a missed goal.
+.PHONY: bench
+bench: $(STAMP)
+	$(BIN)/python bench/run_all.py
+
 # The compose deployment for real (docs/DEPLOY.md): needs root or a running Docker engine; installs
 # docker.io, docker-compose and debootstrap when missing. Not part of `make test`.
 deploy-test: $(STAMP)

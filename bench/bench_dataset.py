@@ -24,6 +24,9 @@ printed per command, since walls on a shared machine move with it.
 
     .venv/bin/python bench/bench_dataset.py                        # grid-s7, 1 episode per difficulty (2-4 min)
     .venv/bin/python bench/bench_dataset.py --quick                # one easy episode: a smoke test
+
+``make bench`` runs ``--quick --workers 1 --no-breakdown --json``: the CPU ratio of one build
+against its baseline, one line per figure (bench/figures.py).
     .venv/bin/python bench/bench_dataset.py --towns Town01 --out /tmp/bench-dataset   # a CARLA train/val town
 """
 
@@ -45,6 +48,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from figures import Figures
 from rich.console import Console
 from rich.table import Table
 
@@ -291,6 +295,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="smoke test: one easy episode of grid-s7")
     ap.add_argument("--work", type=Path, help="where the splits, runs and datasets go (default a fresh temporary dir)")
     ap.add_argument("--out", type=Path, help="also write bench_dataset.json here")
+    ap.add_argument("--json", action="store_true", help="also print each figure as a BENCH-FIGURE line")
     args = ap.parse_args(argv)
     if args.quick:
         args.towns, args.per_difficulty = ["grid-s7"], 1
@@ -358,6 +363,12 @@ def main(argv: list[str] | None = None) -> int:
         console.print("in-process breakdown: the same episodes with the dataset writer ...", highlight=False)
         parts = breakdown(split, args.look, args.capture_every, work)
     result = report(console, split, n, pairs, builds, parts, cores)
+    figures = Figures(args.json)
+    figures.add(f"dataset build vs agos eval (capture on), 1 worker, {n} episode{'s' if n > 1 else ''}: CPU", result["ratio_cpu"],
+                f"{result['ratio_cpu']:.2f}x", f"<= {GOAL}x", result["ratio_cpu"] <= GOAL)
+    if "breakdown" in result:
+        ratio = result["breakdown"]["ratio"]
+        figures.add("in-process: render + write + assemble vs render", ratio, f"{ratio:.2f}x", f"<= {GOAL}x", ratio <= GOAL)
     console.print(f"bench wall {time.monotonic() - t_start:.0f} s", highlight=False)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)

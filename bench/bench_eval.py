@@ -25,6 +25,11 @@ takes the first N/3 episodes of each difficulty in file order.
 
     .venv/bin/python bench/bench_eval.py [--latency-ms 1000] [--episodes 24 | --episodes 210] [--workers auto]
 
+``--quick`` (``make bench``): three episodes sampled on grid-s7 (one per difficulty), all at once
+(about 90 s: the floor is one episode's 79 rounds x L, so the start-up weighs on the ratio as it
+does for any run with fewer episodes than the rule's workers). ``--json``: also one
+machine-readable line per figure (bench/figures.py).
+
 Progress is ``agos eval``'s own bar (episodes, decisions/s); Ctrl-C stops the evaluation cleanly
 (``agos eval`` stops every process of the run) and the bench says where the run's files are. The
 CPU that other processes on the machine used meanwhile (``/proc/stat``) is printed; above 5 % the
@@ -49,6 +54,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
+from figures import Figures
 from rich.console import Console
 from rich.table import Table
 
@@ -74,6 +80,14 @@ def paper_test_split(cache: Path = CACHE) -> Path:
         subprocess.run([*AGOS, "episodes", "split", "--train", "0", "--val", "0", "--test", "210",
                         "--workers", str(cores), "--out", str(out)], check=True)
         print(f"made the test split in {time.monotonic() - started:.0f} s on {cores} cores -> {path}")
+    return path
+
+
+def quick_split(work: Path) -> Path:
+    """One episode per difficulty sampled on grid-s7 (``--quick``)."""
+    path = work / "quick-split.jsonl"
+    subprocess.run([*AGOS, "episodes", "sample", "--town", "grid-s7", "--per-difficulty", "1", "--seed", "1",
+                    "--out", str(path)], check=True, capture_output=True)
     return path
 
 
@@ -197,11 +211,11 @@ def run(args: argparse.Namespace) -> int:
     console = Console()
     cores = len(os.sched_getaffinity(0))
     latency_s = args.latency_ms / 1000.0
-    split = args.split or paper_test_split()
-    lines = [x for x in split.read_text().splitlines() if x.strip()]
-    episodes = lines if args.episodes >= len(lines) else stratified_sample(lines, args.episodes)
     work = Path(tempfile.mkdtemp(prefix="agos-bench-eval-")) if args.work is None else args.work
     work.mkdir(parents=True, exist_ok=True)
+    split = args.split or (quick_split(work) if args.quick else paper_test_split())
+    lines = [x for x in split.read_text().splitlines() if x.strip()]
+    episodes = lines if args.episodes >= len(lines) else stratified_sample(lines, args.episodes)
     sample = work / "episodes.jsonl"
     sample.write_text("\n".join(episodes) + "\n")
     run_dir = work / f"bench-eval-{datetime.now(UTC).strftime('%Y%m%d-%H%M%S')}"
@@ -313,6 +327,9 @@ def run(args: argparse.Namespace) -> int:
     if estimated:
         table.add_row("[yellow]episodes with missed events", str(estimated), "rounds estimated as max(decisions per role)")
     console.print(table)
+    Figures(args.json).add(f"agos eval at model speed, {len(records)} episodes, L = {latency_s:g} s: wall vs max(floors)",
+                           ratio, f"{ratio:.2f}x ({wall:.1f} vs {floor:.1f} s)", f"<= {GOAL}x",
+                           ratio <= GOAL and len(records) == len(episodes))
     console.print(f"inputs: L = {latency_s:g} s, episodes = {len(records)}, workers = {workers} ({args.workers}), "
                   f"cores = {cores}; run: {run_dir}", highlight=False)
     if others > 0.05 * wall * cores:
@@ -326,11 +343,15 @@ def run(args: argparse.Namespace) -> int:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--latency-ms", type=int, default=1000, help="the stand-in model's latency per decision (default 1000)")
-    parser.add_argument("--episodes", type=int, default=24, help="stratified sample of the split (default 24; 210: all)")
+    parser.add_argument("--episodes", type=int, help="stratified sample of the split (default 24, 3 with --quick; 210: all)")
     parser.add_argument("--workers", default="auto", help="agos eval --workers: auto (default) or a number")
     parser.add_argument("--split", type=Path, help="episode file instead of the paper's test split")
     parser.add_argument("--work", type=Path, help="directory for the sample and the run (default: a new temp dir)")
+    parser.add_argument("--quick", action="store_true", help="three grid-s7 episodes (one per difficulty)")
+    parser.add_argument("--json", action="store_true", help="also print each figure as a BENCH-FIGURE line")
     args = parser.parse_args()
+    if args.episodes is None:
+        args.episodes = 3 if args.quick else 24
     if args.latency_ms < 0 or args.episodes < 1:
         parser.error("--latency-ms >= 0 and --episodes >= 1")
     try:

@@ -13,6 +13,9 @@ same run:
    builds its scene, per look, median of three processes each (goal: rich <= 1.5x flat).
 
     .venv/bin/python bench/bench_look.py [--town grid-s7] [--repeats 15] [--carla ../shared/maps/carla/Town04.xodr]
+
+``--quick`` (``make bench``): 3 rounds and one probe process a look. ``--json``: also one
+machine-readable line per figure (bench/figures.py).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from figures import Figures
 
 from agos.runtime.codec import encode_png
 from agos.runtime.episode_config import CameraConfig
@@ -46,7 +50,7 @@ def _cpu(fn: Callable[[], object]) -> float:
     return time.process_time() - start
 
 
-def observation_costs(town: Town, repeats: int) -> None:
+def observation_costs(town: Town, repeats: int, figures: Figures) -> None:
     cam = CameraConfig()
     scenes, build_s = {}, {}
     for look in LOOKS:
@@ -92,6 +96,9 @@ def observation_costs(town: Town, repeats: int) -> None:
         flat, rich = (statistics.median(times[(look, key)]) * 1000 for look in LOOKS)
         verdict = "" if goal is None else f"  (goal <= {goal}: {'met' if rich / flat <= goal else 'NOT met'})"
         print(f"{what:34s} flat {flat:7.1f} ms   rich {rich:7.1f} ms   {rich / flat:.2f}x{verdict}")
+        if goal is not None:
+            figures.add(f"{what.strip()}: rich vs flat look", rich / flat, f"{rich / flat:.2f}x ({rich:.0f} vs {flat:.0f} ms CPU)",
+                        f"<= {goal}x", rich / flat <= goal)
     bodies = {look: pb.getNumBodies(physicsClientId=s.client) for look, s in scenes.items()}
     city = scenes["rich"]._city
     print(f"{'scene build':34s} flat {build_s['flat'] * 1000:7.0f} ms   rich {build_s['rich'] * 1000:7.0f} ms   "
@@ -115,7 +122,7 @@ print(json.dumps([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, build_s]))
 """
 
 
-def memory(path: Path, runs: int = 3) -> None:
+def memory(path: Path, figures: Figures, runs: int = 3) -> None:
     """A world worker's peak RSS: a fresh process that loads the frozen asset (as a worker does from
     its cache) and builds the scene; median over ``runs`` processes a look, alternating (peak RSS
     varies by tens of MB from one process to the next)."""
@@ -137,6 +144,9 @@ def memory(path: Path, runs: int = 3) -> None:
     print(f"{path.stem} world process: peak RSS flat {peak['flat'] / 1024:6.0f} MB   rich {peak['rich'] / 1024:6.0f} MB   "
           f"{peak['rich'] / peak['flat']:.2f}x (goal <= 1.5: {'met' if peak['rich'] / peak['flat'] <= 1.5 else 'NOT met'});"
           f" scene build flat {build['flat']:.2f} s, rich {build['rich']:.2f} s")
+    ratio = peak["rich"] / peak["flat"]
+    figures.add(f"{path.stem} world process peak RSS: rich vs flat", ratio,
+                f"{ratio:.2f}x ({peak['rich'] / 1024:.0f} vs {peak['flat'] / 1024:.0f} MB)", "<= 1.5x", ratio <= 1.5)
 
 
 def main() -> None:
@@ -144,10 +154,13 @@ def main() -> None:
     parser.add_argument("--town", default="grid-s7")
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--carla", type=Path, default=Path(__file__).resolve().parents[2] / "shared/maps/carla/Town04.xodr")
+    parser.add_argument("--quick", action="store_true", help="3 rounds, one probe process a look")
+    parser.add_argument("--json", action="store_true", help="also print each figure as a BENCH-FIGURE line")
     args = parser.parse_args()
-    observation_costs(open_town(args.town), args.repeats)
+    figures = Figures(args.json)
+    observation_costs(open_town(args.town), 3 if args.quick else args.repeats, figures)
     if args.carla.exists():
-        memory(args.carla)
+        memory(args.carla, figures, runs=1 if args.quick else 3)
     else:
         print(f"skipped the memory probe: {args.carla} not found")
 

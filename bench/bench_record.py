@@ -6,15 +6,22 @@ views): the ``watched()`` check alone when nobody asks, and ``full_frames()`` + 
 real router on loopback. 200 observations of each kind, back to back (DROP may lose some of those
 bursts at the subscriber: the count received is printed).
 
-    .venv/bin/python bench/bench_record.py
+    .venv/bin/python bench/bench_record.py [--quick] [--json]
+
+No baseline here: the figure ``make bench`` guards is the cost when nobody asks (a flag read,
+0.1-0.2 us in docs/VIEWING.md), against 1 us. ``--quick``: 50 observations of each kind.
+``--json``: also one machine-readable line per figure (bench/figures.py).
 """
 
 from __future__ import annotations
 
+import argparse
 import statistics
 import subprocess
 import sys
 import time
+
+from figures import Figures
 
 from agos.deploy.run.launcher import free_port, wait_listening
 from agos.runtime import keys
@@ -63,6 +70,12 @@ def cost_us(world: ZenohBus, key: str, sample: list[Observation], n: int = 200) 
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="50 observations of each kind (200)")
+    parser.add_argument("--json", action="store_true", help="also print each figure as a BENCH-FIGURE line")
+    args = parser.parse_args()
+    figures, n = Figures(args.json), 50 if args.quick else 200
+    off: dict[str, float] = {}
     obs = observations()
     kinds = {"UAV nadir": [o for o in obs if o.role == "uav"],
              "UGV six views": [o for o in obs if o.mode == "stop_6view"],
@@ -77,14 +90,19 @@ def main() -> None:
         world.watched(key)
         time.sleep(0.5)
         for name, sample in kinds.items():
-            print(f"nobody asks, {name}: median {cost_us(world, key, sample)[0]:.1f} us per observation")
+            median = cost_us(world, key, sample, n)[0]
+            print(f"nobody asks, {name}: median {median:.1f} us per observation")
+            off[name] = median
+        worst = max(off, key=off.__getitem__)
+        figures.add("recording off (nobody asks): per observation, worst kind", off[worst],
+                    f"{off[worst]:.2f} us ({worst})", "<= 1 us", off[worst] <= 1.0)
         recorder = ZenohBus.connect(f"tcp/127.0.0.1:{port}")
         got = Inbox()
         recorder.subscribe(key, got)
         time.sleep(1.0)
         for name, sample in kinds.items():
             size = sum(len(encode(f)) for f in full_frames(sample[0]))
-            median, mean = cost_us(world, key, sample)
+            median, mean = cost_us(world, key, sample, n)
             print(f"a recorder asks, {name} ({size / 1024:.0f} KiB per observation): median {median:.0f} us, "
                   f"mean {mean:.0f} us per observation")
         time.sleep(1.0)

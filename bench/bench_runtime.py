@@ -20,7 +20,10 @@
 4. Throughput: episodes per minute with 2 world workers against 1 on this machine (``agos eval``
    on the same episodes, heuristic agents). Goal >= 1.8x on 2 cores.
 
-    .venv/bin/python bench/bench_runtime.py [--skip-throughput]
+    .venv/bin/python bench/bench_runtime.py [--skip-throughput] [--quick] [--json]
+
+``--quick`` (``make bench``): the round trip and agent concurrency only (about 30 s). ``--json``:
+also one machine-readable line per figure (bench/figures.py).
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ import time
 from pathlib import Path
 
 import msgspec
+from figures import Figures
 
 from agos.deploy.run.launcher import free_port, wait_listening
 from agos.runtime import keys
@@ -344,17 +348,21 @@ def main() -> None:
     parser.add_argument("--skip-throughput", action="store_true")
     parser.add_argument("--only", choices=PARTS, action="append", help="run only these parts (repeatable)")
     parser.add_argument("--episodes", type=int, default=6, help="episodes per difficulty for the throughput run")
+    parser.add_argument("--quick", action="store_true", help="the round trip and agent concurrency only")
+    parser.add_argument("--json", action="store_true", help="also print each figure as a BENCH-FIGURE line")
     args = parser.parse_args()
-    parts = set(args.only or PARTS) - ({"throughput"} if args.skip_throughput else set())
+    parts = set(args.only or (("roundtrip", "concurrency") if args.quick else PARTS))
+    parts -= {"throughput"} if args.skip_throughput else set()
+    figures = Figures(args.json)
     obs = sample_observation()
     payload = encode(obs)
 
     if "roundtrip" in parts:
-        round_trip(obs, payload)
+        round_trip(obs, payload, figures)
     if "breakdown" in parts:
         round_trip_breakdown(obs, payload)
     if "observer" in parts:
-        observers(obs)
+        observers(obs, figures)
     if "qos" in parts:
         stuck_subscriber()
     if "concurrency" in parts:
@@ -362,6 +370,8 @@ def main() -> None:
             rate = concurrency_rate(cluster.endpoint, obs)
         print(f"32 episodes, 200 ms agent {rate:7.1f} decisions/s vs ideal 160.0: {100 * rate / 160:.0f} % "
               f"(goal >= 90 %: {'met' if rate >= 144 else 'NOT met'})")
+        figures.add("agent concurrency: 32 episodes x 200 ms vs ideal", rate / 160,
+                    f"{100 * rate / 160:.0f} % ({rate:.1f} of 160 decisions/s)", ">= 90 %", rate >= 144)
     if "throughput" in parts:
         with tempfile.TemporaryDirectory() as tmp:
             eps = Path(tmp) / "eps.jsonl"
@@ -371,9 +381,11 @@ def main() -> None:
             r2 = throughput(2, eps, Path(tmp))
             print(f"episodes per minute      {r2:7.1f} with 2 workers vs {r1:.1f} with 1: {r2 / r1:.2f}x "
                   f"(goal >= 1.8: {'met' if r2 / r1 >= 1.8 else 'NOT met'}; first lease to last stored episode)")
+            figures.add("episodes per minute, 2 workers vs 1", r2 / r1, f"{r2 / r1:.2f}x ({r2:.1f} vs {r1:.1f})", ">= 1.8x",
+                        r2 / r1 >= 1.8)
 
 
-def round_trip(obs: Observation, payload: bytes) -> None:
+def round_trip(obs: Observation, payload: bytes, figures: Figures) -> None:
     with Cluster([sys.executable, "-c", ECHO, "{EP}"], agent("standin-0ms", 64)) as cluster:
         bus = ZenohBus.connect(cluster.endpoint)
         world, ping = World(bus, obs), PingPong(bus, payload)
@@ -382,6 +394,9 @@ def round_trip(obs: Observation, payload: bytes) -> None:
         print(f"decision round trip      {1000 * t_rt:7.2f} ms vs raw zenoh ping-pong of the same {len(payload) / 1024:.0f} KB "
               f"{1000 * t_ping:.2f} ms: {ratio:.2f}x (median of {len(ratios)} paired rounds, middle half {q1:.2f}-{q3:.2f}; "
               f"goal <= 1.3: {'met' if ratio <= 1.3 else 'NOT met'})")
+        figures.add("decision round trip vs raw zenoh ping-pong", ratio,
+                    f"{ratio:.2f}x ({1000 * t_rt:.2f} vs {1000 * t_ping:.2f} ms; middle half {q1:.2f}-{q3:.2f})", "<= 1.3x",
+                    ratio <= 1.3)
         ping.close()
         world.close()
         bus.close()
@@ -433,7 +448,7 @@ def round_trip_breakdown(obs: Observation, payload: bytes) -> None:
         print(f"  {label:34s} {1e6 * value:6.0f} us")
 
 
-def observers(obs: Observation) -> None:
+def observers(obs: Observation, figures: Figures) -> None:
     for kind, label in (("observer", "agos Observer, 20 ms/sample"), ("viz", "viz callback sleeping 20 ms"),
                         ("all", "agos/** callback sleeping 20 ms")):
         with Cluster(agent("standin-0ms", 64)) as cluster:
@@ -464,6 +479,9 @@ def observers(obs: Observation) -> None:
                 else "(for contrast: control traffic is BLOCK)")
         print(f"observer: {label:32s} decision {1000 * dec_on:6.2f} ms vs {1000 * dec_off:.2f} ms without: "
               f"{decision:.2f}x; whole tick {tick:.2f}x {goal}")
+        if kind != "all":
+            figures.add(f"decision with {label} vs without", decision, f"{decision:.2f}x", "within 10 %",
+                        abs(decision - 1) <= 0.10)
 
 
 def stuck_subscriber() -> None:

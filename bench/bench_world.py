@@ -9,6 +9,9 @@
    a process that imported agos and PyBullet only.
 
     .venv/bin/python bench/bench_world.py [--repeats 15] [--carla ../shared/maps/carla/Town04.xodr]
+
+``--quick`` (``make bench``): 5 rounds, observation costs only. ``--json``: also one machine-readable
+line per figure (bench/figures.py).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
+from figures import Figures
 
 from agos.world.sim import sensors
 from agos.world.sim.scene import Scene, pb
@@ -50,7 +54,7 @@ def paired_medians(baseline, candidate, repeats: int) -> tuple[float, float]:
     return statistics.median(t_base), statistics.median(t_cand)
 
 
-def observation_costs(repeats: int) -> None:
+def observation_costs(repeats: int, figures: Figures) -> None:
     from agos.runtime.codec import encode_png
     from agos.world.towns.topdown import RegionMap
 
@@ -85,6 +89,8 @@ def observation_costs(repeats: int) -> None:
         ratio = t_obs / t_bare
         print(f"{name:22s} {1000 * t_obs:7.1f} ms vs bare getCameraImage {1000 * t_bare:7.1f} ms: "
               f"{ratio:.3f}x (goal <= 1.15: {'met' if ratio <= 1.15 else 'NOT met'})")
+        figures.add(f"{name} vs bare getCameraImage (flat look)", ratio,
+                    f"{ratio:.3f}x ({1000 * t_obs:.1f} vs {1000 * t_bare:.1f} ms)", "<= 1.15x", ratio <= 1.15)
     scene.close()
 
 
@@ -130,8 +136,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--carla", type=Path, default=Path(__file__).resolve().parents[2] / "shared/maps/carla/Town04.xodr")
+    parser.add_argument("--quick", action="store_true", help="5 rounds, observation costs only")
+    parser.add_argument("--json", action="store_true", help="also print each figure as a BENCH-FIGURE line")
     args = parser.parse_args()
-    observation_costs(args.repeats)
+    observation_costs(5 if args.quick else args.repeats, Figures(args.json))
+    if args.quick:
+        return
     if args.carla.exists():
         import_cost(args.carla)
         memory(args.carla)
