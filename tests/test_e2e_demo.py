@@ -100,7 +100,8 @@ def test_demo_runs_episodes_end_to_end_and_the_bus_is_observable(tmp_path: Path)
 
     results = [line for line in output.splitlines() if line.startswith("results: ")]
     assert results, output
-    db = sqlite3.connect(results[0].removeprefix("results: ").strip())
+    db_path = Path(results[0].removeprefix("results: ").strip())
+    db = sqlite3.connect(db_path)
     rows = db.execute("SELECT episode_id, difficulty, status, success, record_json FROM episodes").fetchall()
     assert len(rows) == 6 and len({r[0] for r in rows}) == 6
     assert sorted(r[1] for r in rows) == ["easy", "easy", "hard", "hard", "mid", "mid"]
@@ -111,6 +112,9 @@ def test_demo_runs_episodes_end_to_end_and_the_bus_is_observable(tmp_path: Path)
         record = json.loads(row[4])
         assert record["termination"] == "confirmed" and record["n_confirm"] == 1
         assert record["candidates"][-1]["status"] == "confirmed"
+    made_by = json.loads(rows[0][4])["provenance"]  # the world worker's, beside config (runtime/provenance.py)
+    assert made_by["packages"]["pybullet"] and made_by["lock_sha256"]
+    assert json.loads(db_path.with_name("run.json").read_text())["provenance"]["commit"] == made_by["commit"]
     for level in ("easy", "mid", "hard", "overall"):
         assert any(line.lstrip("│ ").startswith(level) for line in output.splitlines()), output
     assert not _processes_mentioning(f"tcp/127.0.0.1:{port}"), "processes left behind"
