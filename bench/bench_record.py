@@ -41,18 +41,17 @@ def observations() -> list[Observation]:
     from agos.world.towns.asset import open_town
 
     town = open_town("grid-s7")
-    scene = Scene(town.layout, look="flat")
-    spec = sample_episode(town, scene, "mid", 0, seed=1)
-    seen: list[Observation] = []
-    inner = InProcessAgents({r: make_policy("heuristic", r) for r in ("uav", "ugv")})
+    with Scene(town.layout, look="flat") as scene:
+        spec = sample_episode(town, scene, "mid", 0, seed=1)
+        seen: list[Observation] = []
+        inner = InProcessAgents({r: make_policy("heuristic", r) for r in ("uav", "ugv")})
 
-    class Spy:
-        def decide(self, obs):
-            seen.extend(obs.values())
-            return inner.decide(obs)
+        class Spy:
+            def decide(self, obs):
+                seen.extend(obs.values())
+                return inner.decide(obs)
 
-    EpisodeRunner(scene, town, spec, run_id="bench", worker_id="bench").run(Spy())
-    scene.close()
+        EpisodeRunner(scene, town, spec, run_id="bench", worker_id="bench").run(Spy())
     return seen
 
 
@@ -85,30 +84,28 @@ def main() -> None:
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         assert wait_listening("127.0.0.1", port, 15)
-        world = ZenohBus.connect(f"tcp/127.0.0.1:{port}")
-        key = keys.viz_full("bench", "e0", "uav")
-        world.watched(key)
-        time.sleep(0.5)
-        for name, sample in kinds.items():
-            median = cost_us(world, key, sample, n)[0]
-            print(f"nobody asks, {name}: median {median:.1f} us per observation")
-            off[name] = median
-        worst = max(off, key=off.__getitem__)
-        figures.add("recording off (nobody asks): per observation, worst kind", off[worst],
-                    f"{off[worst]:.2f} us ({worst})", "<= 1 us", off[worst] <= 1.0)
-        recorder = ZenohBus.connect(f"tcp/127.0.0.1:{port}")
-        got = Inbox()
-        recorder.subscribe(key, got)
-        time.sleep(1.0)
-        for name, sample in kinds.items():
-            size = sum(len(encode(f)) for f in full_frames(sample[0]))
-            median, mean = cost_us(world, key, sample, n)
-            print(f"a recorder asks, {name} ({size / 1024:.0f} KiB per observation): median {median:.0f} us, "
-                  f"mean {mean:.0f} us per observation")
-        time.sleep(1.0)
-        print(f"frames received by the subscriber: {len(got.drain())}")
-        recorder.close()
-        world.close()
+        with ZenohBus.connect(f"tcp/127.0.0.1:{port}") as world:
+            key = keys.viz_full("bench", "e0", "uav")
+            world.watched(key)
+            time.sleep(0.5)
+            for name, sample in kinds.items():
+                median = cost_us(world, key, sample, n)[0]
+                print(f"nobody asks, {name}: median {median:.1f} us per observation")
+                off[name] = median
+            worst = max(off, key=off.__getitem__)
+            figures.add("recording off (nobody asks): per observation, worst kind", off[worst],
+                        f"{off[worst]:.2f} us ({worst})", "<= 1 us", off[worst] <= 1.0)
+            with ZenohBus.connect(f"tcp/127.0.0.1:{port}") as recorder:
+                got = Inbox()
+                recorder.subscribe(key, got)
+                time.sleep(1.0)
+                for name, sample in kinds.items():
+                    size = sum(len(encode(f)) for f in full_frames(sample[0]))
+                    median, mean = cost_us(world, key, sample, n)
+                    print(f"a recorder asks, {name} ({size / 1024:.0f} KiB per observation): median {median:.0f} us, "
+                          f"mean {mean:.0f} us per observation")
+                time.sleep(1.0)
+                print(f"frames received by the subscriber: {len(got.drain())}")
     finally:
         router.terminate()
         router.wait(timeout=10)

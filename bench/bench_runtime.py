@@ -124,18 +124,17 @@ def sample_observation() -> Observation:
     from agos.world.towns.asset import open_town
 
     town = open_town("grid-s7")
-    scene = Scene(town.layout, look="flat")
-    spec = sample_episode(town, scene, "mid", 0, seed=1)
-    captured: list[Observation] = []
+    with Scene(town.layout, look="flat") as scene:
+        spec = sample_episode(town, scene, "mid", 0, seed=1)
+        captured: list[Observation] = []
 
-    class Capture(InProcessAgents):
-        def decide(self, observations):
-            captured.extend(o for o in observations.values() if o.role == "uav")
-            raise StopIteration
+        class Capture(InProcessAgents):
+            def decide(self, observations):
+                captured.extend(o for o in observations.values() if o.role == "uav")
+                raise StopIteration
 
-    with contextlib.suppress(StopIteration):
-        EpisodeRunner(scene, town, spec, run_id="bench", worker_id="bench").run(Capture({}))
-    scene.close()
+        with contextlib.suppress(StopIteration):
+            EpisodeRunner(scene, town, spec, run_id="bench", worker_id="bench").run(Capture({}))
     return msgspec.structs.replace(captured[0], run_id="bench", episode_id="e0")
 
 
@@ -259,35 +258,34 @@ def worst_put(bus: ZenohBus, key: str, *, drop: bool) -> float:
 
 
 def concurrency_rate(endpoint: str, obs: Observation, episodes: int = 32, seconds: float = 8.0) -> float:
-    bus = ZenohBus.connect(endpoint)
-    stop = time.monotonic() + seconds
-    counts = [0] * episodes
-    small = msgspec.structs.replace(obs, images=obs.images[:1], references=obs.references[:1])
+    with ZenohBus.connect(endpoint) as bus:
+        stop = time.monotonic() + seconds
+        counts = [0] * episodes
+        small = msgspec.structs.replace(obs, images=obs.images[:1], references=obs.references[:1])
 
-    def loop(k: int) -> None:
-        inbox = Inbox()
-        bus.subscribe(keys.act("bench", f"c{k}", "uav"), inbox)
-        key = keys.obs("bench", f"c{k}", "uav")
-        bus.declare_token(keys.episode_live("bench", f"c{k}", "bench"))  # as a world running episode c<k>
-        assert bus.wait_for_subscriber(key, 10.0), f"no agent subscribed to {key}"
-        index = 0
-        while time.monotonic() < stop:
-            index += 1
-            bus.publish(key, encode(msgspec.structs.replace(small, episode_id=f"c{k}", decision_index=index)))
-            while time.monotonic() < stop + 2:
-                sample = inbox.get(1.0)
-                if sample is not None and decode(sample.payload).decision_index == index:
-                    counts[k] += 1
-                    break
+        def loop(k: int) -> None:
+            inbox = Inbox()
+            bus.subscribe(keys.act("bench", f"c{k}", "uav"), inbox)
+            key = keys.obs("bench", f"c{k}", "uav")
+            bus.declare_token(keys.episode_live("bench", f"c{k}", "bench"))  # as a world running episode c<k>
+            assert bus.wait_for_subscriber(key, 10.0), f"no agent subscribed to {key}"
+            index = 0
+            while time.monotonic() < stop:
+                index += 1
+                bus.publish(key, encode(msgspec.structs.replace(small, episode_id=f"c{k}", decision_index=index)))
+                while time.monotonic() < stop + 2:
+                    sample = inbox.get(1.0)
+                    if sample is not None and decode(sample.payload).decision_index == index:
+                        counts[k] += 1
+                        break
 
-    threads = [threading.Thread(target=loop, args=(k,)) for k in range(episodes)]
-    start = time.monotonic()
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    elapsed = time.monotonic() - start
-    bus.close()
+        threads = [threading.Thread(target=loop, args=(k,)) for k in range(episodes)]
+        start = time.monotonic()
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        elapsed = time.monotonic() - start
     unanswered = [f"c{k}" for k, count in enumerate(counts) if count == 0]
     if unanswered:  # an assert in a loop thread would only be printed
         raise RuntimeError(f"episodes never answered: {', '.join(unanswered)}")
@@ -386,8 +384,8 @@ def main() -> None:
 
 
 def round_trip(obs: Observation, payload: bytes, figures: Figures) -> None:
-    with Cluster([sys.executable, "-c", ECHO, "{EP}"], agent("standin-0ms", 64)) as cluster:
-        bus = ZenohBus.connect(cluster.endpoint)
+    with (Cluster([sys.executable, "-c", ECHO, "{EP}"], agent("standin-0ms", 64)) as cluster,
+          ZenohBus.connect(cluster.endpoint) as bus):
         world, ping = World(bus, obs), PingPong(bus, payload)
         t_ping, t_rt, ratios = paired_ratios(ping.round_trips, world.round_trips)
         ratio, (q1, _, q3) = statistics.median(ratios), statistics.quantiles(ratios, n=4)
@@ -399,7 +397,6 @@ def round_trip(obs: Observation, payload: bytes, figures: Figures) -> None:
                     ratio <= 1.3)
         ping.close()
         world.close()
-        bus.close()
 
 
 def timed(function, spent: dict[str, list[float]], label: str):
@@ -431,14 +428,12 @@ def round_trip_breakdown(obs: Observation, payload: bytes) -> None:
         with tempfile.TemporaryDirectory() as tmp:
             report = Path(tmp) / "agent.json"
             timed_agent = [sys.executable, "-c", TIMED_AGENT, "{EP}", str(report), str(Path(__file__).parent)]
-            with Cluster([sys.executable, "-c", ECHO, "{EP}"], timed_agent) as cluster:
-                bus = ZenohBus.connect(cluster.endpoint)
+            with Cluster([sys.executable, "-c", ECHO, "{EP}"], timed_agent) as cluster, ZenohBus.connect(cluster.endpoint) as bus:
                 world, ping = World(bus, obs), PingPong(bus, payload)
                 t_ping, t_rt, _ = paired_ratios(ping.round_trips, world.round_trips)
                 time.sleep(1.0)  # the agent writes its medians every 0.5 s
                 ping.close()
                 world.close()
-                bus.close()
             agent_spent = json.loads(report.read_text())
     finally:
         worker.encode_into, worker.decode_as = original_encode, original_decode
@@ -451,8 +446,7 @@ def round_trip_breakdown(obs: Observation, payload: bytes) -> None:
 def observers(obs: Observation, figures: Figures) -> None:
     for kind, label in (("observer", "agos Observer, 20 ms/sample"), ("viz", "viz callback sleeping 20 ms"),
                         ("all", "agos/** callback sleeping 20 ms")):
-        with Cluster(agent("standin-0ms", 64)) as cluster:
-            bus = ZenohBus.connect(cluster.endpoint)
+        with Cluster(agent("standin-0ms", 64)) as cluster, ZenohBus.connect(cluster.endpoint) as bus:
             world = World(bus, obs)
             world.round_trips(20)  # warm-up
             observer = subprocess.Popen([sys.executable, "-c", OBSERVER, cluster.endpoint, kind], text=True,
@@ -469,7 +463,6 @@ def observers(obs: Observation, figures: Figures) -> None:
             observer.kill()
             observer.wait()
             world.close()
-            bus.close()
         # Each on-phase against the off-phase just before it (drift hits both alike); the median
         # of those ratios, for the decision and for the whole tick.
         decision = statistics.median(on[1] / off[1] for off, on in zip(without, with_, strict=True))

@@ -59,39 +59,38 @@ def observation_costs(repeats: int, figures: Figures) -> None:
     from agos.world.towns.topdown import RegionMap
 
     town = open_town("grid-s7")
-    scene = Scene(town.layout, look="flat")
-    cam = sensors.CameraConfig()
-    xy, alt, heading = (5.0, 5.0), 80.0, 0.3
-    region = (xy[0] - 150, xy[1] - 150, xy[0] + 150, xy[1] + 150)
-    region_map = RegionMap(town.layout, region, size_px=cam.map_px)
+    with Scene(town.layout, look="flat") as scene:
+        cam = sensors.CameraConfig()
+        xy, alt, heading = (5.0, 5.0), 80.0, 0.3
+        region = (xy[0] - 150, xy[1] - 150, xy[0] + 150, xy[1] + 150)
+        region_map = RegionMap(town.layout, region, size_px=cam.map_px)
 
-    def uav_obs():
-        shot = sensors.nadir(scene, xy, alt, cam)
-        sensors.frames_of(shot, scene, cam, with_grid=True)
-        encode_png(region_map.render(uav_xy=xy, ugv_xy=xy, ugv_yaw_rad=heading))
+        def uav_obs():
+            shot = sensors.nadir(scene, xy, alt, cam)
+            sensors.frames_of(shot, scene, cam, with_grid=True)
+            encode_png(region_map.render(uav_xy=xy, ugv_xy=xy, ugv_yaw_rad=heading))
 
-    def uav_bare():
-        bare_render(scene, (xy[0], xy[1], alt + 0.013), (0, 0, -1), (0, 1, 0), cam.nadir_fov_deg, cam.nadir_px)
+        def uav_bare():
+            bare_render(scene, (xy[0], xy[1], alt + 0.013), (0, 0, -1), (0, 1, 0), cam.nadir_fov_deg, cam.nadir_px)
 
-    def six_obs():
-        for shot in sensors.six_views(scene, xy, heading, cam):
-            sensors.frames_of(shot, scene, cam)
-        encode_png(region_map.render(uav_xy=xy, ugv_xy=xy, ugv_yaw_rad=heading))
+        def six_obs():
+            for shot in sensors.six_views(scene, xy, heading, cam):
+                sensors.frames_of(shot, scene, cam)
+            encode_png(region_map.render(uav_xy=xy, ugv_xy=xy, ugv_yaw_rad=heading))
 
-    def six_bare():
-        for _, offset in sensors.SIX_VIEWS:
-            a = heading + np.radians(offset)
-            bare_render(scene, (xy[0], xy[1], sensors.UGV_CAMERA_HEIGHT_M), (np.cos(a), np.sin(a), -0.05), (0, 0, 1),
-                        cam.ground_fov_deg, cam.ground_px)
+        def six_bare():
+            for _, offset in sensors.SIX_VIEWS:
+                a = heading + np.radians(offset)
+                bare_render(scene, (xy[0], xy[1], sensors.UGV_CAMERA_HEIGHT_M), (np.cos(a), np.sin(a), -0.05), (0, 0, 1),
+                            cam.ground_fov_deg, cam.ground_px)
 
-    for name, obs, bare in (("UAV observation", uav_obs, uav_bare), ("six-view observation", six_obs, six_bare)):
-        t_bare, t_obs = paired_medians(bare, obs, repeats)
-        ratio = t_obs / t_bare
-        print(f"{name:22s} {1000 * t_obs:7.1f} ms vs bare getCameraImage {1000 * t_bare:7.1f} ms: "
-              f"{ratio:.3f}x (goal <= 1.15: {'met' if ratio <= 1.15 else 'NOT met'})")
-        figures.add(f"{name} vs bare getCameraImage (flat look)", ratio,
-                    f"{ratio:.3f}x ({1000 * t_obs:.1f} vs {1000 * t_bare:.1f} ms)", "<= 1.15x", ratio <= 1.15)
-    scene.close()
+        for name, obs, bare in (("UAV observation", uav_obs, uav_bare), ("six-view observation", six_obs, six_bare)):
+            t_bare, t_obs = paired_medians(bare, obs, repeats)
+            ratio = t_obs / t_bare
+            print(f"{name:22s} {1000 * t_obs:7.1f} ms vs bare getCameraImage {1000 * t_bare:7.1f} ms: "
+                  f"{ratio:.3f}x (goal <= 1.15: {'met' if ratio <= 1.15 else 'NOT met'})")
+            figures.add(f"{name} vs bare getCameraImage (flat look)", ratio,
+                        f"{ratio:.3f}x ({1000 * t_obs:.1f} vs {1000 * t_bare:.1f} ms)", "<= 1.15x", ratio <= 1.15)
 
 
 def import_cost(path: Path) -> None:
