@@ -105,6 +105,7 @@ def test_a_decision_the_world_gave_up_on_is_closed_and_a_late_answer_is_stale() 
     assert "ended" in board.submit({"role": "uav", "episode_id": "ep-1", "decision_index": 2, "action": "WAIT"}).message
 
 
+@pytest.mark.loopback  # the console's HTTP server, in this process
 def test_the_server_serves_the_page_the_state_images_and_refusals() -> None:
     board = DecisionBoard(["uav"])
     board.ask(_obs())
