@@ -12,7 +12,7 @@ UV     := $(VENV)/uv-$(UV_VERSION)/bin/uv
 UV_ENV := UV_PROJECT_ENVIRONMENT=$(VENV) UV_PYTHON_DOWNLOADS=never
 LOCK_EXPORT := $(UV) export --frozen --no-emit-project --quiet
 
-.PHONY: demo test lint lock lock-check typecheck contracts unit e2e deploy-test clean
+.PHONY: demo check test lint lock lock-check typecheck contracts unit loopback e2e deploy-test clean
 
 $(UV):
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -37,8 +37,16 @@ lock-check: | $(UV)
 demo: $(STAMP)
 	$(BIN)/agos demo
 
-test: lint contracts typecheck
-	$(BIN)/python -m pytest -q
+# The test tiers (README, Development). A test's marks say what it may do, and tests/process_guard.py
+# fails one that does more: unmarked (unit) starts no process and opens no socket; loopback opens
+# sockets in its own process; e2e starts processes.
+# check: ruff, the layer contracts, mypy and the unit tests, the four at once.
+check: $(STAMP)
+	$(MAKE) --no-print-directory -j4 --output-sync=target lint contracts typecheck unit
+
+# test: check, then every loopback and e2e test, one at a time (they time processes and ports).
+test: check
+	$(BIN)/python -m pytest -q -m "e2e or loopback"
 
 # The layer contracts in pyproject.toml: runtime at the bottom; world, agents, evaluator beside each
 # other; deploy on top; no import cycles.
@@ -51,8 +59,12 @@ typecheck: $(STAMP)
 	for d in runtime world agents evaluator deploy; do ln -sfn ../../$$d .typecheck/agos/$$d; done
 	cd .typecheck && ../$(BIN)/mypy --config-file ../pyproject.toml -p agos
 
+# The unit tests on every core; a module's tests stay on one worker, so its fixtures are built once.
 unit: $(STAMP)
-	$(BIN)/python -m pytest -q -m "not e2e"
+	$(BIN)/python -m pytest -q -n auto --dist loadscope -m "not e2e and not loopback"
+
+loopback: $(STAMP)
+	$(BIN)/python -m pytest -q -m "loopback and not e2e"
 
 e2e: $(STAMP)
 	$(BIN)/python -m pytest -q -m e2e

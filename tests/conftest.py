@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import subprocess
+import sys
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -10,6 +12,9 @@ import pytest
 
 # Fails a test that starts a process or opens a socket unless it is marked e2e or loopback (process_guard.py).
 pytest_plugins = ["process_guard"]
+
+AGOS = [sys.executable, "-m", "agos.deploy.cli"]
+
 
 @pytest.fixture(scope="session")
 def sample_mid_episodes(tmp_path_factory) -> Callable[[int, int], Path]:
@@ -84,3 +89,76 @@ def observations() -> list:
     EpisodeRunner(scene, town, spec, run_id="t", worker_id="w").run(Spy())
     scene.close()
     return seen
+
+
+class RunningSystem:
+    """A router on a free loopback port, an evaluator serving every run, and a UAV and a UGV agent
+    (heuristic) on run ``run``: the processes of ``agos eval --connect`` minus the world, started once
+    and shared by the e2e tests that need only them. Start other processes beside it with
+    :meth:`start`; the ``running_system`` fixture stops those after each test."""
+
+    def __init__(self, cwd: Path, run: str = "shared") -> None:
+        from agos.deploy.run.launcher import free_port, wait_listening
+
+        self.cwd, self.run = cwd, run
+        self.port = free_port(19700)
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self._base: list[subprocess.Popen] = []
+        self._extra: list[subprocess.Popen] = []
+        self._base.append(self._popen("router", "--listen", self.endpoint))
+        assert wait_listening("127.0.0.1", self.port, 30), "the shared router never listened"
+        self._base.append(self._popen("evaluator", "--connect", self.endpoint, "--runs-dir", "runs"))
+        for role in ("uav", "ugv"):
+            self._base.append(self._popen("agent", "--role", role, "--connect", self.endpoint, "--run", run))
+
+    def _popen(self, *argv: str) -> subprocess.Popen:
+        return subprocess.Popen([*AGOS, *argv], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=self.cwd)
+
+    def start(self, *argv: str) -> subprocess.Popen:
+        """``agos ARGV`` beside the system (output discarded), stopped at the end of the test."""
+        proc = self._popen(*argv)
+        self._extra.append(proc)
+        return proc
+
+    def stop_extra(self) -> None:
+        _stop(self._extra)
+        self._extra.clear()
+
+    def close(self) -> None:
+        self.stop_extra()
+        _stop(self._base)
+
+    def check_alive(self) -> None:
+        exited = [p.args for p in self._base if p.poll() is not None]
+        assert not exited, f"shared system processes exited: {exited}"
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    for p in procs:
+        if p.poll() is None:
+            p.terminate()
+    for p in procs:
+        try:
+            p.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+@pytest.fixture(scope="session")
+def _running_system(tmp_path_factory) -> Iterator[RunningSystem]:
+    system = RunningSystem(tmp_path_factory.mktemp("system"))
+    try:
+        yield system
+    finally:
+        system.close()
+
+
+@pytest.fixture
+def running_system(_running_system: RunningSystem) -> Iterator[RunningSystem]:
+    """The shared :class:`RunningSystem` (e2e tests only); what a test starts beside it stops with the test."""
+    _running_system.check_alive()
+    try:
+        yield _running_system
+    finally:
+        _running_system.stop_extra()
