@@ -69,7 +69,7 @@ loopback: $(STAMP)
 e2e: $(STAMP)
 	$(BIN)/python -m pytest -q -m e2e
 
-# The quick form of every ratio benchmark, then one table of figures against their goals (about four
+# The quick form of every ratio benchmark, then one table of figures against their goals (4-5
 # minutes on 2 cores; bench/README.md). Fails only when a bench crashes, never on a missed goal.
 .PHONY: bench
 bench: $(STAMP)
