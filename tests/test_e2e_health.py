@@ -67,17 +67,3 @@ def test_health_follows_the_process_token(tmp_path, secure: bool) -> None:
             if p is not None and p.poll() is None:
                 p.terminate()
                 p.wait(timeout=10)
-
-
-@pytest.mark.parametrize("command", [["world", "--run", "r"], ["agent", "--role", "uav", "--run", "r"], ["evaluator"],
-                                     ["eval", "--run", "r"]])
-def test_no_router_is_one_line_and_exit_2(tmp_path, command: list[str], sample_mid_episodes) -> None:
-    if command[0] == "eval":
-        command = [*command, "--split", str(sample_mid_episodes(1, 5)), "--run-dir", str(tmp_path / "r")]
-    port = free_port(17600)
-    env = {**os.environ, "AGOS_ZENOH__CONNECT_TIMEOUT_S": "1"}
-    out = subprocess.run([*AGOS, *command, "--connect", f"tcp/127.0.0.1:{port}"], cwd=tmp_path, env=env,
-                         capture_output=True, text=True, timeout=60)
-    assert out.returncode == 2, out.stdout + out.stderr
-    lines = [line for line in out.stderr.splitlines() if line.strip() and " INFO " not in line]
-    assert len(lines) == 1 and f"tcp/127.0.0.1:{port}" in lines[0] and "Traceback" not in out.stderr, out.stderr
