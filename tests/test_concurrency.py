@@ -93,7 +93,10 @@ def test_eval_takes_workers_auto_and_a_model_latency() -> None:
 def _bench_eval():
     """bench/bench_eval.py as a module (registered first: its dataclasses look their module up)."""
     if "bench_eval" not in sys.modules:
-        path = Path(__file__).resolve().parents[1] / "bench" / "bench_eval.py"
+        bench_dir = Path(__file__).resolve().parents[1] / "bench"
+        if str(bench_dir) not in sys.path:
+            sys.path.insert(0, str(bench_dir))  # its sibling modules (figures), as when run as a script
+        path = bench_dir / "bench_eval.py"
         spec = importlib.util.spec_from_file_location("bench_eval", path)
         assert spec is not None and spec.loader is not None
         sys.modules["bench_eval"] = module = importlib.util.module_from_spec(spec)
