@@ -169,7 +169,7 @@ def test_a_stuck_recorder_changes_no_record_and_holds_nothing_up(tmp_path: Path,
     run_dir, stdout = _eval(tmp_path, episodes, "stuck", "--record", str(out), env={STALL_ENV: "30"})
     assert {ep: _same(r) for ep, r in _records(run_dir).items()} == {ep: _same(r) for ep, r in plain.items()}
     log = (run_dir / "logs" / "recorder.log").read_text()
-    assert "the handler sleeps 30 s" in log and "stopped while stuck" in log, log
+    assert "the handler stops for 30 s" in log and "stopped while stuck" in log, log
     assert "recordings: 2 episodes" in stdout, stdout
     assert len(list(out.glob("*.rrd"))) == 2
 
