@@ -107,7 +107,7 @@ def build(cfg: AgosConfig, split: Path, out_dir: Path, *, workers: int, capture_
           console: Console | None = None) -> int:
     """Build (or resume) the dataset of ``split`` in ``out_dir`` drawn with ``look``; the exit code. A
     resumed build keeps the configuration it was started with (``run.json``)."""
-    console = console or Console()
+    console = console or Console(soft_wrap=True)  # paths and commands it prints are never cut at the width
     out_dir = out_dir.resolve()
     split_sha = _sha256(split)
     run_dir = out_dir / (cfg.run.run_id if attach else f"dataset-{split_sha[:8]}")

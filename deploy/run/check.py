@@ -112,7 +112,7 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "he
     from agos.world.sim.worker import BusDecisionSource, BusSink, MissingAgent
     from agos.world.towns.asset import open_town
 
-    console = console or Console()
+    console = console or Console(soft_wrap=True)  # paths and commands it prints are never cut at the width
     stop = install_stop_handlers()
     v = Verdicts()
     run_id = cfg.run.run_id

@@ -190,7 +190,7 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
     a recorder process writes the run's episodes as rerun files (deploy/recording/recorder.py); an
     attached run starts one too, connected as this command's settings say. ``on_record``: called with
     each record stored during the run, on this thread (a dataset build assembles the episode's files)."""
-    console = console or Console()
+    console = console or Console(soft_wrap=True)  # paths and commands it prints are never cut at the width
     stop = install_stop_handlers()
     done_before = stored_episodes(plan.run_dir)
     launcher = Launcher(None if attach else plan.run_dir / "logs")
