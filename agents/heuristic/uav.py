@@ -52,7 +52,7 @@ class HeuristicUav:
                 mem.seen.add(wp.waypoint_id)
 
         if "ANNOTATE_CANDIDATE" in obs.legal_actions:
-            cell = self._look(obs, mem.profile)
+            cell = self._target_cell(obs, mem.profile)
             if cell is not None:
                 return action_for(obs, "ANNOTATE_CANDIDATE", cell=cell,
                                   message=f"Candidate in cell {cell}; please verify.",
@@ -70,7 +70,7 @@ class HeuristicUav:
                               rationale=f"coverage towards {goal.waypoint_id}")
         return action_for(obs, "NO_RELIABLE_CANDIDATE")
 
-    def _look(self, obs: Observation, profile: TargetProfile) -> str | None:
+    def _target_cell(self, obs: Observation, profile: TargetProfile) -> str | None:
         frame = next((f for f in obs.images if f.kind == "rgb" and f.name == "nadir"), None)
         if frame is None or frame.intrinsics is None or frame.world_from_camera is None:
             return None
