@@ -17,7 +17,7 @@ from agos.agents.human.board import MESSAGE_LIMIT, DecisionBoard
 from agos.agents.human.server import ConsoleServer
 from agos.agents.human.view import shown
 from agos.deploy.run.human import parse_duration
-from agos.deploy.run.orchestrator import STUCK_MARGIN_S, Orchestrator
+from agos.deploy.run.orchestrator import STUCK_AFTER_S, STUCK_MARGIN_S, Orchestrator
 from agos.evaluator.human_row import is_human_run
 from agos.runtime.codec import encode_jpeg, encode_png
 from agos.runtime.episode_config import EpisodeConfig
@@ -145,7 +145,7 @@ def test_a_decision_timeout_of_hours_is_not_taken_for_a_stuck_world(monkeypatch,
     monkeypatch.setenv("AGOS_HEALTH_DIR", str(tmp_path))
     hours = Orchestrator(MagicMock(), "r", [], policies={}, config=EpisodeConfig(decision_timeout_s=7200.0))
     assert hours.stuck_after_s == 7200.0 + STUCK_MARGIN_S
-    assert Orchestrator(MagicMock(), "r", [], policies={}, config=EpisodeConfig()).stuck_after_s == 180.0
+    assert Orchestrator(MagicMock(), "r", [], policies={}, config=EpisodeConfig()).stuck_after_s == STUCK_AFTER_S
 
 
 def test_human_runs_are_found_by_run_json_or_by_their_traces(tmp_path: Path) -> None:
