@@ -12,7 +12,7 @@ UV     := $(VENV)/uv-$(UV_VERSION)/bin/uv
 UV_ENV := UV_PROJECT_ENVIRONMENT=$(VENV) UV_PYTHON_DOWNLOADS=never
 LOCK_EXPORT := $(UV) export --frozen --no-emit-project --quiet
 
-.PHONY: demo check test lint lock lock-check typecheck contracts unit loopback e2e deploy-test clean
+.PHONY: demo check test static all-tests lint lock lock-check typecheck contracts unit loopback e2e deploy-test clean
 
 $(UV):
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -44,11 +44,17 @@ demo: $(STAMP)
 check: $(STAMP)
 	$(MAKE) --no-print-directory -j4 --output-sync=target lint contracts typecheck unit
 
-# test: check, then every loopback and e2e test, two at a time (each file on one worker, so a module's
-# running system is started once; every test takes free ports): 7.4 min against 12.9 min one at a
-# time on 2 cores, since an e2e test spends much of its time waiting on processes and timers.
-test: check
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "e2e or loopback"
+# test: what check runs, and every loopback and e2e test too, in one pytest session on two workers
+# (each file on one worker, so a module's running system is started once; every test takes free
+# ports), beside ruff, the contracts and mypy. One session lets the CPU-bound unit tests fill the time
+# the e2e tests spend waiting on processes and timers.
+test: $(STAMP)
+	$(MAKE) --no-print-directory -j2 --output-sync=target static all-tests
+
+static: lint contracts typecheck
+
+all-tests: $(STAMP)
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 # The layer contracts in pyproject.toml: runtime at the bottom; world, agents, evaluator beside each
 # other; deploy on top; no import cycles.
