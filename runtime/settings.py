@@ -17,6 +17,13 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError
 from agos.runtime.episode_config import EpisodeConfig
 
 ENV_PREFIX = "AGOS_"
+ENV_SEPARATOR = "__"
+"""Between a setting's section and key in its variable: ``AGOS_ZENOH__CONNECT``, ``AGOS_WORLD__CAMERAS__NADIR_PX``."""
+
+
+def is_setting_variable(name: str) -> bool:
+    """Whether ``name`` is an environment variable :func:`load_config` reads as a setting."""
+    return name.startswith(ENV_PREFIX) and ENV_SEPARATOR in name
 
 
 class ConfigError(ValueError):
@@ -140,9 +147,9 @@ def load_config(path: Path | None = None, *, overrides: dict[str, Any] | None = 
     env = os.environ if environ is None else environ
     env_layer: dict[str, Any] = {}
     for name, value in env.items():
-        if not name.startswith(ENV_PREFIX) or "__" not in name:
+        if not is_setting_variable(name):
             continue
-        dotted = name[len(ENV_PREFIX):].lower().split("__")  # AGOS_WORLD__CAMERAS__NADIR_PX
+        dotted = name[len(ENV_PREFIX):].lower().split(ENV_SEPARATOR)  # AGOS_WORLD__CAMERAS__NADIR_PX
         nested: dict[str, Any] = {dotted[-1]: value}
         for part in reversed(dotted[:-1]):
             nested = {part: nested}

@@ -25,18 +25,11 @@ from typing import Any
 
 from pydantic import BaseModel, SecretStr
 
-from agos.runtime.settings import ENV_PREFIX, AgosConfig, load_config
-
-_SETTING_SEPARATOR = "__"
+from agos.runtime.settings import ENV_PREFIX, ENV_SEPARATOR, AgosConfig, is_setting_variable, load_config
 
 AGENT_CONCURRENCY = 32
 """Decisions an agent service answers at once unless told (``agos agent --concurrency``); a run with
 more world workers tells its agents one per worker, since every episode in flight may wait on them."""
-
-
-def is_setting_variable(name: str) -> bool:
-    """Whether ``name`` is one of the variables :func:`~agos.runtime.settings.load_config` reads."""
-    return name.startswith(ENV_PREFIX) and _SETTING_SEPARATOR in name
 
 
 def _text(value: object) -> str | None:
@@ -58,7 +51,7 @@ def _leaves(model: BaseModel, defaults: BaseModel, prefix: str) -> dict[str, str
     out: dict[str, str] = {}
     for name in type(model).model_fields:
         value, default = getattr(model, name), getattr(defaults, name)
-        variable = f"{prefix}{_SETTING_SEPARATOR}{name.upper()}"
+        variable = f"{prefix}{ENV_SEPARATOR}{name.upper()}"
         if variable in NOT_CARRIED:
             continue
         if isinstance(value, BaseModel):
