@@ -15,8 +15,10 @@ from agos.evaluator.store import ResultStore
 from agos.evaluator.summary import read_run
 from agos.runtime.episode_config import EpisodeConfig, differing_fields, read_config
 from agos.runtime.failure_records import failure_record
-from agos.runtime.schemas import EpisodeSpec, JobGrant, TownRef, VehicleSpec
+from agos.runtime.schemas import JobGrant
 from agos.runtime.settings import ConfigError, load_config
+
+from support.episodes import minimal_spec
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -57,19 +59,12 @@ def test_thresholds_scale_with_image_size() -> None:
     assert small.confirm_at_view_size().min_target_pixels == 12  # 50 * (128/256)^2 = 12.5, rounded to even
 
 
-def _spec(episode_id: str) -> EpisodeSpec:
-    car = VehicleSpec(model="sedan", colour="red", position_world_m=(0.0, 0.0, 0.0), yaw_rad=0.0)
-    return EpisodeSpec(episode_id=episode_id, town=TownRef(generator="grid", seed=7, town_id="grid-s7"),
-                       asset_sha256="0" * 64, difficulty="easy", region_world_m=(0.0, 0.0, 100.0, 100.0), target=car,
-                       uav_start_waypoint="u0", ugv_start_waypoint="a0", active_uav_waypoints=["u0"], seed=1)
-
-
 def test_grant_and_record_carry_the_whole_configuration() -> None:
     from agos.runtime.codec import decode, encode
     config = EpisodeConfig.model_validate({"ugv_speed_mps": 6.0, "comm": {"name": "x"}})
-    grant = decode(encode(JobGrant(episode=_spec("e1"), config=config.model_dump(mode="json"))))
+    grant = decode(encode(JobGrant(episode=minimal_spec("e1"), config=config.model_dump(mode="json"))))
     assert read_config(grant.config, where="job grant") == config
-    record = failure_record("r", _spec("e1"), status="world_crashed", worker_id="w", error="x", config=config)
+    record = failure_record("r", minimal_spec("e1"), status="world_crashed", worker_id="w", error="x", config=config)
     assert record.config_hash == config.config_hash() and record.config["ugv_speed_mps"] == 6.0
 
 
@@ -78,7 +73,7 @@ def _store_mixed_run(run_dir: Path) -> None:
     with ResultStore(run_dir / "results.sqlite") as store:
         for i, nadir_px in enumerate((512, 512, 256)):
             config = EpisodeConfig.model_validate({"cameras": {"nadir_px": nadir_px}})
-            record = failure_record("mixed", _spec(f"e{i}"), status="finished", worker_id="w", error="", config=config)
+            record = failure_record("mixed", minimal_spec(f"e{i}"), status="finished", worker_id="w", error="", config=config)
             record.success, record.final_distance_m = True, 3.0
             store.add(record)
 

@@ -17,16 +17,11 @@ from agos.runtime.codec import from_json, to_json
 from agos.runtime.episode_config import EpisodeConfig, config_hash
 from agos.runtime.failure_records import failure_record
 from agos.runtime.provenance import git_state, provenance
-from agos.runtime.schemas import EpisodeRecord, EpisodeSpec, TownRef, VehicleSpec
+from agos.runtime.schemas import EpisodeRecord
+
+from support.episodes import minimal_spec
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _spec(episode_id: str) -> EpisodeSpec:
-    car = VehicleSpec(model="sedan", colour="red", position_world_m=(0.0, 0.0, 0.0), yaw_rad=0.0)
-    return EpisodeSpec(episode_id=episode_id, town=TownRef(generator="grid", seed=7, town_id="grid-s7"),
-                       asset_sha256="0" * 64, difficulty="easy", region_world_m=(0.0, 0.0, 100.0, 100.0), target=car,
-                       uav_start_waypoint="u0", ugv_start_waypoint="a0", active_uav_waypoints=["u0"], seed=1)
 
 
 def test_provenance_names_the_commit_the_lock_and_the_versions() -> None:
@@ -45,7 +40,7 @@ def test_provenance_names_the_commit_the_lock_and_the_versions() -> None:
 
 def test_records_carry_it_beside_the_configuration_and_its_hash_is_unchanged() -> None:
     config = EpisodeConfig.model_validate({"ugv_speed_mps": 6.0})
-    record = failure_record("r", _spec("e1"), status="world_crashed", worker_id="w", error="x", config=config)
+    record = failure_record("r", minimal_spec("e1"), status="world_crashed", worker_id="w", error="x", config=config)
     assert record.provenance == provenance()
     assert "provenance" not in record.config and record.config == config.model_dump(mode="json")
     assert record.config_hash == config.config_hash() == config_hash(record.config)
@@ -64,7 +59,7 @@ def test_run_json_carries_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) ->
     from agos.world.episodes.sampling import write_episodes
 
     monkeypatch.setattr("agos.world.towns.asset.check_towns", lambda episodes, source: None)  # a made-up town
-    write_episodes(tmp_path / "episodes.jsonl", [_spec("e1")])
+    write_episodes(tmp_path / "episodes.jsonl", [minimal_spec("e1")])
     cfg = load_config(overrides={"run": {"episodes_file": str(tmp_path / "episodes.jsonl"), "runs_dir": str(tmp_path)}})
     plan = new_plan(cfg, run_dir=tmp_path / "run", comm="ideal", timing_mode="lockstep", stamp=False)
     meta = json.loads((plan.run_dir / RUN_FILE).read_text())
