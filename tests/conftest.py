@@ -76,8 +76,6 @@ def observations() -> list:
     from agos.world.towns.asset import open_town
 
     town = open_town("grid-s7")
-    scene = Scene(town.layout, look="flat")
-    spec = generate_episodes(town, scene, per_difficulty=1, seed=1)[0]
     seen: list = []
     inner = InProcessAgents({r: make_policy("heuristic", r) for r in ("uav", "ugv")})
 
@@ -86,8 +84,9 @@ def observations() -> list:
             seen.extend(obs.values())
             return inner.decide(obs)
 
-    EpisodeRunner(scene, town, spec, run_id="t", worker_id="w").run(Spy())
-    scene.close()
+    with Scene(town.layout, look="flat") as scene:
+        spec = generate_episodes(town, scene, per_difficulty=1, seed=1)[0]
+        EpisodeRunner(scene, town, spec, run_id="t", worker_id="w").run(Spy())
     return seen
 
 
