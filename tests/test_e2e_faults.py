@@ -456,6 +456,14 @@ def test_a_hostile_client_changes_no_record(tmp_path: Path, episodes: Path, clea
     thread = threading.Thread(target=flood, daemon=True)
     thread.start()
     try:
+        # The world worker hears forged "finished" manifests before any orchestrator exists: it must
+        # keep waiting for the run to start (a CI run once lost its only worker that way).
+        deadline = time.monotonic() + 30.0
+        while "serving run" not in (tmp_path / "w0.log").read_text() or sent[0] < 200:
+            assert time.monotonic() < deadline, "w0 did not start"
+            time.sleep(0.2)
+        time.sleep(1.5)  # a few of the worker's job requests go unanswered while the forgeries arrive
+        assert cluster.procs["w0"].poll() is None, "a forged manifest ended a worker waiting for its run"
         out = _finish(cluster.eval(episodes, "--comm", "lossy"))
         stop.set()
         thread.join(10)

@@ -253,12 +253,15 @@ class WorldWorker:
         manifests = Inbox()
         self.bus.subscribe(keys.manifest(self.run_id), manifests)
         log.info("world worker %s serving run %s", self.worker_id, self.run_id)
-        told_over = False
+        told_over = served = False
         while not self.stop.is_set():
             told_over = any([self._says_over(m) for m in manifests.drain()]) or told_over
             # A manifest is a hint, not an order (anyone on an open router can publish one): the run is
-            # over when the orchestrator says so in a grant, or is gone after a manifest said it was.
-            if told_over and not self.bus.alive_tokens(keys.live(self.run_id, "orchestrator", "*"), timeout_s=1.0):
+            # over when the orchestrator says so in a grant, or is gone after a manifest said it was. A
+            # worker no orchestrator has answered yet is waiting for the run to start, so no manifest
+            # ends it (a forged "finished" one published before the orchestrator starts would).
+            if told_over and served and not self.bus.alive_tokens(keys.live(self.run_id, "orchestrator", "*"),
+                                                                  timeout_s=1.0):
                 log.info("run %s is over; worker exits", self.run_id)
                 break
             request = JobRequest(worker_id=self.worker_id, give_back=self._give_back[0], why=self._give_back[1])
@@ -271,6 +274,7 @@ class WorldWorker:
                 self.stop.wait(1.0)  # no grant for this worker (something else answers ctl/jobs): ask again
                 continue
             self._give_back = (None, "")  # the orchestrator has heard it
+            served = True
             if grant.run_finished:
                 log.info("run %s finished; worker exits", self.run_id)
                 break
