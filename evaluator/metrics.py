@@ -3,24 +3,26 @@
 Notation (paper §4.3 and Appendix B): for episode e, C_e = success, O_e = ground_observed,
 P_e = UGV path length, L_e = shortest path to a verifying pose, T_e = UAV budget,
 tau_e = first oracle-visible UAV step (1-based), d_{e,j} = target-to-candidate-polygon
-distance of the j-th candidate, K_e = decisions. R = 50 m.
+distance of the j-th candidate, D_e = final UGV-to-target distance, K_e = decisions. R = 50 m.
 
 Undefined values are ``None``, never 0. Only episodes with status ``finished`` are scored;
-infrastructure failures are counted apart (``excluded``). See docs/METRICS.md for every
-decision where the paper is silent.
+infrastructure failures are counted apart (``excluded``). Two ways to make one row of several
+difficulty levels: :func:`macro` (the paper's overall figures, the mean of the levels) and
+:func:`ablation_total` (the ablation table's Total: GVA, NE, FD and CErr pooled over episodes).
+See docs/METRICS.md for every decision where the paper is silent or reads two ways.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
 R_M = 50.0
 """Benchmark spatial scale R of ACG (metres)."""
 DIFFICULTY_ORDER = ("easy", "mid", "hard")
-METRIC_KEYS = ("SR", "OSR", "SPL", "NE", "ASE", "ACG", "GVA", "GVA_support", "DS", "DS_UAV", "DS_UGV", "CErr")
+METRIC_KEYS = ("SR", "OSR", "SPL", "NE", "FD", "ASE", "ACG", "GVA", "GVA_support", "DS", "DS_UAV", "DS_UGV", "CErr")
 
 
 class _Candidate(Protocol):
@@ -92,9 +94,17 @@ def spl(e: Episode) -> float:
     return 1.0 if longest == 0 else shortest / longest
 
 
-def navigation_error(e: Episode) -> float | None:
-    """NE_e: horizontal distance (m) from the UGV's final position to the target; None if unknown."""
+def final_distance(e: Episode) -> float | None:
+    """D_e: horizontal distance (m) from the UGV's final position to the target; None if unknown.
+    Its mean over every scored episode is FD (all-episode final distance)."""
     return e.final_distance_m
+
+
+def navigation_error(e: Episode) -> float | None:
+    """NE_e = D_e of a successful episode; None for a failed one, so that NE, the mean of NE_e,
+    averages the final distance over successful episodes only and is undefined without any (the
+    paper's "--")."""
+    return e.final_distance_m if e.success else None
 
 
 def ase(e: Episode) -> float:
@@ -145,6 +155,9 @@ class Summary:
     OSR: float | None
     SPL: float | None
     NE: float | None
+    """Mean final distance over successful episodes; None without one."""
+    FD: float | None
+    """Mean final distance over every scored episode whose distance is known."""
     ASE: float | None
     ACG: float | None
     GVA: float | None
@@ -172,8 +185,8 @@ def _mean(values: Iterable[float | None]) -> float | None:
 def summarize(episodes: Sequence[Episode]) -> Summary:
     """All metrics of a set of episodes in one pass (each episode-level function called once)."""
     n = excluded = support = verified = 0
-    sr = osr = spl_sum = ase_sum = acg_sum = ds_uav = ds_ugv = ne_sum = err_sum = 0.0
-    ne_n = err_n = acg_n = 0
+    sr = osr = spl_sum = ase_sum = acg_sum = ds_uav = ds_ugv = ne_sum = fd_sum = err_sum = 0.0
+    ne_n = fd_n = err_n = acg_n = 0
     for e in episodes:
         if e.status != "finished":
             excluded += 1
@@ -188,10 +201,13 @@ def summarize(episodes: Sequence[Episode]) -> Summary:
             acg_n += 1
         ds_uav += e.decisions_uav
         ds_ugv += e.decisions_ugv
-        ne = navigation_error(e)
-        if ne is not None:
-            ne_sum += ne
-            ne_n += 1
+        fd = final_distance(e)
+        if fd is not None:
+            fd_sum += fd
+            fd_n += 1
+            if e.success:  # NE_e (navigation_error) without calling it twice
+                ne_sum += fd
+                ne_n += 1
         if gva_included(e):
             support += 1
             verified += e.success
@@ -199,20 +215,36 @@ def summarize(episodes: Sequence[Episode]) -> Summary:
         err_sum += sum(errors)
         err_n += len(errors)
     if n == 0:
-        return Summary(0, None, None, None, None, None, None, None, 0, None, None, None, None, excluded)
+        return Summary(0, None, None, None, None, None, None, None, None, 0, None, None, None, None, excluded)
     return Summary(
-        n=n, SR=sr / n, OSR=osr / n, SPL=spl_sum / n, NE=ne_sum / ne_n if ne_n else None, ASE=ase_sum / n,
+        n=n, SR=sr / n, OSR=osr / n, SPL=spl_sum / n, NE=ne_sum / ne_n if ne_n else None,
+        FD=fd_sum / fd_n if fd_n else None, ASE=ase_sum / n,
         ACG=acg_sum / acg_n if acg_n else None, GVA=verified / support if support else None, GVA_support=support,
         DS=(ds_uav + ds_ugv) / n, DS_UAV=ds_uav / n, DS_UGV=ds_ugv / n, CErr=err_sum / err_n if err_n else None,
         excluded=excluded)
 
 
 def macro(groups: Sequence[Summary]) -> Summary:
-    """The paper's overall: the unweighted mean over groups of each metric (groups where it is
-    undefined are left out); GVA_support, n and excluded are summed."""
+    """The paper's overall figures ("macro-averaged" SR and DS, stage metrics "macro-averaged across
+    difficulty levels"): the unweighted mean over groups of each metric (groups where it is undefined
+    are left out); GVA_support, n and excluded are summed."""
     values = {k: _mean(getattr(g, k) for g in groups if g.n) for k in METRIC_KEYS if k != "GVA_support"}
     return Summary(n=sum(g.n for g in groups), GVA_support=sum(g.GVA_support for g in groups),
                    excluded=sum(g.excluded for g in groups), **values)
+
+
+POOLED_IN_TOTAL = ("GVA", "NE", "FD", "CErr")
+"""Metrics whose ablation-table Total pools episodes (or candidates) instead of averaging levels."""
+
+
+def ablation_total(episodes: Sequence[Episode]) -> Summary:
+    """The Total row of the paper's ablation table: GVA (sum V_e C_e / sum V_e), NE, FD and CErr
+    computed on all scored episodes of every level at once, so a level weighs by its support,
+    successes or candidates; every other metric is the :func:`macro` mean of the levels (with equal
+    episodes per level, as in the paper, the same as pooling)."""
+    overall = aggregate(episodes, "difficulty")["overall"]
+    pooled = summarize(episodes)
+    return replace(overall, **{k: getattr(pooled, k) for k in POOLED_IN_TOTAL})
 
 
 def group_key(by: str) -> Callable[[Any], str]:

@@ -1,10 +1,14 @@
 """Paper-style reports: the main table, the ablation table, failure outcomes, the stage-wise plot.
 
 Main table (like the paper's): one row per run, columns Easy / Mid / Hard x SR, OSR, SPL, NE,
-DS; a run labelled with a leading ``+`` (e.g. ``+AGOS-Agent``) is an agent variant of the row
-above and is indented. Runs of the human policy (the Human reference, evaluator/human_row.py)
-come first, as in the paper, set off by a rule in LaTeX. Ablation table: one row per run and difficulty with every metric and
-CErr (and the overall row of each run). Rates are printed in %, distances in metres, DS in decisions; undefined is ``-``.
+DS, with NE over successful episodes (``--`` without one); a run labelled with a leading ``+``
+(e.g. ``+AGOS-Agent``) is an agent variant of the row above and is indented. Runs of the human
+policy (the Human reference, evaluator/human_row.py) come first, as in the paper, set off by a rule
+in LaTeX. Ablation table: one row per run and difficulty with every metric, the all-episode final
+distance FD and CErr, then the run's ``total`` row as the paper's ablation table makes it
+(:func:`~agos.evaluator.metrics.ablation_total`: GVA, NE, FD and CErr pooled over episodes, the
+rest averaged over the levels). Rates are printed in %, distances in metres, DS in decisions;
+undefined is ``--``. The stage-wise chart shows the macro overall of each run, as the paper's figure.
 """
 
 from __future__ import annotations
@@ -16,12 +20,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from agos.evaluator.attribution import OUTCOMES, outcome_counts
-from agos.evaluator.metrics import DIFFICULTY_ORDER, Summary, aggregate
+from agos.evaluator.metrics import DIFFICULTY_ORDER, Summary, ablation_total, aggregate
 from agos.evaluator.summary import EpisodeSummary
 
 MAIN_METRICS = ("SR", "OSR", "SPL", "NE", "DS")
-ABLATION_METRICS = ("SR", "OSR", "SPL", "NE", "ASE", "ACG", "GVA", "GVA_support", "DS", "CErr")
+ABLATION_METRICS = ("SR", "OSR", "SPL", "NE", "FD", "ASE", "ACG", "GVA", "GVA_support", "DS", "CErr")
 PERCENT = {"SR", "OSR", "SPL", "ASE", "ACG", "GVA"}
+UNDEFINED = "--"
+"""How an undefined value is printed (the paper's "--" for an undefined NE)."""
+TOTAL = "total"
+"""The ablation table's last row of a run (the paper's "Total")."""
 
 
 @dataclass
@@ -40,12 +48,18 @@ class RunResults:
         return self.label.lstrip("+").strip()
 
     def summaries(self) -> dict[str, Summary]:
+        """Per difficulty and the macro ``overall`` (the main table, the stage-wise chart)."""
         return aggregate(self.episodes, "difficulty")
+
+    def ablation_summaries(self) -> dict[str, Summary]:
+        """Per difficulty and the ``total`` row of the ablation table."""
+        levels = {k: v for k, v in self.summaries().items() if k != "overall"}
+        return {**levels, TOTAL: ablation_total(self.episodes)}
 
 
 def fmt(metric: str, value: float | int | None) -> str:
     if value is None:
-        return "-"
+        return UNDEFINED
     if metric == "GVA_support":
         return str(int(value))
     return f"{100 * value:.1f}" if metric in PERCENT else f"{value:.1f}"
@@ -65,7 +79,7 @@ def _ablation_rows(runs: Sequence[RunResults]) -> tuple[list[str], list[list[str
     header = ["Condition", "Difficulty", *ABLATION_METRICS]
     rows = []
     for run in runs:
-        for level, s in run.summaries().items():
+        for level, s in run.ablation_summaries().items():
             rows.append([run.name, level] + [fmt(m, getattr(s, m)) for m in ABLATION_METRICS])
     return header, rows
 

@@ -6,7 +6,9 @@ difficulty level (pairs stay together; seeded; 10,000 resamples by default), and
 paired permutation test (each episode's A/B labels swapped with probability 1/2). For SR, an
 exact sign test on the discordant episodes and the outcome matrix are given as well.
 
-Ratio metrics are resampled as ratios: GVA = sum(V*C)/sum(V), CErr = sum(errors)/count.
+Ratio metrics are resampled as ratios: GVA = sum(V*C)/sum(V), CErr = sum(errors)/count. NE is a
+mean over each run's successful episodes (a failure's NE_e is undefined), so a resample without a
+success in some level leaves that level out of NE's overall, as the tables do.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from agos.evaluator.metrics import (
     acg,
     ase,
     candidate_errors,
+    final_distance,
     gva_included,
     navigation_error,
     oracle_success,
@@ -31,7 +34,7 @@ from agos.evaluator.metrics import (
 from agos.evaluator.summary import EpisodeSummary
 
 MEAN_METRICS = {
-    "SR": success, "OSR": oracle_success, "SPL": spl, "NE": navigation_error, "ASE": ase,
+    "SR": success, "OSR": oracle_success, "SPL": spl, "NE": navigation_error, "FD": final_distance, "ASE": ase,
     "ACG": lambda e: acg(e) if e.candidate_tools else None,
     "DS": lambda e: float(e.decisions_uav + e.decisions_ugv),
     "DS_UAV": lambda e: float(e.decisions_uav), "DS_UGV": lambda e: float(e.decisions_ugv),
@@ -40,7 +43,7 @@ RATIO_METRICS = {
     "GVA": (lambda e: float(gva_included(e) and e.success), lambda e: float(gva_included(e))),
     "CErr": (lambda e: float(sum(candidate_errors(e))), lambda e: float(len(e.candidates))),
 }
-COMPARED = ("SR", "OSR", "SPL", "NE", "ASE", "ACG", "GVA", "DS", "DS_UAV", "DS_UGV", "CErr")
+COMPARED = ("SR", "OSR", "SPL", "NE", "FD", "ASE", "ACG", "GVA", "DS", "DS_UAV", "DS_UGV", "CErr")
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,5 @@
-"""The results table printed at the end of a run (rates in %, NE in metres, DS in decisions)."""
+"""The results table printed at the end of a run (rates in %, NE and FD in metres, DS in decisions;
+undefined is ``--``, as in the paper's tables)."""
 
 from __future__ import annotations
 
@@ -6,33 +7,35 @@ from rich.table import Table
 
 from agos.evaluator.metrics import Summary
 
+UNDEFINED = "--"
+
 
 def _pct(v: float | None) -> str:
-    return "n/a" if v is None else f"{100 * v:.1f}"
+    return UNDEFINED if v is None else f"{100 * v:.1f}"
 
 
 def _num(v: float | None) -> str:
-    return "n/a" if v is None else f"{v:.1f}"
+    return UNDEFINED if v is None else f"{v:.1f}"
 
 
 def results_table(summaries: dict[str, Summary], *, title: str = "") -> Table:
     table = Table(title=title or None)
-    for col in ("difficulty", "episodes", "SR %", "OSR %", "SPL %", "NE m", "DS", "not scored"):
+    for col in ("difficulty", "episodes", "SR %", "OSR %", "SPL %", "NE m", "FD m", "DS", "not scored"):
         table.add_column(col, justify="left" if col == "difficulty" else "right")
     for level, s in summaries.items():
-        table.add_row(level, str(s.n), _pct(s.SR), _pct(s.OSR), _pct(s.SPL), _num(s.NE), _num(s.DS), str(s.excluded),
-                      end_section=level == "hard")
+        table.add_row(level, str(s.n), _pct(s.SR), _pct(s.OSR), _pct(s.SPL), _num(s.NE), _num(s.FD), _num(s.DS),
+                      str(s.excluded), end_section=level == "hard")
     return table
 
 
 def metrics_table(summaries: dict[str, Summary], *, title: str = "", group: str = "difficulty") -> Table:
-    """Every metric per group: rates in %, NE and CErr in metres, DS in decisions."""
+    """Every metric per group: rates in %, NE, FD and CErr in metres, DS in decisions."""
     table = Table(title=title or None)
-    for col in (group, "n", "SR", "OSR", "SPL", "NE", "ASE", "ACG", "GVA (support)", "DS", "DS UAV", "DS UGV", "CErr",
+    for col in (group, "n", "SR", "OSR", "SPL", "NE", "FD", "ASE", "ACG", "GVA (support)", "DS", "DS UAV", "DS UGV", "CErr",
                 "not scored"):
         table.add_column(col, justify="left" if col == group else "right")
     for name, s in summaries.items():
-        table.add_row(name, str(s.n), _pct(s.SR), _pct(s.OSR), _pct(s.SPL), _num(s.NE), _pct(s.ASE), _pct(s.ACG),
+        table.add_row(name, str(s.n), _pct(s.SR), _pct(s.OSR), _pct(s.SPL), _num(s.NE), _num(s.FD), _pct(s.ASE), _pct(s.ACG),
                       f"{_pct(s.GVA)} ({s.GVA_support})", _num(s.DS), _num(s.DS_UAV), _num(s.DS_UGV), _num(s.CErr),
                       str(s.excluded), end_section=name == list(summaries)[-2] if len(summaries) > 1 else False)
     return table

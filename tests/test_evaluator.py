@@ -65,10 +65,12 @@ def test_summary_and_macro_overall() -> None:
         record("h1", "hard", status="world_crashed", success=False),
     ]
     easy = summarize(records[:2])
-    assert (easy.n, easy.SR, easy.OSR, easy.SPL, easy.NE, easy.DS) == (2, 0.5, 0.5, 0.25, 20.0, (15 + 45) / 2)
+    assert (easy.n, easy.SR, easy.OSR, easy.SPL, easy.DS) == (2, 0.5, 0.5, 0.25, (15 + 45) / 2)
+    assert (easy.NE, easy.FD) == (10.0, 20.0)  # NE: e1, the success; FD: (10 + 30) / 2
     table = by_difficulty(records)
     assert table["hard"].n == 0 and table["hard"].SR is None and table["hard"].excluded == 1
     overall = table["overall"]
     # macro mean over the levels with scored episodes (easy, mid): SR (0.5 + 0) / 2
     assert pytest.approx(0.25) == overall.SR and pytest.approx(0.75) == overall.OSR
-    assert pytest.approx((20.0 + 20.0) / 2) == overall.NE and overall.n == 3 and overall.excluded == 1
+    assert overall.NE == 10.0  # mid has no success: left out of the mean, not counted as 0
+    assert pytest.approx((20.0 + 20.0) / 2) == overall.FD and overall.n == 3 and overall.excluded == 1

@@ -16,6 +16,7 @@ from agos.evaluator.metrics import (
     candidate_errors,
     decision_steps,
     false_confirm,
+    final_distance,
     gva_included,
     navigation_error,
     oracle_success,
@@ -76,14 +77,21 @@ def test_spl(kw: dict[str, Any], expected: float) -> None:
     assert spl(ep(ground_observed=kw["success"], n_confirm=int(kw["success"]), **kw)) == pytest.approx(expected)
 
 
-# ----- NE --------------------------------------------------------------------------------------
-def test_navigation_error_mean_and_none() -> None:
-    assert navigation_error(ep(final_distance_m=12.5)) == 12.5
-    assert navigation_error(ep()) is None
-    # mean over the known values only: (10 + 30) / 2 = 20
-    assert pytest.approx(20.0) == summarize([ep(final_distance_m=10.0), ep(final_distance_m=30.0), ep(final_distance_m=None)]).NE
-    # all unknown -> None, never 0
-    assert summarize([ep(), ep()]).NE is None
+# ----- NE and FD --------------------------------------------------------------------------------
+def test_navigation_error_over_successes_and_final_distance_over_all() -> None:
+    won = dict(success=True, ground_observed=True, n_confirm=1)
+    assert navigation_error(ep(final_distance_m=12.5, **won)) == 12.5
+    assert navigation_error(ep(final_distance_m=12.5)) is None       # a failure has no NE_e
+    assert final_distance(ep(final_distance_m=12.5)) == 12.5         # but it has a final distance
+    assert navigation_error(ep(**won)) is None and final_distance(ep()) is None
+    s = summarize([ep(final_distance_m=10.0, **won), ep(final_distance_m=30.0, **won),
+                   ep(final_distance_m=200.0), ep(final_distance_m=None)])
+    assert pytest.approx(20.0) == s.NE    # (10 + 30) / 2: the successes only
+    assert pytest.approx(80.0) == s.FD    # (10 + 30 + 200) / 3: every known distance
+    # no success: NE undefined (the paper's "--"), never 0; FD still defined
+    failed = summarize([ep(final_distance_m=60.0), ep(final_distance_m=90.0)])
+    assert failed.NE is None and pytest.approx(75.0) == failed.FD
+    assert summarize([ep(), ep()]).FD is None
 
 
 # ----- ASE -------------------------------------------------------------------------------------
@@ -224,20 +232,21 @@ def test_aggregate_per_level() -> None:
     assert pytest.approx(2 / 3) == easy.SR                 # (1 + 1 + 0) / 3
     assert pytest.approx(2 / 3) == easy.OSR
     assert pytest.approx(0.5) == easy.SPL                  # (50/100 + 40/40 + 0) / 3 = 1.5 / 3
-    assert pytest.approx(15.0) == easy.NE                  # (10 + 20) / 2; e3 unknown
+    assert pytest.approx(15.0) == easy.NE                  # (10 + 20) / 2: e1, e2 succeeded
+    assert pytest.approx(15.0) == easy.FD                  # (10 + 20) / 2: e3's distance unknown
     assert pytest.approx(27 / 80) == easy.ASE              # (80/80 + 1/80 + 0) / 3 = (81/80) / 3
     assert pytest.approx(0.5) == easy.ACG                  # (1 + 0.5 + 0) / 3
     assert (easy.GVA, easy.GVA_support) == (1.0, 2)        # e1, e2 in V, both C
     assert (easy.DS, easy.DS_UAV, easy.DS_UGV) == (30.0, 20.0, 10.0)  # (15+30+45)/3, (10+20+30)/3, (5+10+15)/3
     assert easy.CErr == pytest.approx(15.0)                # (10 + 20) / 2
 
-    assert (mid.n, mid.SR, mid.OSR, mid.SPL, mid.NE, mid.ASE) == (1, 0.0, 0.0, 0.0, None, 0.0)
+    assert (mid.n, mid.SR, mid.OSR, mid.SPL, mid.NE, mid.FD, mid.ASE) == (1, 0.0, 0.0, 0.0, None, None, 0.0)
     assert pytest.approx(1 / 3) == mid.ACG                 # 50 / 150
     assert (mid.GVA, mid.GVA_support) == (0.0, 1)          # the false confirm
     assert (mid.DS, mid.CErr) == (60.0, 40.0)
 
     assert (hard.n, hard.excluded) == (1, 1)
-    assert (hard.SR, hard.SPL, hard.NE, hard.ACG) == (0.0, 0.0, 100.0, 0.0)  # SPL: C=0
+    assert (hard.SR, hard.SPL, hard.NE, hard.FD, hard.ACG) == (0.0, 0.0, None, 100.0, 0.0)  # SPL: C=0; NE: no success
     assert pytest.approx(41 / 80) == hard.ASE              # (80 - 40 + 1) / 80
     assert (hard.GVA, hard.GVA_support, hard.CErr) == (None, 0, None)
     assert hard.DS == 75.0
@@ -250,7 +259,8 @@ def test_aggregate_overall_is_macro_mean() -> None:
     assert pytest.approx(2 / 5) != o.SR
     assert pytest.approx(2 / 9) == o.OSR
     assert pytest.approx(1 / 6) == o.SPL                   # (0.5 + 0 + 0) / 3
-    assert pytest.approx(57.5) == o.NE                     # (15 + 100) / 2: mid (None) left out, not counted as 0
+    assert pytest.approx(15.0) == o.NE                     # easy's 15: mid and hard (None, no success) left out
+    assert pytest.approx(57.5) == o.FD                     # (15 + 100) / 2: mid (None) left out, not counted as 0
     assert pytest.approx(17 / 60) == o.ASE                 # (27/80 + 0 + 41/80) / 3 = 68/240
     assert pytest.approx(5 / 18) == o.ACG                  # (1/2 + 1/3 + 0) / 3
     assert pytest.approx(0.5) == o.GVA                     # (1 + 0) / 2: hard (None) left out; micro would be 2/3
@@ -306,7 +316,7 @@ def test_aggregate_by_town() -> None:
 def test_as_json_keys() -> None:
     data = as_json(aggregate(_three_levels()))
     assert set(data) == {"easy", "mid", "hard", "overall"}
-    expected = {"SR", "OSR", "SPL", "NE", "ASE", "ACG", "GVA", "GVA_support", "DS", "DS_UAV", "DS_UGV", "CErr",
+    expected = {"SR", "OSR", "SPL", "NE", "FD", "ASE", "ACG", "GVA", "GVA_support", "DS", "DS_UAV", "DS_UGV", "CErr",
                 "n", "not_scored"}
     for row in data.values():
         assert set(row) == expected

@@ -4,10 +4,26 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 
 from agos.evaluator.metrics import DIFFICULTY_ORDER
+from agos.evaluator.summary import EpisodeSummary
+
+
+def summary(episode_id: str, difficulty: str = "easy", *, won: bool = False, errors: tuple[float, ...] = (),
+            **kw: Any) -> EpisodeSummary:
+    """One hand-made summary: a finished, failed, unobserved episode with no candidates, unless told
+    ``won`` (success, ground-observed, one CONFIRM) or given candidates' centre ``errors`` (each at
+    polygon distance 0); other keyword arguments override the fields."""
+    base: dict[str, Any] = dict(
+        episode_id=episode_id, difficulty=difficulty, success=won, ground_observed=won, n_confirm=int(won),
+        ugv_path_length_m=0.0, shortest_path_length_m=None, final_distance_m=None, uav_budget=80,
+        uav_first_visible_step=None, decisions_uav=0, decisions_ugv=0,
+        candidates=[{"distance_to_polygon_m": 0.0, "center_error_m": e} for e in errors])
+    base.update(kw)
+    return EpisodeSummary.model_validate(base)
 
 
 def synthetic_summaries(n: int, *, seed: int, success_rate: float = 0.5, run_id: str = "synthetic",
