@@ -1,13 +1,14 @@
 """The episode configuration: everything that shapes an episode, in one serialisable object.
 
 Speeds, action durations, image sizes and camera fields of view, the CONFIRM checker's thresholds,
-the decision budget and timeout, the link profile, the timing mode and the world-side tools of the
-run's policies. The orchestrator builds it once per run (defaults < TOML file < ``AGOS_WORLD__…``
-environment < flags, in :mod:`agos.deploy.run.configure`), sends it whole in every job grant, and the
-world runs the episode with exactly that and stores it, with its :meth:`EpisodeConfig.config_hash`,
-in the record. So two workers started with different local settings still run the same episodes,
-and records made under different configurations are never pooled silently (``agos metrics``
-refuses them unless told ``--allow-mixed``).
+the decision budget and timeout, the link profile, the timing mode, what the UAV may do while the
+UGV verifies, and the world-side tools of the run's policies. The orchestrator builds it once per
+run (defaults < TOML file < ``AGOS_WORLD__…`` environment < flags, in
+:mod:`agos.deploy.run.configure`), sends it whole in every job grant, and the world runs the
+episode with exactly that and stores it, with its :meth:`EpisodeConfig.config_hash`, in the
+record. So two workers started with different local settings still run the same episodes, and
+records made under different configurations are never pooled silently (``agos metrics`` refuses
+them unless told ``--allow-mixed``).
 
 These are the only defaults of these values in agos.
 """
@@ -18,7 +19,7 @@ import hashlib
 import json
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from agos.runtime.links import IDEAL, CommProfile
 
@@ -27,6 +28,10 @@ DEFAULT_LOOK: Look = "rich"
 """The look a run, a sampler or a dataset build uses unless told otherwise."""
 
 TimingMode = Literal["lockstep", "realtime"]
+UavDuringVerification = Literal["frozen", "active"]
+"""What the UAV does while the UGV verifies its candidate (docs/AGENTS.md, "The UAV while the UGV
+verifies"): ``frozen``, asked nothing (the paper's method section); ``active``, asked as usual but
+allowed only to move or wait, a message riding with either (the paper's prompt appendix)."""
 
 UAV_VISIBLE_REFERENCE_PX = 512
 """Nadir image side at which ``uav_visible_min_pixels`` is given (scaled with the side squared)."""
@@ -106,6 +111,10 @@ class EpisodeConfig(_Part):
     """Delivered messages kept in the coordination state."""
     max_freeze_s: float = Field(120.0, gt=0)
     """A UAV that has not heard its candidate resolved by then is asked again (lossy links)."""
+    uav_during_verification: UavDuringVerification = "frozen"
+    """``frozen``: after ANNOTATE_CANDIDATE the UAV is asked nothing until it hears the candidate
+    resolved (or ``max_freeze_s`` passes). ``active``: it keeps deciding while its candidate is open,
+    but only MOVE_TO_UAV_WAYPOINT or WAIT are legal then (each may carry a message)."""
     decision_budget: int | None = Field(None, ge=1)
     """Decisions of both roles together; None: each episode's own budget (80 in the splits)."""
     decision_timeout_s: float = Field(60.0, gt=0)
@@ -124,6 +133,15 @@ class EpisodeConfig(_Part):
     """Dataset builds (``agos dataset build``): the world also renders each role's camera every this
     many metres along its moves, delivered with the next observation (``ExpertHints.passed``, expert
     runs only). None: no views between decisions."""
+
+    @model_validator(mode="after")
+    def _expert_needs_a_frozen_uav(self) -> EpisodeConfig:
+        """The expert's plan is timed for a frozen UAV (world/expert/timeline.py): an ``active`` UAV
+        would be asked decisions its script does not have."""
+        if self.tools.expert and self.uav_during_verification != "frozen":
+            raise ValueError("uav_during_verification must be 'frozen' with the expert tool (its plan is timed "
+                             "for a UAV that is asked nothing while the UGV verifies)")
+        return self
 
     def config_hash(self) -> str:
         """Short sha256 (12 hex digits) of the canonical JSON of every field: equal hashes, equal
@@ -157,8 +175,9 @@ def read_config(data: Any, *, where: str) -> EpisodeConfig:
                                 "(written by another agos version?)") from None
 
 
-HASHED_ONLY_WHEN_NOT: dict[str, dict[str, Any]] = {"": {"look": "flat", "capture_every_m": None},
-                                                   "tools": {"expert": False}}
+HASHED_ONLY_WHEN_NOT: dict[str, dict[str, Any]] = {
+    "": {"look": "flat", "capture_every_m": None, "uav_during_verification": "frozen"},
+    "tools": {"expert": False}}
 """Fields added after configurations were first stored, by section ("" is the top level): left out
 of the hash at these values, so configurations stored before the fields existed keep their hash."""
 

@@ -151,6 +151,11 @@ class CoordinationState(Message, tag="coordination_state", kw_only=True):
     decision_budget: int = 80
     annotations_used: int = 0
     max_annotations: int = 5
+    confirmations_used: int = 0
+    """CONFIRMs made so far in the episode (0 in every observation: a CONFIRM ends the episode)."""
+    max_confirmations: int = 1
+    """CONFIRMs an episode allows (world/sim/rules.py ``MAX_CONFIRMATIONS``): the remaining
+    confirmation budget is ``max_confirmations - confirmations_used`` (docs/AGENTS.md)."""
 
 
 class OracleHints(Part, kw_only=True):
@@ -239,6 +244,10 @@ class Observation(Message, tag="observation", kw_only=True):
     images: list[ImageFrame]
     references: list[ImageFrame]
     """Target reference views, background removed (black, alpha in the PNG)."""
+    teammate_reference: ImageFrame | None = None
+    """UAV only: the UGV alone seen from straight above (``teammate_top``, background removed like
+    the references, with ``metres_per_px``), rendered once when the episode starts, so the UAV can
+    tell its teammate from other vehicles. None for the UGV."""
     legal_actions: list[ActionName]
     waypoint_options: list[Waypoint]
     region_world_m: tuple[float, float, float, float]

@@ -39,8 +39,9 @@ log = logging.getLogger("agos.agent.vlm")
 logging.getLogger("httpx").setLevel(logging.WARNING)  # one INFO line per request drowns the agent log
 RAW_REPLY_CHARS = 2000
 UAV_AT_WAYPOINT_M = 1.0
-MAX_IMAGES = {("uav", "all"): 7, ("ugv", "all"): 12, ("uav", "view_only"): 2, ("ugv", "view_only"): 7}
-"""Most images one request of a role carries: UAV view + map + 5 references; UGV six panels + map + 5."""
+MAX_IMAGES = {("uav", "all"): 8, ("ugv", "all"): 12, ("uav", "view_only"): 2, ("ugv", "view_only"): 7}
+"""Most images one request of a role carries: UAV view + map + 5 references + the teammate's top view;
+UGV six panels + map + 5 references. ``view_only``: the view(s) and the top reference."""
 
 PROBE_PX = 64
 """Side of the preflight's probe images: some VLM image processors refuse images under 28-32 px."""

@@ -2,9 +2,12 @@
 from the role's observation, its coordination view and its memory, conditioned on the task stage.
 
 UAV stages: ``search`` (no active candidate), ``candidate_active`` (its candidate is being verified:
-annotation is off, the UAV holds or moves), ``post_rejection`` (search again, rejected regions
-listed). UGV stages: ``free_exploration``, ``candidate_reminder``, ``arrival``, ``six_view``,
-``post_rejection``. The wording is ours; the structure follows the paper's Appendix C.
+annotation is off, the UAV holds or moves, a guidance message allowed; every decision meanwhile when
+the run's UAV is ``active``, only after ``max_freeze_s`` when it is ``frozen``), ``post_rejection``
+(search again, rejected regions listed). UGV stages: ``free_exploration``, ``candidate_reminder``,
+``arrival``, ``six_view``, ``post_rejection``. The UAV's images include its teammate's top view; the
+UGV's prompt states the remaining confirmation budget the world sends. The wording is ours; the
+structure follows the paper's Appendix C.
 """
 
 from __future__ import annotations
@@ -22,12 +25,15 @@ from agos.agents.vlm.request import (
     budget,
     camera_facts,
     candidate_facts,
+    confirmation_text,
+    confirmations,
     frame,
     messages,
     options,
     panel_cameras,
     reference_cameras,
     reference_scale,
+    teammate_scale,
     unvisited_nearest,
     xy,
 )
@@ -43,7 +49,8 @@ reference pictures.
 
 Your image of the ground carries a 5 x 5 grid: rows A (top) to E (bottom), columns 1 (left) to 5 (right), \
 so A1 is the top-left cell and E5 the bottom-right one. Compare the cars you see with the reference: paint \
-colour first, then body type, length and shape. The target always stands on a street where cars drive, so a \
+colour first, then body type, length and shape. One picture shows your teammate, the UGV, from above, so \
+that you do not take it for another car. The target always stands on a street where cars drive, so a \
 match on a road or at a junction is far more likely than one on a pavement, a lawn or a roof.
 
 What you can do:
@@ -92,10 +99,13 @@ def uav_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prom
         b.image(protocol.AERIAL, nadir, "Your downward camera image with the A1-E5 grid")
     b.map(obs)
     b.references(obs, top_only=b.images != "all")
+    b.teammate(obs)
     if active is not None:  # stage == "candidate_active"
+        only = "" if "NO_RELIABLE_CANDIDATE" in obs.legal_actions else " Until it is resolved you may only move or wait."
         b.text(f"STAGE: candidate {active['id']} (cell {active['cell']}) is with the UGV for checking "
-               f"(status {active['status']}). You cannot annotate now. Hold position with WAIT, or move on to "
-               "cover unvisited waypoints; a short message to the UGV is allowed.")
+               f"(status {active['status']}). You cannot annotate now.{only} Hold position with WAIT, or move on to "
+               "cover unvisited waypoints; a short guidance message to the UGV (where the car stands, how to "
+               "recognise it) is allowed.")
     elif stage == "post_rejection":
         regions = "; ".join(f"({x:.0f}, {y:.0f})" for x, y in rejected)
         b.text(f"STAGE: search again. The UGV rejected the region(s) around {regions} m: do not annotate "
@@ -118,7 +128,7 @@ def uav_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prom
         "unvisited_waypoints": unvisited_nearest(obs, memory),
         "coverage": {"visited": len(set(memory.visited)), "total": len(obs.active_uav_waypoints)},
         "memory": list(memory.recent), "legal_actions": list(obs.legal_actions),
-        "reference_m_per_px": reference_scale(obs),
+        "reference_m_per_px": reference_scale(obs), "teammate_m_per_px": teammate_scale(obs),
         "reference_cameras": reference_cameras(obs)})
     return Prompt(UAV_SYSTEM, b.parts, stage, list(obs.legal_actions), b.image_bytes)
 
@@ -141,7 +151,7 @@ def ugv_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prom
     b.text(f"Decision {obs.decision_index}. Team budget: {budget(obs)['left']} of {obs.coordination.decision_budget} "
            f"decisions left. You are at ({p[0]:.0f}, {p[1]:.0f}) m, heading "
            f"{math.degrees(obs.pose.yaw_rad):.0f} deg (0 = east, 90 = north). Mode: "
-           f"{'stopped, six views' if obs.mode == 'stop_6view' else 'driving'}.")
+           f"{'stopped, six views' if obs.mode == 'stop_6view' else 'driving'}. " + confirmation_text(obs))
     cam = b.ground_views(obs)
     b.text(_ugv_stage_text(stage, active, rejected, rgpp=rgpp))
     if memory.recent:
@@ -151,7 +161,8 @@ def ugv_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prom
     b.text(f"Legal actions now: {', '.join(obs.legal_actions)}. " + REPLY_FORMAT)
     b.state({
         "protocol": "agos-agent", "role": "ugv", "stage": stage, "step": obs.decision_index, "budget": budget(obs),
-        "position_m": xy(p), "heading_deg": round(math.degrees(obs.pose.yaw_rad), 1), "mode": obs.mode,
+        "confirmations": confirmations(obs), "position_m": xy(p),
+        "heading_deg": round(math.degrees(obs.pose.yaw_rad), 1), "mode": obs.mode,
         "fresh_stop": obs.fresh_stop_observe, "camera": camera_facts(cam), "active_candidate": active,
         "candidates": candidates, "rejected_regions_m": rejected, "messages": messages(obs),
         "waypoint_options": options(obs, memory), "memory": list(memory.recent),

@@ -21,12 +21,15 @@ from agos.agents.vlm.request import (
     PromptBuilder,
     budget,
     camera_facts,
+    confirmation_text,
+    confirmations,
     frame,
     messages,
     options,
     panel_cameras,
     reference_cameras,
     reference_scale,
+    teammate_scale,
     unvisited_nearest,
     xy,
 )
@@ -38,7 +41,8 @@ INSPECTED_RADIUS_M = 15.0
 
 UAV_SYSTEM = """You are a drone flying about 80 m above a town with a downward camera, searching for one \
 parked car (the target, see the reference pictures) together with a ground robot (UGV). You cannot mark \
-anything on a map for the UGV; you can only fly and talk to it in short messages.
+anything on a map for the UGV; you can only fly and talk to it in short messages. One picture shows the \
+UGV from above, so that you do not take it for another car.
 
 At every decision, first classify what your image shows:
 - CLEAR_MATCH: a car with the target's paint colour and body type.
@@ -73,6 +77,7 @@ def uav_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prom
         b.image(protocol.AERIAL, nadir, "Your downward camera image")
     b.map(obs)
     b.references(obs, top_only=b.images != "all")
+    b.teammate(obs)
     if obs.coordination.messages:
         b.text("Messages from the UGV: " + " | ".join(m["text"] for m in messages(obs)))
     stalled = memory.waits_here >= STALL_WAITS
@@ -87,7 +92,7 @@ def uav_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prom
         "messages": messages(obs), "waypoint_options": options(obs, memory),
         "unvisited_waypoints": unvisited_nearest(obs, memory), "waits_here": memory.waits_here,
         "stall_reminder": stalled, "legal_actions": list(obs.legal_actions),
-        "reference_m_per_px": reference_scale(obs),
+        "reference_m_per_px": reference_scale(obs), "teammate_m_per_px": teammate_scale(obs),
         "reference_cameras": reference_cameras(obs)})
     return Prompt(UAV_SYSTEM, b.parts, "baseline", list(obs.legal_actions), b.image_bytes)
 
@@ -112,7 +117,8 @@ def ugv_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prom
     p = obs.pose.position_world_m
     anchor = anchor_from_messages(obs, memory)
     b.text(f"Decision {obs.decision_index}; {budget(obs)['left']} team decisions left. You are at "
-           f"({p[0]:.0f}, {p[1]:.0f}) m. Mode: {'stopped, six views' if obs.mode == 'stop_6view' else 'driving'}.")
+           f"({p[0]:.0f}, {p[1]:.0f}) m. Mode: {'stopped, six views' if obs.mode == 'stop_6view' else 'driving'}. "
+           + confirmation_text(obs))
     cam = b.ground_views(obs)
     if obs.coordination.messages:
         b.text("Messages from the UAV: " + " | ".join(m["text"] for m in messages(obs)))
@@ -127,7 +133,8 @@ def ugv_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prom
     b.text(f"Legal actions now: {', '.join(obs.legal_actions)}. " + REPLY_FORMAT)
     extra = {} if anchor is None else {"distance_to_anchor_m": lambda w: round(math.dist(w.position_world_m[:2], anchor), 1)}
     b.state({
-        "protocol": "baseline", "role": "ugv", "step": obs.decision_index, "budget": budget(obs), "position_m": xy(p),
+        "protocol": "baseline", "role": "ugv", "step": obs.decision_index, "budget": budget(obs),
+        "confirmations": confirmations(obs), "position_m": xy(p),
         "heading_deg": round(math.degrees(obs.pose.yaw_rad), 1), "mode": obs.mode, "fresh_stop": obs.fresh_stop_observe,
         "camera": camera_facts(cam), "anchor": anchor_row, "messages": messages(obs),
         "waypoint_options": options(obs, memory, **extra), "legal_actions": list(obs.legal_actions),

@@ -32,6 +32,8 @@ FORWARD = "forward"
 SIX_VIEWS = ("front_left", "front", "front_right", "back_left", "back", "back_right")
 REFERENCE_PREFIX = "target_ref_"
 """``target_ref_top`` (with a metric scale in the state), ``target_ref_front`` ..."""
+TEAMMATE_REFERENCE = "teammate_ref_top"
+"""UAV requests: the UGV seen from straight above (not a target reference: no ``target_ref_`` prefix)."""
 
 
 COORDINATE = re.compile(r"\(\s*(-?\d+(?:\.\d+)?)\s*,\s*(-?\d+(?:\.\d+)?)\s*\)")

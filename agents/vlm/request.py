@@ -84,6 +84,16 @@ class PromptBuilder:
                 note += f" ({ref.metres_per_px:.4f} m per pixel, background blacked out)"
             self.image(protocol.REFERENCE_PREFIX + ref.name.removeprefix("ref_"), ref, note)
 
+    def teammate(self, obs: Observation) -> None:
+        """The teammate's top view, where the observation has one (the UAV's) and every image is sent."""
+        ref = obs.teammate_reference
+        if ref is None or self.images != "all":
+            return
+        note = "Your teammate, the UGV, seen from straight above with its nose up"
+        if ref.metres_per_px:
+            note += f" ({ref.metres_per_px:.4f} m per pixel, background blacked out)"
+        self.image(protocol.TEAMMATE_REFERENCE, ref, note + ": tell it apart from the cars you search among")
+
     def map(self, obs: Observation) -> None:
         frame = next((f for f in obs.images if f.kind == "map"), None)
         if frame is not None and self.images == "all":
@@ -153,6 +163,25 @@ def xy(v: Any) -> list[float]:
 def budget(obs: Observation) -> dict[str, int]:
     c = obs.coordination
     return {"used": c.decisions_used, "total": c.decision_budget, "left": max(0, c.decision_budget - c.decisions_used)}
+
+
+def confirmations(obs: Observation) -> dict[str, int]:
+    """The remaining confirmation budget as the world sends it: CONFIRMs used, allowed, left."""
+    c = obs.coordination
+    return {"used": c.confirmations_used, "max": c.max_confirmations,
+            "left": max(0, c.max_confirmations - c.confirmations_used)}
+
+
+def confirmation_text(obs: Observation) -> str:
+    """The prompt's sentence on the confirmation budget."""
+    left = confirmations(obs)
+    return (f"Confirmations left: {left['left']} of {left['max']} (a CONFIRM, right or wrong, ends the task, "
+            "so spend it only on a clear match).")
+
+
+def teammate_scale(obs: Observation) -> float | None:
+    ref = obs.teammate_reference
+    return None if ref is None else ref.metres_per_px
 
 
 def messages(obs: Observation, limit: int = 4) -> list[dict[str, Any]]:

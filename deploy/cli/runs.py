@@ -73,6 +73,10 @@ def _add_eval(sub: Any) -> None:
     ev.add_argument("--policy-ugv")
     ev.add_argument("--comm", default="ideal", help="comm profile name (deploy/comm) or TOML file")
     ev.add_argument("--timing", choices=["lockstep", "realtime"], default="lockstep")
+    ev.add_argument("--uav-verification", choices=["frozen", "active"],
+                    help="the UAV while the UGV verifies its candidate: frozen (asked nothing; the paper's method "
+                         "section) or active (may move or wait, with a message; its prompt appendix). Default [world] "
+                         "uav_during_verification, frozen (docs/AGENTS.md)")
     ev.add_argument("--workers", type=_workers, help="local world worker processes (default 1), or auto: as many "
                     "episodes at once as keep the cores busy while the model thinks (deploy/run/concurrency.py)")
     ev.add_argument("--model-latency", type=float, metavar="S",

@@ -20,8 +20,9 @@ Choices where the paper is silent (also in docs/ARCHITECTURE.md):
   counts. The episode ends when it is spent.
 * WAIT lasts until the coordination state changes for that role (a new candidate, a rejection,
   a message) or ``wait_max_s`` passes, whichever is first.
-* After ANNOTATE_CANDIDATE the UAV is frozen (asked nothing) until the UGV confirms or
-  rejects the candidate.
+* After ANNOTATE_CANDIDATE the UAV is frozen (asked nothing) until it hears that the UGV
+  confirmed or rejected the candidate, when ``uav_during_verification`` is ``frozen`` (the
+  default); with ``active`` it keeps deciding, limited to moving and waiting (rules.py).
 * An illegal or missing action becomes a logged WAIT and still counts as a decision.
 """
 
@@ -55,6 +56,7 @@ from agos.world.sim.record import episode_record, logged_step, shortest_confirma
 from agos.world.sim.rules import IllegalAction
 from agos.world.sim.scene import Scene
 from agos.world.sim.state import EpisodeState, UavState, UgvState
+from agos.world.sim.teammate import teammate_top_view
 from agos.world.towns.asset import Town
 from agos.world.towns.roadgraph import RoadGraphs
 from agos.world.towns.topdown import RegionMap
@@ -126,6 +128,7 @@ class EpisodeRunner:
             if cfg.cameras.map_px else None
         st.references = sensors.reference_views(
             scene, st.target_uid, spec.target.position_world_m, spec.target.yaw_rad, cfg.cameras)
+        st.teammate_reference = teammate_top_view(scene, cfg.cameras)
         start_uav = st.town.uav_grid.nodes[spec.uav_start_waypoint]
         st.uav = UavState(start_uav.node_id, start_uav.position_world_m)
         start = RoadGraphs.parse_anchor_id(spec.ugv_start_waypoint)

@@ -4,12 +4,14 @@ Contract: :func:`observe` is one decision's sensing for one role: it counts the 
 renders its cameras (the UAV's nadir view with the grid, or the UGV's forward view, or the six
 views of its last STOP_OBSERVE), and builds the :class:`Observation` from the role's own view of
 the coordination state (never the truth), its waypoint options and the legal actions of
-:mod:`agos.world.sim.rules`, plus the oracle's ground-truth hints when the oracle tool is on, and the expert's plan when the
-expert tool is on (made once per episode by the planner :func:`use_expert_planner` installed:
-``agos.world.expert``, a layer above, installs it; this module only delivers it).
-It notes in the state what the UAV's camera saw (``uav_target_px``, the oracle-visible step
+:mod:`agos.world.sim.rules`, the target's references (and for the UAV its teammate's top view,
+rendered once at the episode's start), plus the oracle's ground-truth hints when the oracle tool
+is on, and the expert's plan when the expert tool is on (made once per episode by the planner
+:func:`use_expert_planner` installed: ``agos.world.expert``, a layer above, installs it; this
+module only delivers it). It notes in the state what the UAV's camera saw (``uav_target_px``, the oracle-visible step
 ``tau``) and the role's information age; it moves nothing and sends nothing.
-:func:`coordination` builds the truth or a role's view as a :class:`CoordinationState`.
+:func:`coordination` builds the truth or a role's view as a :class:`CoordinationState`, with the
+decision, annotation and confirmation budgets the world keeps.
 """
 
 from __future__ import annotations
@@ -54,7 +56,7 @@ def observe(st: EpisodeState, role: Role) -> Observation:
         return Observation(
             run_id=st.run_id, episode_id=st.spec.episode_id, role="uav",
             decision_index=st.uav.decisions, sim_time_s=st.sim_time_s, pose=st.uav_pose(),
-            mode="aerial", images=images, references=st.references,
+            mode="aerial", images=images, references=st.references, teammate_reference=st.teammate_reference,
             legal_actions=rules.uav_legal(st, options), waypoint_options=options,
             region_world_m=st.spec.region_world_m,
             active_uav_waypoints=st.searchable_area,
@@ -101,7 +103,8 @@ def coordination(st: EpisodeState, role: Role | None = None) -> CoordinationStat
         run_id=st.run_id, episode_id=st.spec.episode_id, sim_time_s=st.sim_time_s,
         candidates=[copy.copy(c) for c in candidates], messages=messages[-st.cfg.recent_messages:],
         poses=poses, decisions_used=st.decisions_used, decision_budget=st.spec.decision_budget,
-        annotations_used=len(st.candidates), max_annotations=st.cfg.max_annotations)
+        annotations_used=len(st.candidates), max_annotations=st.cfg.max_annotations,
+        confirmations_used=st.n_confirm, max_confirmations=rules.MAX_CONFIRMATIONS)
 
 
 def _map_frame(st: EpisodeState, role: Role) -> list[ImageFrame]:

@@ -3,11 +3,12 @@
 Contract: :func:`refusal` and :func:`uav_legal` / :func:`ugv_legal` only read the state.
 :func:`apply_action` applies one checked action to the :class:`~agos.world.sim.state.EpisodeState`
 at its ``sim_time_s``: it moves the role, sets when it is ready again, creates candidates and
-changes their status, and ends the episode on CONFIRM. It raises :class:`IllegalAction` (the
-engine turns it into a logged WAIT) before changing anything when the action's arguments are
-not valid now. It renders only what the action itself sees (STOP_OBSERVE's six views, the
-CONFIRM checker's line-of-sight rays) and never sends through a link: syncs and messages are
-the engine's.
+changes their status (freezing the UAV after an annotation when the configuration says
+``frozen``), and ends the episode on CONFIRM (so there is at most :data:`MAX_CONFIRMATIONS`). It
+raises :class:`IllegalAction` (the engine turns it into a logged WAIT) before changing anything
+when the action's arguments are not valid now. It renders only what the action itself sees
+(STOP_OBSERVE's six views, the CONFIRM checker's line-of-sight rays) and never sends through a
+link: syncs and messages are the engine's.
 
 The two tools the paper ablates live here: E2A (Ego-to-Allo projection, :func:`_project_cell`:
 an annotated grid cell becomes a polygon on the ground) and RGPP (road-graph path planning,
@@ -38,12 +39,23 @@ class IllegalAction(ValueError):
     """The action is not legal now; the text says why (it becomes a WAIT)."""
 
 
+MAX_CONFIRMATIONS = 1
+"""CONFIRMs the UGV may make in an episode: the first one ends it, accepted or not. The world sends
+it with the count used (``CoordinationState.max_confirmations`` / ``confirmations_used``): the
+UGV prompt's remaining confirmation budget (docs/AGENTS.md)."""
+
+
 # ----- legality ---------------------------------------------------------------------------------
 def uav_legal(st: EpisodeState, options: list[Waypoint]) -> list[ActionName]:
+    """The UAV's legal actions. While its own view holds an open candidate it may not annotate; with
+    ``uav_during_verification = "active"`` it may then only move or wait (the ``frozen`` UAV is asked
+    then only after ``max_freeze_s``, and keeps NO_RELIABLE_CANDIDATE as before)."""
+    verifying = st.active_candidate("uav") is not None
     legal: list[ActionName] = ["MOVE_TO_UAV_WAYPOINT"] if options else []
-    if (st.cfg.tools.candidates and st.active_candidate("uav") is None
-            and len(st.candidates) < st.cfg.max_annotations):
+    if st.cfg.tools.candidates and not verifying and len(st.candidates) < st.cfg.max_annotations:
         legal.append("ANNOTATE_CANDIDATE")
+    if verifying and st.cfg.uav_during_verification == "active":
+        return [*legal, "WAIT"]
     return [*legal, "NO_RELIABLE_CANDIDATE", "WAIT"]
 
 
@@ -110,7 +122,8 @@ def _apply_uav(st: EpisodeState, action: Action, obs: Observation) -> str | None
                          approach_waypoint_id=RoadGraphs.anchor_id(approach) if approach is not None else None)
         st.candidates.append(cand)
         st.channel.views["uav"].candidates[cand.candidate_id] = copy.copy(cand)
-        uav.frozen, uav.frozen_since = True, now
+        if st.cfg.uav_during_verification == "frozen":
+            uav.frozen, uav.frozen_since = True, now
         uav.ready_at = now + st.cfg.short_action_s
         return cand.candidate_id
     if action.action == "NO_RELIABLE_CANDIDATE":

@@ -108,12 +108,7 @@ def reference_views(scene: Scene, uid: int, position_world_m: tuple[float, float
     scene.move(uid, np.asarray(STUDIO_OFFSET_M))
     try:
         centre = np.asarray(position_world_m) + STUDIO_OFFSET_M
-        size = cam.reference_px
-        frames = []
-        # Nearly orthographic top view (high and narrow), so roof height does not change scale.
-        top_fov, top_h = 4.0, 150.0
-        views = [("ref_top", centre + [0, 0, top_h], np.array([0.0, 0.0, -1.0]),
-                  np.array([math.cos(yaw_rad), math.sin(yaw_rad), 0.0]), top_fov, top_h)]
+        views = [top_view_camera("ref_top", centre, yaw_rad)]
         # Side views from the UGV camera height, so painted heights compare with ground views.
         for name, off in (("ref_front_left", 35.0), ("ref_side", 90.0), ("ref_rear", 180.0 - 35.0),
                           ("ref_front", 0.0)):
@@ -121,21 +116,40 @@ def reference_views(scene: Scene, uid: int, position_world_m: tuple[float, float
             dist = 11.0
             eye = centre + [dist * math.cos(a), dist * math.sin(a), UGV_CAMERA_HEIGHT_M]
             views.append((name, eye, centre + [0, 0, 1.0] - eye, np.array([0.0, 0.0, 1.0]), 40.0, dist))
-        for name, eye, forward, up, fov, dist in views:
-            shot = shoot(scene, name, eye, forward, up, fov, size)
-            mask = shot.render.instance == uid
-            rgba = np.zeros((size, size, 4), np.uint8)
-            rgba[mask, :3] = shot.render.rgb[mask]
-            rgba[mask, 3] = 255
-            # Camera pose in the vehicle's frame (origin on the road under its centre, x forward).
-            object_from_world = _object_frame(centre, yaw_rad)
-            frames.append(ImageFrame(
-                name=name, kind="rgb", encoding="png", data=encode_png(rgba), intrinsics=shot.intrinsics,
-                world_from_camera=(object_from_world @ shot.world_from_camera).flatten().tolist(),
-                metres_per_px=2 * dist * math.tan(math.radians(fov) / 2) / size))
-        return frames
+        return [isolated_view(scene, uid, view, centre, yaw_rad, cam.reference_px) for view in views]
     finally:
         scene.move(uid, -np.asarray(STUDIO_OFFSET_M))
+
+
+IsolatedCamera = tuple[str, np.ndarray, np.ndarray, np.ndarray, float, float]
+"""(frame name, eye, forward, up, horizontal FOV in degrees, distance to the object in metres)."""
+
+TOP_VIEW_HEIGHT_M, TOP_VIEW_FOV_DEG = 150.0, 4.0
+"""The reference top view: high and narrow, nearly orthographic, so roof height does not change scale."""
+
+
+def top_view_camera(name: str, centre: np.ndarray, yaw_rad: float) -> IsolatedCamera:
+    """A camera straight above ``centre`` with image up along the vehicle's heading ``yaw_rad``."""
+    return (name, centre + [0, 0, TOP_VIEW_HEIGHT_M], np.array([0.0, 0.0, -1.0]),
+            np.array([math.cos(yaw_rad), math.sin(yaw_rad), 0.0]), TOP_VIEW_FOV_DEG, TOP_VIEW_HEIGHT_M)
+
+
+def isolated_view(scene: Scene, uid: int, camera: IsolatedCamera, centre: np.ndarray, yaw_rad: float,
+                  size: int) -> ImageFrame:
+    """One view of the body ``uid`` alone (every other pixel black, alpha 0 in the PNG) as a frame with
+    its camera pose in the vehicle's frame (origin on the road under its centre, x forward) and the
+    metres per pixel at the object's distance."""
+    name, eye, forward, up, fov, dist = camera
+    shot = shoot(scene, name, eye, forward, up, fov, size)
+    mask = shot.render.instance == uid
+    rgba = np.zeros((size, size, 4), np.uint8)
+    rgba[mask, :3] = shot.render.rgb[mask]
+    rgba[mask, 3] = 255
+    object_from_world = _object_frame(centre, yaw_rad)
+    return ImageFrame(
+        name=name, kind="rgb", encoding="png", data=encode_png(rgba), intrinsics=shot.intrinsics,
+        world_from_camera=(object_from_world @ shot.world_from_camera).flatten().tolist(),
+        metres_per_px=2 * dist * math.tan(math.radians(fov) / 2) / size)
 
 
 def _object_frame(centre: np.ndarray, yaw_rad: float) -> np.ndarray:

@@ -80,6 +80,8 @@ class EpisodeState:
     target_xy: tuple[float, float]
     region_map: RegionMap | None
     references: list[ImageFrame]
+    teammate_reference: ImageFrame
+    """The UGV from above, for the UAV's observations (agos.world.sim.teammate)."""
     uav: UavState
     ugv: UgvState
     start_node: int
