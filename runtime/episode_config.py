@@ -78,7 +78,8 @@ class ToolConfig(_Part):
     candidates: bool = True
     """Structured candidates (ANNOTATE_CANDIDATE, GO_TO_CANDIDATE); off for the Baseline."""
     e2a: bool = True
-    """Ego-to-Allo projection: a candidate is its grid cell on the ground (off: the whole footprint)."""
+    """Ego-to-Allo projection: a candidate is its grid cell on the ground (off: the centre of the
+    UAV's footprint, one point, the cell kept as metadata)."""
     rgpp: bool = True
     """Road-graph path planning: GO_TO_CANDIDATE exists (off: distance hints on road waypoints)."""
     oracle: bool = False

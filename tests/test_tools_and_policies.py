@@ -11,11 +11,15 @@ import pytest
 from agos.agents.inprocess import InProcessAgents
 from agos.agents.names import split_name, tools_for
 from agos.agents.registry import make_policy
+from agos.evaluator.metrics import acg
+from agos.evaluator.summary import EpisodeSummary
 from agos.runtime.episode_config import EpisodeConfig, ToolConfig
+from agos.runtime.geometry import distance_to_polygon
 from agos.world.episodes.sampling import generate_episodes
 from agos.world.sim import sensors
 from agos.world.sim.engine import EpisodeRunner
 from agos.world.sim.options import shortest_path
+from agos.world.sim.projection import candidate_region
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import open_town
 from agos.world.towns.lanes import Lane, LaneNetwork
@@ -38,6 +42,36 @@ def test_e2a_cell_centres_land_within_a_metre_of_the_true_ground_point(altitude:
             ray = pose[:3, :3] @ np.array([(u - intr.cx_px) / intr.fx_px, (v - intr.cy_px) / intr.fy_px, 1.0])
             truth = eye + ray * (-eye[2] / ray[2])
             assert np.linalg.norm(centre - truth[:2]) < 1.0
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 30.0, 217.0])
+def test_no_e2a_candidate_is_the_footprint_centre_and_acg_measures_from_it(yaw_deg: float) -> None:
+    eye = np.array([12.0, -7.0, 80.0])
+    yaw = math.radians(yaw_deg)
+    pose = sensors._pose(eye, np.array([0.0, 0.0, -1.0]), np.array([math.cos(yaw), math.sin(yaw), 0.0]))
+    intr = sensors.intrinsics_for(512, 512, 60.0)
+    # the nadir footprint at 80 m with a 60 degree view: a square of side 2 * 80 * tan(30 deg) = 92.4 m,
+    # centred below the camera at (12, -7), whichever cell was annotated (the cell is only metadata)
+    for cell in ("A1", "C3", "E5"):
+        polygon, centre = candidate_region(cell, pose, intr, e2a=False)
+        assert centre == pytest.approx((12.0, -7.0), abs=1e-6)
+        assert polygon == [centre]  # the region is the centre alone
+    # a target 30 m east of the centre lies inside the footprint (half side 46.2 m): measured from the
+    # whole footprint, d = 0 and ACG_e = 1; measured from the centre, d = 30 and ACG_e = 50 / (50 + 30)
+    target = (42.0, -7.0)
+    footprint = sensors.footprint_world(pose, intr)
+    assert distance_to_polygon(target, footprint) == 0.0
+    d = distance_to_polygon(target, polygon)
+    assert d == pytest.approx(30.0)
+    episode = EpisodeSummary.model_validate(dict(
+        episode_id="e", difficulty="easy", success=False, ground_observed=False, n_confirm=0, ugv_path_length_m=0.0,
+        final_distance_m=None, uav_budget=80, uav_first_visible_step=None, decisions_uav=1, decisions_ugv=0,
+        candidates=[{"distance_to_polygon_m": d, "center_error_m": math.dist(target, centre)}]))
+    assert acg(episode) == pytest.approx(50 / 80)
+    # with E2A the candidate is the annotated cell: its ground quadrilateral and that one's centroid
+    polygon, centre = candidate_region("C3", pose, intr, e2a=True)
+    assert polygon == sensors.cell_polygon_world("C3", pose, intr) and len(polygon) == 4
+    assert centre == pytest.approx(tuple(np.mean(polygon, axis=0)))
 
 
 def _lane(lane_id: str, points, successors=(), in_junction=False) -> Lane:
@@ -130,12 +164,16 @@ def test_no_rgpp_removes_go_to_candidate_and_gives_distance_hints(world) -> None
     assert record.status == "finished"
 
 
-def test_no_e2a_candidate_is_the_uav_footprint(world) -> None:
+def test_no_e2a_candidate_is_the_uav_footprint_centre(world) -> None:
     record = _run(world, "heuristic:no_e2a", world[2][0])
     assert record.candidates
     e2a = _run(world, "heuristic", world[2][0])
-    # the footprint centre is the UAV position: farther from the target than the annotated cell
+    # the footprint centre is below the UAV: farther from the target than the annotated cell
     assert record.candidates[0].center_error_m > e2a.candidates[0].center_error_m
+    # and ACG's distance is measured from that centre, not from the whole footprint (then mostly 0)
+    for c in record.candidates:
+        assert c.distance_to_polygon_m == pytest.approx(c.center_error_m, abs=1e-2)
+        assert c.distance_to_polygon_m > 0
 
 
 def test_a_misspelt_policy_fails_before_any_process_starts(tmp_path, agos) -> None:

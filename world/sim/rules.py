@@ -11,7 +11,8 @@ when the action's arguments are not valid now. It renders only what the action i
 link: syncs and messages are the engine's.
 
 The two tools the paper ablates live here: E2A (Ego-to-Allo projection, :func:`_project_cell`:
-an annotated grid cell becomes a polygon on the ground) and RGPP (road-graph path planning,
+an annotated grid cell becomes a polygon on the ground; without it, the footprint's centre,
+:mod:`agos.world.sim.projection`) and RGPP (road-graph path planning,
 :func:`approach_anchor`: a candidate gets the road anchor GO_TO_CANDIDATE drives to). In runs
 with the oracle's hints a candidate that contains the target is approached where the CONFIRM
 checker would accept (:func:`_oracle_approach`): the oracle's shortest road path.
@@ -25,12 +26,13 @@ import math
 import networkx as nx
 import numpy as np
 
-from agos.runtime.geometry import centroid, point_in_polygon
+from agos.runtime.geometry import point_in_polygon
 from agos.runtime.schemas import Action, ActionName, Candidate, CandidateStatus, Observation, Role, Waypoint
 from agos.world.sim import sensors
 from agos.world.sim.confirm import ConfirmEvidence, check_confirm
 from agos.world.sim.evidence import line_of_sight, nearest_verifying_anchor, target_points
 from agos.world.sim.options import heading_after, shortest_path
+from agos.world.sim.projection import candidate_region
 from agos.world.sim.state import EpisodeState
 from agos.world.towns.roadgraph import RoadGraphs
 
@@ -214,16 +216,12 @@ def _drive_to(st: EpisodeState, target: int) -> None:
 
 # ----- E2A and RGPP -----------------------------------------------------------------------------
 def _project_cell(st: EpisodeState, cell: str) -> tuple[list[tuple[float, float]], tuple[float, float]]:
-    """Ego-to-Allo projection: the annotated cell of the UAV's last nadir view as a polygon on the
-    ground and its centre. Without E2A the cell is kept as metadata only; the candidate is the
-    UAV's whole ground footprint, centred below it."""
-    uav = st.uav
-    assert uav.last_nadir is not None
-    if st.cfg.tools.e2a:
-        polygon = sensors.cell_polygon_world(cell, uav.last_nadir.world_from_camera, uav.last_nadir.intrinsics)
-        return polygon, centroid(polygon)
-    polygon = sensors.footprint_world(uav.last_nadir.world_from_camera, uav.last_nadir.intrinsics)
-    return polygon, (float(uav.position[0]), float(uav.position[1]))
+    """The candidate's ground region and centre for the annotated cell of the UAV's last nadir view
+    (:func:`~agos.world.sim.projection.candidate_region`): with E2A the cell's ground polygon; without,
+    the cell is metadata only and the candidate is the centre of the view's footprint, a point."""
+    nadir = st.uav.last_nadir
+    assert nadir is not None
+    return candidate_region(cell, nadir.world_from_camera, nadir.intrinsics, e2a=st.cfg.tools.e2a)
 
 
 def approach_anchor(roads: RoadGraphs, node: int, centre: tuple[float, float], radius_m: float = 20.0) -> int | None:
