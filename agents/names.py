@@ -6,14 +6,14 @@ from __future__ import annotations
 
 ABLATIONS = {"": (True, True), "no_e2a": (False, True), "no_rgpp": (True, False), "no_both": (False, False)}
 KNOWN = ("heuristic[:no_e2a|no_rgpp|no_both], agos-agent[:no_e2a|no_rgpp|no_both], baseline, oracle, expert, random, "
-         "standin-<N>ms, human")
+         "paint-only, standin-<N>ms, human")
 VLM_POLICIES = ("agos-agent", "baseline")
 """Policies that ask a vision-language model over an OpenAI-compatible endpoint."""
 NO_CANDIDATES = ("baseline",)
 """Policies that coordinate through text messages only: no ANNOTATE_CANDIDATE / GO_TO_CANDIDATE."""
 
 
-SCRIPTED = ("heuristic", "oracle", "expert", "random")
+SCRIPTED = ("heuristic", "oracle", "expert", "random", "paint-only")
 """Policies that answer from the observation alone, in milliseconds of the agent's CPU."""
 HUMAN = "human"
 """A person at a browser console (``agos human``, agents/human/): the paper's Human reference."""

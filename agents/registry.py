@@ -36,6 +36,11 @@ def make_policy(name: str, role: Role, *, vlm: VlmOptions | None = None, dataset
         from agos.agents.heuristic.ugv import HeuristicUgv
 
         return HeuristicUav() if role == "uav" else HeuristicUgv()
+    if base == "paint-only":  # the heuristic with every cue but the paint switched off: one cue's floor
+        from agos.agents.heuristic.uav import HeuristicUav
+        from agos.agents.heuristic.ugv import HeuristicUgv
+
+        return HeuristicUav(paint_only=True) if role == "uav" else HeuristicUgv(paint_only=True)
     if base == "oracle":
         from agos.agents.oracle import OracleUav, OracleUgv
 

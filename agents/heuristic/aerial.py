@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from agos.agents.heuristic.paint import MEAN_HUE_TOLERANCE, hue_match, mean_hue_error, near_hue, shade_score
+from agos.agents.heuristic.paint import MEAN_HUE_TOLERANCE, PAINT_ONLY_TOP_M, hue_match, mean_hue_error, near_hue, shade_score
 from agos.agents.heuristic.perception import AerialDetection, TargetProfile
 from agos.runtime.camera import depth_to_world
 from agos.runtime.schemas import CameraIntrinsics
@@ -177,17 +177,24 @@ def _size_error(s: Silhouette, profile: TargetProfile, *, cut: bool = False) -> 
     return err
 
 
+PAINT_ONLY_MAX_LENGTH_M = 12.5
+"""A paint-only search takes standing objects up to a bus's length, whatever the reference's."""
+
+
 def detect_vehicles_from_above(rgb: np.ndarray, depth_m: np.ndarray, profile: TargetProfile, *,
-                               intrinsics: CameraIntrinsics, world_from_camera: np.ndarray) -> list[AerialDetection]:
+                               intrinsics: CameraIntrinsics, world_from_camera: np.ndarray,
+                               paint_only: bool = False) -> list[AerialDetection]:
     """Standing objects of a nadir view with the target's paint, size and height, best first.
 
     A candidate is a group of paint pixels standing 0.35 m or more above their ground, joined
     across glass; its silhouette is the standing object around it (paint, glass and all), measured
     in world metres and compared with the reference's body length, width and height. Paint in
-    shade counts when the ground around it is in shade too.
+    shade counts when the ground around it is in shade too. ``paint_only``: any vehicle-sized
+    object with the paint scores fully (the cue floor of the ``paint-only`` policy): size and
+    height are not compared.
     """
     heights = surface_heights(depth_m, intrinsics, world_from_camera)
-    top = max(profile.body_height_m, profile.paint_top_m, 1.2) + OBJECT_HEADROOM_M
+    top = (PAINT_ONLY_TOP_M if paint_only else max(profile.body_height_m, profile.paint_top_m, 1.2)) + OBJECT_HEADROOM_M
     standing = ((heights.height_m >= MIN_OBJECT_HEIGHT_M) & (heights.height_m <= top)
                 & (heights.base_above_floor_m <= MAX_BASE_ABOVE_FLOOR_M))
     hsv = cv2.cvtColor(np.ascontiguousarray(rgb[:, :, :3]), cv2.COLOR_RGB2HSV)
@@ -197,7 +204,8 @@ def detect_vehicles_from_above(rgb: np.ndarray, depth_m: np.ndarray, profile: Ta
     _, objects = cv2.connectedComponents(standing.astype(np.uint8), connectivity=8)
     n, labels, stats, _ = cv2.connectedComponentsWithStats(joined, connectivity=8)
     min_px = max(6, int(0.8 / heights.metres_per_px ** 2))  # 0.8 m2 of paint
-    max_len = (profile.body_length_m or profile.length_m) * (2.0 if profile.body_cut else 1.6)
+    max_len = PAINT_ONLY_MAX_LENGTH_M if paint_only else \
+        (profile.body_length_m or profile.length_m) * (2.0 if profile.body_cut else 1.6)
     found = []
     for k in range(1, n):
         if stats[k, cv2.CC_STAT_AREA] < min_px:
@@ -216,7 +224,7 @@ def detect_vehicles_from_above(rgb: np.ndarray, depth_m: np.ndarray, profile: Ta
             continue
         vs, us = np.nonzero(region)
         cut = bool(us.min() <= 0 or vs.min() <= 0 or us.max() >= region.shape[1] - 1 or vs.max() >= region.shape[0] - 1)
-        err = _size_error(s, profile, cut=cut)
+        err = CUT_PENALTY * cut if paint_only else _size_error(s, profile, cut=cut)
         if s.relative_value < SHADE_RELATIVE_VALUE:
             err += SHADE_PENALTY * (1.0 - shade_score(region, rgb, heights.height_m, heights.xyz_m))
         score = max(0.0, 1.0 - err)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from agos.agents.heuristic.paint import MEAN_HUE_TOLERANCE, hue_match, mean_hue_error, near_hue, shade_score
+from agos.agents.heuristic.paint import MEAN_HUE_TOLERANCE, PAINT_ONLY_TOP_M, hue_match, mean_hue_error, near_hue, shade_score
 from agos.agents.heuristic.perception import TargetProfile
 from agos.runtime.camera import depth_to_world
 from agos.runtime.schemas import CameraIntrinsics
@@ -146,7 +146,7 @@ def _object_labels(standing: np.ndarray, depth_m: np.ndarray) -> tuple[int, np.n
     return cv2.connectedComponents((standing & ~jump).astype(np.uint8), connectivity=4)
 
 
-def _parts(view: GroundView, profile: TargetProfile, min_pixels: int) -> list[_Part]:
+def _parts(view: GroundView, profile: TargetProfile, min_pixels: int, paint_only: bool) -> list[_Part]:
     """Standing objects of one view with at least ``min_pixels`` // 4 paint-hued pixels."""
     depth = view.depth_m.astype(np.float32)
     h, w = depth.shape
@@ -154,7 +154,7 @@ def _parts(view: GroundView, profile: TargetProfile, min_pixels: int) -> list[_P
     pose = np.asarray(view.world_from_camera, dtype=np.float32).reshape(4, 4)
     height = xyz[:, :, 2] - _street_level(xyz[:, :, 2], depth)
     distance = np.hypot(xyz[:, :, 0] - pose[0, 3], xyz[:, :, 1] - pose[1, 3])
-    body = profile.body_height_m or profile.paint_top_m
+    body = PAINT_ONLY_TOP_M if paint_only else profile.body_height_m or profile.paint_top_m
     standing = (height >= MIN_HEIGHT_M) & (height <= body + HEADROOM_M) & (distance <= MAX_DISTANCE_M)
     n, labels = _object_labels(standing, depth)
     hsv = cv2.cvtColor(np.ascontiguousarray(view.rgb[:, :, :3]), cv2.COLOR_RGB2HSV)
@@ -211,8 +211,9 @@ def _join_parts(parts: list[_Part]) -> list[_Part]:
     return out
 
 
-def _judge(p: _Part, profile: TargetProfile, min_pixels: int) -> GroundObject | None:
-    """The object as a target match, or None when its paint, top or length disagree."""
+def _judge(p: _Part, profile: TargetProfile, min_pixels: int, paint_only: bool) -> GroundObject | None:
+    """The object as a target match, or None when its paint, top or length disagree (``paint_only``:
+    when its paint disagrees)."""
     # Near paints differ in hue by 6 (blue, navy) to 12 (yellow, orange) units: the mean over
     # many pixels tells them apart where single pixels (JPEG) do not. Shade keeps the hue.
     if mean_hue_error(p.hues, profile) > MEAN_HUE_TOLERANCE:
@@ -226,6 +227,9 @@ def _judge(p: _Part, profile: TargetProfile, min_pixels: int) -> GroundObject | 
         return None
     body = profile.body_height_m or profile.paint_top_m
     top = float(np.percentile(p.top_m, 98))
+    x, y = np.median(p.xy_m, axis=0)
+    if paint_only:
+        return GroundObject(tuple(p.views), n_paint, p.distance_m, top, 0.0, float(x), float(y), value, p.shade, 1.0)
     if top - body > TOP_TOLERANCE_M + p.px_m or (body - top > TOP_TOLERANCE_M + p.px_m and not p.top_cut):
         return None
     (_, _), (a, b), _ = cv2.minAreaRect(p.xy_m.astype(np.float32))
@@ -233,22 +237,23 @@ def _judge(p: _Part, profile: TargetProfile, min_pixels: int) -> GroundObject | 
     if not profile.body_cut and length > (profile.body_length_m or profile.length_m) + LENGTH_TOLERANCE_M:
         return None
     score = max(0.05, 1.0 - abs(top - body) / max(body, 0.5))
-    x, y = np.median(p.xy_m, axis=0)
     return GroundObject(tuple(p.views), n_paint, p.distance_m, top, length, float(x), float(y), value, p.shade, score)
 
 
-def find_target(views: list[GroundView], profile: TargetProfile, *, min_pixels: int = 40) -> list[GroundObject]:
+def find_target(views: list[GroundView], profile: TargetProfile, *, min_pixels: int = 40,
+                paint_only: bool = False) -> list[GroundObject]:
     """Objects of the views (a STOP_OBSERVE's six, or one) that match the target, best first.
 
     Standing objects with the paint's hue are gathered from every view and joined where they
     touch. An object cut by a view's edge and not found whole across two views is not judged:
-    its top and length are only bounds there (the front of a van passes for a car)."""
-    parts = [p for v in views for p in _parts(v, profile, min_pixels)]
+    its top and length are only bounds there (the front of a van passes for a car). ``paint_only``:
+    any standing object with the paint matches (the cue floor of the ``paint-only`` policy)."""
+    parts = [p for v in views for p in _parts(v, profile, min_pixels, paint_only)]
     found = []
     for p in _join_parts(parts):
         if p.cut:
             continue
-        match = _judge(p, profile, min_pixels)
+        match = _judge(p, profile, min_pixels, paint_only)
         if match is not None:
             found.append(match)
     return sorted(found, key=lambda d: -d.score)

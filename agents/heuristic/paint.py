@@ -27,6 +27,9 @@ towards the target's by the pixel tolerance."""
 MEAN_HUE_TOLERANCE = 3.0
 """Largest distance of an object's mean hue from the paint's: near paints differ by 6 or more
 (blue and navy; red and maroon 9, yellow and orange 12); JPEG moves a vehicle's mean by about 1."""
+PAINT_ONLY_TOP_M = 3.6
+"""A paint-only search (the ``paint-only`` policy) takes standing objects up to a bus's roof,
+whatever the reference's height."""
 SHADE_RING_M = (0.3, 1.5)
 """The ground looked at for shade: this far (min, max) from an object's footprint. Close, since
 the world shades a vehicle by where its centre stands: a ring further out may lie across the

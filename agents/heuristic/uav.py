@@ -6,6 +6,9 @@ node not yet seen, one legal neighbour move at a time. Detection: standing objec
 nadir depth) with the target's paint, footprint and height against the reference views (see
 :mod:`aerial`; without a depth image, paint colour and footprint alone, :mod:`perception`).
 Candidates rejected by the UGV are remembered and not annotated again.
+
+``paint_only``: the ``paint-only`` policy, the floor of what the paint alone buys: the best match
+of the target's paint, whatever its size, height or attributes.
 """
 
 from __future__ import annotations
@@ -36,8 +39,10 @@ class HeuristicUav:
     role: Role = "uav"
     name = "heuristic"
 
-    def __init__(self) -> None:
+    def __init__(self, *, paint_only: bool = False) -> None:
         self._memory: dict[str, _Memory] = {}
+        self.paint_only = paint_only
+        self.name = "paint-only" if paint_only else "heuristic"
 
     def end_episode(self, episode_id: str) -> None:
         self._memory.pop(episode_id, None)
@@ -78,7 +83,7 @@ class HeuristicUav:
         pose = np.asarray(frame.world_from_camera).reshape(4, 4)
         rejected = [c.center_world_m for c in obs.coordination.candidates if c.status in ("rejected", "false_confirm")]
         intr = frame.intrinsics
-        for det in _detections(obs, frame, rgb, pose, profile):
+        for det in _detections(obs, frame, rgb, pose, profile, self.paint_only):
             ground = pixel_to_ground(det.u_px, det.v_px, pose, intr)
             if any(math.dist(ground, r) <= REJECTED_RADIUS_M for r in rejected):
                 continue
@@ -87,7 +92,7 @@ class HeuristicUav:
 
 
 def _detections(obs: Observation, frame: ImageFrame, rgb: np.ndarray, pose: np.ndarray,
-                profile: TargetProfile) -> list[AerialDetection]:
+                profile: TargetProfile, paint_only: bool) -> list[AerialDetection]:
     """The nadir view's matches, best first: by shape and context when its depth image came with
     it, else by colour and footprint."""
     assert frame.intrinsics is not None
@@ -95,4 +100,5 @@ def _detections(obs: Observation, frame: ImageFrame, rgb: np.ndarray, pose: np.n
     if depth is None:
         return detect_from_above(rgb, profile, altitude_m=float(pose[2, 3]), fy_px=frame.intrinsics.fy_px)
     depth_m = decode_image(depth.data).astype(np.float32) * float(depth.depth_scale_m or 1.0)
-    return detect_vehicles_from_above(rgb, depth_m, profile, intrinsics=frame.intrinsics, world_from_camera=pose)
+    return detect_vehicles_from_above(rgb, depth_m, profile, intrinsics=frame.intrinsics, world_from_camera=pose,
+                                      paint_only=paint_only)

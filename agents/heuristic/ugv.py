@@ -3,7 +3,8 @@
 No candidate: WAIT (the world wakes it when the coordination state changes). Pending
 candidate: GO_TO_CANDIDATE. Arrived: STOP_OBSERVE. Six views: CONFIRM when an object within
 48 m stands on the street with the target's paint (its brightness judged in the light it stands
-in), its body height and no more than its length (:mod:`ground`), else REJECT.
+in), its body height and no more than its length (:mod:`ground`), else REJECT. ``paint_only``
+(the ``paint-only`` policy): CONFIRM on the first object of the target's paint in view.
 """
 
 from __future__ import annotations
@@ -29,9 +30,11 @@ class HeuristicUgv:
     role: Role = "ugv"
     name = "heuristic"
 
-    def __init__(self) -> None:
+    def __init__(self, *, paint_only: bool = False) -> None:
         self._profiles: dict[str, TargetProfile] = {}
         self.nav = Navigator()
+        self.paint_only = paint_only
+        self.name = "paint-only" if paint_only else "heuristic"
 
     def end_episode(self, episode_id: str) -> None:
         self._profiles.pop(episode_id, None)
@@ -74,4 +77,4 @@ class HeuristicUgv:
             depth_m = decode_image(d.data).astype(np.float32) * float(d.depth_scale_m or 1.0)
             views.append(GroundView(frame.name, decode_image(frame.data), depth_m, frame.intrinsics,
                                     np.asarray(frame.world_from_camera).reshape(4, 4)))
-        return bool(find_target(views, profile, min_pixels=MIN_PIXELS))
+        return bool(find_target(views, profile, min_pixels=MIN_PIXELS, paint_only=self.paint_only))

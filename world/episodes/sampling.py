@@ -4,12 +4,16 @@ easy: 150 m x 150 m region, no distractors; mid: 300 m x 300 m, none; hard: 300 
 2-3 look-alikes, each differing from the target in one cue (world/episodes/lookalikes.py).
 Targets and look-alikes are parked on drivable roads (free parking slots inside the region, not
 under decks, not on plazas). Every episode is checked solvable by rendering
-(:mod:`agos.world.sim.evidence`); a region that fails is resampled.
+(:mod:`agos.world.sim.evidence`); a region that fails is resampled. Two more rules keep every
+episode a search: the target is the only vehicle of its full description (body type, paint,
+attributes) in everything the UAV can see (:func:`unique_in_region`), though its paint and its
+type alone recur as chance gives; and the UGV starts beyond the CONFIRM distance
+(``MIN_START_DISTANCE_M``).
 
 The vehicles follow the look of the scene that samples (and checks) the episode:
 
-* ``flat`` (the boxes): today's draws, unchanged for a seed: six body types, look-alikes of the
-  target's type in a near colour, or of its colour on another type, alternately;
+* ``flat`` (the boxes): six body types, look-alikes of the target's type in a near colour, or of
+  its colour on another type, alternately;
 * ``rich`` (the meshes): seven body types (a bus only in a slot whose neighbours on the lane are
   free), half of the cars among the targets with one attribute (two-tone roof, roof rack, stripe), and hard
   episodes whose 2-3 look-alikes take distinct kinds (another body type, a near paint, one
@@ -31,7 +35,7 @@ from agos.runtime.codec import field_path, to_json
 from agos.runtime.schemas import Difficulty, EpisodeSpec, TownRef, VehicleSpec
 from agos.world.episodes.lookalikes import ATTRIBUTES, KINDS, separable
 from agos.world.towns.asset import Town
-from agos.world.towns.catalog import BODY_TYPES, NEAR_COLOURS, VIVID_COLOURS
+from agos.world.towns.catalog import BODY_TYPES, NEAR_COLOURS, VIVID_COLOURS, paint_weights
 from agos.world.towns.layout import TownLayout
 from agos.world.towns.look.vehicles import ATTRIBUTE_BODY_TYPES, RICH_BODY_TYPES, ROOF_COLOUR, contrast_colour
 from agos.world.towns.placement import ParkingSlot
@@ -39,7 +43,15 @@ from agos.world.towns.placement import ParkingSlot
 REGION_SIZE_M: dict[str, float] = {"easy": 150.0, "mid": 300.0, "hard": 300.0}
 DIFFICULTIES: tuple[Difficulty, ...] = ("easy", "mid", "hard")
 EPISODE_VERSION = 1
-MIN_START_DISTANCE_M = 40.0
+MIN_START_DISTANCE_M = 60.0
+"""The UGV starts at least this far from the target in a straight line, so farther by road: beyond
+the 50 m CONFIRM distance (world/sim/confirm.py) with a margin, so no episode is confirmed from
+where it starts."""
+UNIQUE_MARGIN_M = 50.0
+"""The target is unique by its description within this far outside its region: the UAV at the
+region's edge sees half a nadir footprint (about 46 m) beyond it."""
+TARGET_PAINT_P = paint_weights(VIVID_COLOURS)
+"""A target's paint: a vivid one, with the survey's shares among them (blue and red most often)."""
 MIN_LOOKALIKE_SPACING_M = 30.0
 DECISION_BUDGET = 80
 MAX_ATTEMPTS = 40
@@ -76,14 +88,16 @@ def sample_episode(town: Town, scene, difficulty: Difficulty, index: int, *, see
     stream). ``split`` (train, val, test) becomes part of the id, so ids are unique across splits."""
     for attempt in range(MAX_ATTEMPTS):
         ep_seed = int(np.random.SeedSequence([seed, stream, index, attempt]).generate_state(1)[0])
-        spec = _candidate(town, difficulty, index, ep_seed, split, scene.look)
+        spec = draw_candidate(town, difficulty, index, ep_seed, split, scene.look)
         if spec is not None and _solvable(town, scene, spec):
             return spec
     raise Unsolvable(f"town {town.town_id}: no solvable {difficulty} episode in {MAX_ATTEMPTS} attempts")
 
 
-def _candidate(town: Town, difficulty: Difficulty, index: int, seed: int, split: str | None,
-               look: str) -> EpisodeSpec | None:
+def draw_candidate(town: Town, difficulty: Difficulty, index: int, seed: int, split: str | None,
+                   look: str) -> EpisodeSpec | None:
+    """One draw of an episode (region, vehicles, starts) before the solvability check by rendering;
+    None when the draw breaks a rule (no free slot, a target not unique, no start far enough)."""
     rng = np.random.default_rng(seed)
     layout, roads = town.layout, town.roads
     size = REGION_SIZE_M[difficulty]
@@ -107,6 +121,8 @@ def _candidate(town: Town, difficulty: Difficulty, index: int, seed: int, split:
     if vehicles is None:
         return None
     target, distractors = vehicles
+    if not unique_in_region(target, layout, region):
+        return None
     ids, xy = roads.anchor_array()
     starts = [int(n) for n, p in zip(ids, xy, strict=True)
               if _inside((p[0], p[1]), region) and roads.anchors[int(n)] == "cruise" and not roads.covered[int(n)]
@@ -127,7 +143,7 @@ def _flat_vehicles(rng: np.random.Generator, difficulty: Difficulty,
                    slots: list[ParkingSlot]) -> tuple[VehicleSpec, list[VehicleSpec]] | None:
     """The flat look's target and look-alikes: the draws every flat episode file was made with."""
     model = str(rng.choice(sorted(BODY_TYPES)))
-    colour = str(rng.choice(VIVID_COLOURS))
+    colour = str(rng.choice(VIVID_COLOURS, p=TARGET_PAINT_P))
     target = _vehicle(model, colour, slots[0])
     distractors: list[VehicleSpec] = []
     if difficulty == "hard":
@@ -152,7 +168,7 @@ def _rich_vehicles(rng: np.random.Generator, difficulty: Difficulty, slots: list
     kinds, each differing from the target in one cue a viewer can check from the ground."""
     long_ok = long_slots(layout)
     types = [m for m in RICH_BODY_TYPES if m != "bus" or slots[0].slot_id in long_ok]
-    model, colour = str(rng.choice(types)), str(rng.choice(VIVID_COLOURS))
+    model, colour = str(rng.choice(types)), str(rng.choice(VIVID_COLOURS, p=TARGET_PAINT_P))
     attrs: dict = {}
     if model in ATTRIBUTE_BODY_TYPES and rng.random() < TARGET_ATTRIBUTE_P:
         attrs = _with_attribute({}, str(rng.choice(ATTRIBUTES)), colour)
@@ -183,6 +199,18 @@ def _rich_vehicles(rng: np.random.Generator, difficulty: Difficulty, slots: list
         used.append(slot.position_world_m)
         distractors.append(_vehicle(alike_model, alike_colour, slot, alike_attrs))
     return target, distractors
+
+
+def unique_in_region(target: VehicleSpec, layout: TownLayout, region: tuple[float, float, float, float]) -> bool:
+    """No parked vehicle of the town within ``UNIQUE_MARGIN_M`` of ``region`` has the target's full
+    description (body type, paint and attributes; background traffic carries none), so the episode
+    has one answer in everything the UAV can see."""
+    if target.roof or target.rack or target.stripe:
+        return True
+    slots = {s.slot_id: s for s in layout.slots}
+    seen = _shrink(region, -UNIQUE_MARGIN_M)
+    return not any(car.model == target.model and car.colour == target.colour
+                   and _inside(slots[car.slot_id].position_world_m, seen) for car in layout.parked)
 
 
 def _lookalikes(kind: str, model: str, colour: str, attrs: dict) -> list[tuple[str, str, dict]]:

@@ -2,9 +2,14 @@
 
 A body type is a small set of boxes (body, cabin, glass band, cargo) whose proportions differ
 from type to type, so types can be told apart from 80 m above (roof/glass pattern, length) and
-from the ground (panel height). Colours are split into *neutral* paints used for the town's
-background traffic and *vivid* paints reserved for targets and their look-alikes; ``NEAR_COLOURS``
-defines which vivid paints count as "a near colour" for hard-episode distractors.
+from the ground (panel height).
+
+Paints are drawn as real traffic is painted (:data:`PAINT_SHARES`, from a published survey of
+the colours of the world's new cars; docs/WORLD.md gives the source and the mapping): background
+traffic takes any paint, so a target's paint is shared by other vehicles of its region as often
+as chance gives. Targets take a *vivid* paint (:data:`VIVID_COLOURS`) with the survey's shares
+among those; the reason is written in docs/WORLD.md. ``NEAR_COLOURS`` defines which vivid paints
+count as "a near colour" for hard-episode look-alikes.
 """
 
 from __future__ import annotations
@@ -14,12 +19,13 @@ from dataclasses import dataclass
 RGB = tuple[float, float, float]
 
 COLOURS: dict[str, RGB] = {
-    # neutral paints: background traffic only
+    # neutral paints (and brown): background traffic only
     "white": (0.90, 0.90, 0.88),
     "black": (0.07, 0.07, 0.08),
     "silver": (0.62, 0.63, 0.66),
     "grey": (0.36, 0.36, 0.38),
-    # vivid paints: targets and distractors
+    "brown": (0.36, 0.25, 0.16),
+    # vivid paints: targets, their look-alikes and background traffic
     "red": (0.82, 0.08, 0.07),
     "maroon": (0.40, 0.02, 0.13),
     "blue": (0.08, 0.28, 0.88),
@@ -29,7 +35,7 @@ COLOURS: dict[str, RGB] = {
     "yellow": (0.95, 0.80, 0.08),
     "orange": (0.96, 0.45, 0.04),
 }
-NEUTRAL_COLOURS: tuple[str, ...] = ("white", "black", "silver", "grey")
+NEUTRAL_COLOURS: tuple[str, ...] = ("white", "black", "silver", "grey", "brown")
 VIVID_COLOURS: tuple[str, ...] = (
     "red", "maroon", "blue", "navy", "green", "olive", "yellow", "orange",
 )
@@ -43,6 +49,24 @@ NEAR_COLOURS: dict[str, tuple[str, ...]] = {
     "yellow": ("orange",),
     "orange": ("yellow", "red"),
 }
+PAINT_SHARES: dict[str, float] = {
+    # Axalta, Global Automotive Color Popularity Report 2020 (68th edition), world production:
+    # white 38, black 19, grey 15, silver 9, blue 7, red 5, beige/brown 3, yellow/gold 2, green 1,
+    # other 1 (percent). Where the palette has two shades of a survey colour they share it evenly;
+    # "other" becomes orange.
+    "white": 0.38, "black": 0.19, "grey": 0.15, "silver": 0.09, "brown": 0.03,
+    "blue": 0.035, "navy": 0.035, "red": 0.025, "maroon": 0.025,
+    "yellow": 0.02, "green": 0.005, "olive": 0.005, "orange": 0.01,
+}
+"""Share of each paint among vehicles: what background traffic is painted with (sums to 1)."""
+
+
+def paint_weights(paints: tuple[str, ...]) -> list[float]:
+    """:data:`PAINT_SHARES` of ``paints``, normalised to sum to 1 (a draw among those paints)."""
+    shares = [PAINT_SHARES[p] for p in paints]
+    return [w / sum(shares) for w in shares]
+
+
 GLASS: RGB = (0.10, 0.13, 0.16)
 TYRE: RGB = (0.05, 0.05, 0.05)
 CARGO_WHITE: RGB = (0.93, 0.93, 0.93)

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agos.world.towns.catalog import BODY_TYPES, NEUTRAL_COLOURS
+from agos.world.towns.catalog import BODY_TYPES, PAINT_SHARES, paint_weights
 from agos.world.towns.dressing import Dressing
 from agos.world.towns.lanes import LaneNetwork
 from agos.world.towns.placement import Building, ParkingSlot, Tree
@@ -59,13 +59,15 @@ class TownLayout:
 
 
 def park_background(slots: list[ParkingSlot], fraction: float, rng: np.random.Generator) -> list[ParkedVehicle]:
-    """Background traffic in a fraction of the slots, neutral paints only (see catalog), so
-    look-alikes of a vivid target appear only where an episode places them."""
+    """Background traffic in a fraction of the slots, painted with the survey's shares (see
+    catalog): a target's paint or body type recurs in its region as often as chance gives."""
     models = sorted(m for m in BODY_TYPES if m != "box_truck")
     weights = [0.9 / len(models)] * len(models) + [0.1]
+    paints = tuple(PAINT_SHARES)
+    paint_p = paint_weights(paints)
     parked = []
     for slot in slots:
         if rng.random() < fraction:
             model = str(rng.choice([*models, "box_truck"], p=weights))
-            parked.append(ParkedVehicle(slot.slot_id, model, str(rng.choice(NEUTRAL_COLOURS))))
+            parked.append(ParkedVehicle(slot.slot_id, model, str(rng.choice(paints, p=paint_p))))
     return parked

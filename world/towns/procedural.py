@@ -206,8 +206,14 @@ def build_layout(generator: str, seed: int) -> TownLayout:
     return layout
 
 
+KERB_OCCUPANCY = 0.6
+"""Share of kerb parking slots holding a parked vehicle. City kerbs are mostly full (parking
+studies count 60-90% at busy hours; the low end keeps the renders cheap): with the survey's paints
+(catalog.PAINT_SHARES), a target's paint recurs in its region as it would on a real street."""
+
+
 def furnish(layout: TownLayout, rng: np.random.Generator, *, parks: int = 0, plazas: int = 0,
-            parked_fraction: float = 0.22) -> None:
+            parked_fraction: float = KERB_OCCUPANCY) -> None:
     """Parks, plazas, buildings and parked traffic in the space the roads leave free."""
     raster = road_raster(layout.network, layout.surfaces)
     occupied = raster.dilate(3.0)
