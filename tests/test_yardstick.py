@@ -15,6 +15,7 @@ from agos.world.episodes.sampling import (
     DIFFICULTIES,
     MIN_START_DISTANCE_M,
     UNIQUE_MARGIN_M,
+    confusable,
     draw_candidate,
     unique_in_region,
 )
@@ -73,7 +74,7 @@ def test_every_draw_has_a_unique_target_and_a_far_ugv_start(towns: dict[str, Tow
     """Over 300 and more episode draws on every procedural town: the target is the only vehicle
     of its description within reach of the UAV's eyes, other vehicles share its paint, and the
     UGV's first position is beyond the CONFIRM distance (so its first six views cannot confirm)."""
-    sample = draws(towns, 90)
+    sample = draws(towns, 110)
     assert len(sample) >= 300, len(sample)
     confirm = ConfirmConfig()
     assert MIN_START_DISTANCE_M > confirm.max_distance_m
@@ -88,6 +89,7 @@ def test_every_draw_has_a_unique_target_and_a_far_ugv_start(towns: dict[str, Tow
         t = spec.target
         if not (t.roof or t.rack or t.stripe):
             assert not [p for p in seen if (p.model, p.colour) == (t.model, t.colour)], spec.episode_id
+        assert not [p for p in seen if confusable(t, p.model, p.colour, "rich")], spec.episode_id
         shared_paint += any(p.colour == t.colour for p in seen)
         start = town.roads.positions_world_m[town.roads.parse_anchor_id(spec.ugv_start_waypoint)]
         distance = math.dist(start, t.position_world_m[:2])
@@ -114,3 +116,22 @@ def test_uniqueness_looks_beyond_the_region() -> None:
     assert unique_in_region(striped, layout, (40.0, 40.0, 140.0, 140.0))  # type: ignore[arg-type]
     blue = VehicleSpec(model="sedan", colour="blue", position_world_m=(100.0, 100.0, 0.0), yaw_rad=0.0)
     assert unique_in_region(blue, layout, (40.0, 40.0, 140.0, 140.0))  # type: ignore[arg-type]
+
+
+def test_what_passes_for_the_target() -> None:
+    """One cue apart counts only where the look-alike table says the ground cannot tell the pair
+    apart; the rich look's table has pickup vs SUV and plain vs two-tone roof below its floor."""
+    from agos.runtime.schemas import VehicleSpec
+    from agos.world.episodes.lookalikes import separable
+
+    def car(model: str, colour: str, **attrs) -> VehicleSpec:
+        return VehicleSpec(model=model, colour=colour, position_world_m=(0.0, 0.0, 0.0), yaw_rad=0.0, **attrs)
+
+    assert confusable(car("sedan", "red"), "sedan", "red", "rich")  # the same description
+    assert not confusable(car("sedan", "red"), "sedan", "blue", "rich")  # another paint
+    assert not confusable(car("sedan", "red"), "van", "red", "rich")  # a type told apart
+    assert confusable(car("pickup", "blue"), "suv", "blue", "rich") == (not separable("type", "pickup", "suv", look="rich"))
+    assert confusable(car("sedan", "red", roof="white"), "sedan", "red", "rich") == \
+        (not separable("attribute", "plain", "roof", look="rich"))
+    assert not confusable(car("sedan", "red", stripe="white"), "hatchback", "red", "rich")  # two cues apart
+    assert confusable(car("pickup", "blue"), "suv", "blue", "flat") is False  # the flat look: every pair told apart

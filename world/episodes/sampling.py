@@ -121,7 +121,7 @@ def draw_candidate(town: Town, difficulty: Difficulty, index: int, seed: int, sp
     if vehicles is None:
         return None
     target, distractors = vehicles
-    if not unique_in_region(target, layout, region):
+    if not unique_in_region(target, layout, region, look):
         return None
     ids, xy = roads.anchor_array()
     starts = [int(n) for n, p in zip(ids, xy, strict=True)
@@ -201,16 +201,34 @@ def _rich_vehicles(rng: np.random.Generator, difficulty: Difficulty, slots: list
     return target, distractors
 
 
-def unique_in_region(target: VehicleSpec, layout: TownLayout, region: tuple[float, float, float, float]) -> bool:
-    """No parked vehicle of the town within ``UNIQUE_MARGIN_M`` of ``region`` has the target's full
-    description (body type, paint and attributes; background traffic carries none), so the episode
-    has one answer in everything the UAV can see."""
-    if target.roof or target.rack or target.stripe:
-        return True
+def unique_in_region(target: VehicleSpec, layout: TownLayout, region: tuple[float, float, float, float],
+                     look: str = "rich") -> bool:
+    """No parked vehicle of the town within ``UNIQUE_MARGIN_M`` of ``region`` can be taken for the
+    target (:func:`confusable`), so the episode has one answer in everything the UAV can see."""
     slots = {s.slot_id: s for s in layout.slots}
     seen = _shrink(region, -UNIQUE_MARGIN_M)
-    return not any(car.model == target.model and car.colour == target.colour
+    return not any(confusable(target, car.model, car.colour, look)
                    and _inside(slots[car.slot_id].position_world_m, seen) for car in layout.parked)
+
+
+def confusable(target: VehicleSpec, model: str, colour: str, look: str) -> bool:
+    """Whether a plain vehicle (background traffic carries no attributes) of ``model`` and
+    ``colour`` passes for the target: it has the target's full description, or differs from it in
+    one cue only, in a pair a viewer cannot tell apart from the ground (the look-alike table's
+    floor, :func:`~agos.world.episodes.lookalikes.separable`: a same-paint SUV for a pickup, a
+    plain car for one with a two-tone roof). Two cues apart, or one separable cue, it does not."""
+    cues: list[tuple[str, str, str]] = []
+    if model != target.model:
+        cues.append(("type", target.model, model))
+    if colour != target.colour:
+        if colour not in NEAR_COLOURS.get(target.colour, ()):
+            return False  # another paint altogether
+        cues.append(("paint", target.colour, colour))
+    attributes = [name for name in ATTRIBUTES if getattr(target, name)]
+    cues += [("attribute", "plain", name) for name in attributes]
+    if not cues:
+        return True
+    return len(cues) == 1 and not separable(*cues[0], look=look)
 
 
 def _lookalikes(kind: str, model: str, colour: str, attrs: dict) -> list[tuple[str, str, dict]]:
