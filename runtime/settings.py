@@ -8,13 +8,13 @@ field, e.g. ``config error: demo.toml: world.ugv_speed_mps: Input should be a va
 from __future__ import annotations
 
 import os
-import tomllib
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError
 
 from agos.runtime.episode_config import EpisodeConfig
+from agos.runtime.textfiles import TextFileError, one_line, read_toml
 
 ENV_PREFIX = "AGOS_"
 ENV_SEPARATOR = "__"
@@ -122,7 +122,7 @@ def config_error(exc: ValidationError, source: str, *, section: str = "") -> Con
     """The one line for a settings value pydantic refused: the source, the dotted field, the reason."""
     err = exc.errors()[0]
     field = section + ".".join(str(p) for p in err["loc"])
-    return ConfigError(f"config error: {source}: {field}: {err['msg']}")
+    return ConfigError(one_line(f"config error: {source}: {field}: {err['msg']}"))
 
 
 def _validate(data: dict[str, Any], source: str) -> AgosConfig:
@@ -138,11 +138,11 @@ def load_config(path: Path | None = None, *, overrides: dict[str, Any] | None = 
     data: dict[str, Any] = {}
     if path is not None:
         try:
-            data = tomllib.loads(path.read_text())
+            data = read_toml(path)
         except FileNotFoundError:
-            raise ConfigError(f"config error: {path}: file not found") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"config error: {path}: not valid TOML ({exc})") from None
+            raise ConfigError(one_line(f"config error: {path}: file not found")) from None
+        except TextFileError as exc:
+            raise ConfigError(one_line(f"config error: {path}: {exc}")) from None
         _validate(data, str(path))
     env = os.environ if environ is None else environ
     env_layer: dict[str, Any] = {}

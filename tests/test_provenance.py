@@ -56,9 +56,10 @@ def test_records_carry_it_beside_the_configuration_and_its_hash_is_unchanged() -
 def test_run_json_carries_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from agos.deploy.run.plan import RUN_FILE, new_plan
     from agos.runtime.settings import load_config
+    from agos.world.episodes.files import read_episodes
     from agos.world.episodes.sampling import write_episodes
 
-    monkeypatch.setattr("agos.world.towns.asset.check_towns", lambda episodes, source: None)  # a made-up town
+    monkeypatch.setattr("agos.world.episodes.files.read_split", lambda path, look=None: read_episodes(path))  # a made-up town
     write_episodes(tmp_path / "episodes.jsonl", [minimal_spec("e1")])
     cfg = load_config(overrides={"run": {"episodes_file": str(tmp_path / "episodes.jsonl"), "runs_dir": str(tmp_path)}})
     plan = new_plan(cfg, run_dir=tmp_path / "run", comm="ideal", timing_mode="lockstep", stamp=False)

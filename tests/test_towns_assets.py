@@ -345,6 +345,6 @@ def test_eval_refuses_a_split_whose_towns_cannot_be_had_before_starting_anything
         (tmp_path / name).write_text(json.dumps(bad) + "\n")
         out = agos_cached("eval", "--split", name, "--runs-dir", "runs")  # in this process: nothing may start
         assert out.returncode == 2, out.stdout + out.stderr
-        assert out.stderr.startswith(f"eval error: {name}: episode {spec['episode_id']}: ") and says in out.stderr
+        assert out.stderr.startswith(f"eval error: {name}:1: episode {spec['episode_id']}: ") and says in out.stderr
         assert len(out.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "runs").exists()

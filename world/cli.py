@@ -54,8 +54,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     split.add_argument("--seed", type=int, default=1)
     _add_look(split)
     split.add_argument("--workers", type=int, default=2)
-    check = ep_sub.add_parser("check", help="validate an episode file")
+    check = ep_sub.add_parser("check", help="validate an episode file as every command that reads one does: each "
+                                           "line, no episode id twice, each town as this agos builds it")
     check.add_argument("file", type=Path)
+    check.add_argument("--look", choices=["flat", "rich"],
+                       help="also check that this look draws every vehicle (the flat look has no bus and no attributes)")
 
 
 def _add_look(parser: argparse.ArgumentParser) -> None:
@@ -152,11 +155,13 @@ def _map(args: argparse.Namespace) -> int:
 
 
 def _episodes(args: argparse.Namespace) -> int:
-    from agos.world.episodes.sampling import read_episodes
-
     if args.episodes_command == "check":
-        episodes = read_episodes(args.file)
-        print(f"{args.file}: {len(episodes)} valid episodes")
+        from agos.world.episodes.files import read_split
+
+        episodes = read_split(args.file, look=args.look)
+        towns = sorted({s.town.town_id for s in episodes})
+        print(f"{args.file}: {len(episodes)} valid episodes on {', '.join(towns)}"
+              + (f" ({args.look} look)" if args.look else ""))
         return 0
     if args.episodes_command == "sample":
         from agos.world.episodes.sampling import DIFFICULTIES, sample_episode, write_episodes

@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _dispatch(args: argparse.Namespace) -> int:
     """Run the parsed command through :data:`COMMANDS`; a bad episode file is one line, exit 2."""
-    from agos.world.episodes.sampling import EpisodeFileError
+    from agos.world.episodes.files import EpisodeFileError
 
     try:
         return _BY_NAME[args.command].run(args)

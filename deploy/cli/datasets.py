@@ -39,7 +39,7 @@ def _add_dataset(sub: Any) -> None:
 def _build(args: argparse.Namespace, cfg: AgosConfig) -> int:
     from agos.deploy.dataset import build
     from agos.deploy.run.plan import RunDirError
-    from agos.world.episodes.sampling import read_episodes
+    from agos.world.episodes.files import read_split
 
     if args.connect and not args.run_id:
         print("dataset error: --connect needs --run RUN (the run id the attached processes serve)", file=sys.stderr)
@@ -48,7 +48,7 @@ def _build(args: argparse.Namespace, cfg: AgosConfig) -> int:
         print(f"dataset error: --capture-every {args.capture_every}: give a distance in metres above 0", file=sys.stderr)
         return 2
     try:
-        read_episodes(args.split)  # a bad split fails here, before any process starts
+        read_split(args.split, look=args.look)  # a bad split fails here, before any process starts
         return build.build(cfg, args.split, args.out, workers=args.workers, capture_every_m=args.capture_every,
                            look=args.look, attach=args.connect is not None, port=args.port, config_path=args.config)
     except (build.DatasetError, RunDirError) as exc:

@@ -162,15 +162,17 @@ def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from agos.deploy.run.configure import episode_config
-    from agos.deploy.run.sweep import run_sweep
+    from agos.deploy.run.sweep import run_sweep, with_param
     from agos.runtime.links import ProfileError
-    from agos.world.episodes.sampling import read_episodes
+    from agos.world.episodes.files import read_split
 
-    try:
+    try:  # everything that can be wrong with the command fails here, before the progress bar
         values = [float(v) for v in args.values.split(",")]
         seeds = [int(v) for v in args.seeds.split(",")]
-        total = len(values) * len(seeds) * len(read_episodes(args.split))
         config = episode_config(cfg, policies={"uav": args.policy, "ugv": args.policy}, comm=args.comm)
+        for value in values:
+            with_param(config.comm, args.param, value)  # an unknown --param, or a value it cannot take
+        total = len(values) * len(seeds) * len(read_split(args.split, look=config.look))
         with Progress(TextColumn("[bold]sweep"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()) as bar:
             task = bar.add_task("episodes", total=total)
             table = run_sweep(args.split, args.out, config=config, param=args.param, values=values, seeds=seeds,

@@ -120,7 +120,7 @@ def _record(run_dir: Path, episode_id: str) -> EpisodeRecord:
 
 
 def _spec(run_dir: Path, episode_id: str) -> EpisodeSpec:
-    from agos.world.episodes.sampling import EpisodeFileError, read_episodes
+    from agos.world.episodes.files import EpisodeFileError, read_episodes
 
     try:
         specs = {s.episode_id: s for s in read_episodes(run_dir / "episodes.jsonl")}

@@ -80,7 +80,7 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
              vlm_standin: str | None = None, workers: int | str | None = None, dataset_out: Path | None = None) -> RunPlan:
     """A new run directory with its run.json and episodes.jsonl. ``workers``: the command's
     ``--workers`` (a count or ``auto``), stored for ``--resume``; ``dataset_out``: see :class:`RunPlan`."""
-    from agos.world.episodes.sampling import read_episodes, write_episodes
+    from agos.world.episodes.files import read_split, write_episodes
 
     # Everything that can be wrong with the command fails before episodes are generated.
     if run_dir is None:
@@ -91,11 +91,8 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
     policies = {"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv}
     config = episode_config(cfg, policies=policies, comm=comm, timing_mode=timing_mode)  # bad names fail here
     vlm = vlm_plan(cfg, policies, vlm_standin)
-    if cfg.run.episodes_file:
-        from agos.world.towns.asset import check_towns
-
-        episodes = read_episodes(cfg.run.episodes_file)
-        check_towns(episodes, str(cfg.run.episodes_file))
+    if cfg.run.episodes_file:  # checked as a whole: ids, towns, waypoints, the run's look (world/episodes/files.py)
+        episodes = read_split(cfg.run.episodes_file, look=config.look)
     else:
         episodes = generated_episodes(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -115,7 +112,9 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
 
 
 def resume_plan(run_dir: Path) -> RunPlan:
-    from agos.world.episodes.sampling import read_episodes
+    """The plan of a run directory made by :func:`new_plan`; its episodes are checked again against this
+    agos's towns (another version may build them otherwise) before anything starts."""
+    from agos.world.episodes.files import read_split
 
     path = run_dir / RUN_FILE
     if not path.exists():
@@ -127,7 +126,7 @@ def resume_plan(run_dir: Path) -> RunPlan:
         config = read_config(meta["episode_config"], where=str(path))
     except StoredConfigError as exc:
         raise RunDirError(str(exc)) from None
-    return RunPlan(run_dir, read_episodes(run_dir / "episodes.jsonl"), meta["policies"], config, resumed=True,
+    return RunPlan(run_dir, read_split(run_dir / "episodes.jsonl", look=config.look), meta["policies"], config, resumed=True,
                    vlm=meta.get("vlm", {}), workers=meta.get("workers"),
                    dataset_out=Path(meta["dataset_out"]) if meta.get("dataset_out") else None)
 

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
 from agos.runtime.codec import from_json, to_json
 from agos.runtime.episode_config import EpisodeConfig
@@ -50,9 +51,9 @@ DERIVED = ("loss.burst_len", "blackouts.duration_s")
 def with_param(profile: CommProfile, param: str, value: float) -> CommProfile:
     """A copy of ``profile`` with one parameter set (see the module; ``loss.p`` also switches Bernoulli loss on).
 
-    Raises ValueError naming the parameter when it is not one, or when the base profile lacks what
-    it changes (a Gilbert-Elliott field on a profile without that loss model, a blackout length on
-    a profile without blackouts)."""
+    Raises ValueError (one line) naming the parameter when it is not one, when the value is out of its
+    range, or when the base profile lacks what it changes (a Gilbert-Elliott field on a profile without
+    that loss model, a blackout length on a profile without blackouts)."""
     data = profile.model_dump()
     section, _, key = param.partition(".")
     if param == "beacon_s":
@@ -75,7 +76,10 @@ def with_param(profile: CommProfile, param: str, value: float) -> CommProfile:
         if param == "loss.p" and data["loss"]["model"] == "none":
             data["loss"]["model"] = "bernoulli"
     data["name"] = f"{profile.name}[{param}={value:g}]"
-    return CommProfile.model_validate(data)
+    try:
+        return CommProfile.model_validate(data)
+    except ValidationError as exc:  # one line, as every other refusal here (pydantic's own spans several)
+        raise ValueError(f"sweep parameter {param}={value:g}: {exc.errors()[0]['msg']}") from None
 
 
 def _set_burst_len(profile: CommProfile, loss: dict[str, Any], burst: float) -> None:
@@ -164,7 +168,7 @@ def _run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, par
                seeds: list[int], policies: tuple[str, str], workers: int, progress: Callable[[], None] | None,
                vlm: VlmOptions | None, key_extra: str = "") -> list[dict]:
     from agos.agents.registry import make_policy
-    from agos.world.episodes.sampling import read_episodes
+    from agos.world.episodes.files import read_episodes
 
     make_policy(policies[0], "uav", vlm=vlm)  # a missing endpoint fails here, not in a worker
     make_policy(policies[1], "ugv", vlm=vlm)

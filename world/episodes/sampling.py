@@ -1,4 +1,4 @@
-"""Episode sampling per difficulty (paper Table 1), solvability checks, and episode files.
+"""Episode sampling per difficulty (paper Table 1) and solvability checks (episode files: files.py).
 
 easy: 150 m x 150 m region, no distractors; mid: 300 m x 300 m, none; hard: 300 m x 300 m with
 2-3 look-alikes, each differing from the target in one cue (world/episodes/lookalikes.py).
@@ -26,13 +26,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from pathlib import Path
 
-import msgspec
 import numpy as np
 
-from agos.runtime.codec import field_path, to_json
 from agos.runtime.schemas import Difficulty, EpisodeSpec, TownRef, VehicleSpec
+from agos.world.episodes.files import EpisodeFileError as EpisodeFileError  # re-exported: read and write them from files.py
+from agos.world.episodes.files import read_episodes as read_episodes
+from agos.world.episodes.files import write_episodes as write_episodes
 from agos.world.episodes.lookalikes import ATTRIBUTES, KINDS, separable
 from agos.world.towns.asset import Town
 from agos.world.towns.catalog import BODY_TYPES, NEAR_COLOURS, VIVID_COLOURS, paint_weights
@@ -59,10 +59,6 @@ TARGET_ATTRIBUTE_P = 0.5
 """Rich look: the share of targets that carry one attribute."""
 LONG_VEHICLE_CLEAR_M = 9.5
 """Rich look: a bus (11 m) parks only where no parked vehicle's slot on its lane is nearer than this."""
-
-
-class EpisodeFileError(ValueError):
-    """A bad episode file; the message names the file, the line and the field."""
 
 
 class Unsolvable(RuntimeError):
@@ -294,35 +290,3 @@ def _shrink(region: tuple[float, float, float, float], m: float) -> tuple[float,
 
 def _inside(p: tuple[float, float], region: tuple[float, float, float, float]) -> bool:
     return region[0] <= p[0] <= region[2] and region[1] <= p[1] <= region[3]
-
-
-def write_episodes(path: Path, episodes: Iterable[EpisodeSpec]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w") as fh:
-        for ep in episodes:
-            fh.write(to_json(ep).decode() + "\n")
-
-
-_SPEC_LINE = msgspec.json.Decoder(EpisodeSpec)
-
-
-def read_episodes(path: Path) -> list[EpisodeSpec]:
-    """Read a JSONL episode file; errors name the file, the line and the field."""
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise EpisodeFileError(f"{path}: cannot read episode file ({exc.strerror})") from exc
-    episodes = []
-    for lineno, line in enumerate(text.splitlines(), start=1):
-        if not line.strip():
-            continue
-        try:
-            episodes.append(_SPEC_LINE.decode(line))
-        except msgspec.ValidationError as exc:
-            field, message = field_path(exc)
-            raise EpisodeFileError(f"{path}:{lineno}: field '{field}': {message}") from exc
-        except msgspec.DecodeError as exc:
-            raise EpisodeFileError(f"{path}:{lineno}: not valid JSON ({exc})") from exc
-    if not episodes:
-        raise EpisodeFileError(f"{path}: no episodes in file")
-    return episodes

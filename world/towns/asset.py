@@ -16,7 +16,6 @@ import functools
 import hashlib
 import json
 import os
-from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,7 +24,6 @@ import msgspec
 import networkx as nx
 import numpy as np
 
-from agos.runtime.schemas import EpisodeSpec
 from agos.world.towns.dressing import DRESSING_VERSION, Dressing, Facade, Lamp, RoofUnit
 from agos.world.towns.lanes import Lane, LaneNetwork
 from agos.world.towns.layout import Deck, ParkedVehicle, TownLayout
@@ -263,26 +261,6 @@ def town_for(generator: str, seed: int, expected_sha256: str | None = None, *, t
         except (ValueError, KeyError, TypeError, IndexError, RecursionError, nx.NetworkXException) as exc:
             raise AssetError(f"town {town_id}: fetched asset is not valid ({type(exc).__name__}: {exc})") from None
     return _load_cached(str(cached), expected_sha256)
-
-
-def check_towns(episodes: Iterable[EpisodeSpec], source: str) -> None:
-    """Raise ``ValueError`` (one line naming ``source`` and the episode) unless every town the
-    episodes name can be had here as the episodes expect it: a known generator whose build hashes to
-    the episode's asset, or an imported town in the local cache (which the orchestrator serves to the
-    workers). Run before any process starts; each distinct town is built or read once (~0.4 s)."""
-    seen: set[tuple[str, int, str]] = set()
-    for spec in episodes:
-        town = (spec.town.generator, spec.town.seed, spec.asset_sha256)
-        if town in seen:
-            continue
-        seen.add(town)
-        try:
-            town_for(*town, town_id=spec.town.town_id)
-        except AssetError as exc:
-            raise ValueError(f"{source}: episode {spec.episode_id}: {exc}; import the map on this host first "
-                             f"(agos map import FILE.xodr)") from None
-        except ValueError as exc:  # an unknown generator, or a build that hashes otherwise
-            raise ValueError(f"{source}: episode {spec.episode_id}: {exc}") from None
 
 
 @functools.lru_cache(maxsize=8)
