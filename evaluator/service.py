@@ -4,7 +4,10 @@
 
 It listens to the results of every run (``agos/*/ep/*/result``), writes them to
 ``<runs_dir>/<run>/results.sqlite`` and acknowledges each on ``.../ack``. When a run's
-manifest says ``finished`` it logs the run's results table.
+manifest says ``finished`` it logs the run's results table. It declares its liveliness token under a
+run (what ``agos eval``'s presence check asks for) at start for its configured run (``--run``; ``agos
+eval`` tells the evaluator it starts), and for any other run on first hearing of it: a manifest, a lease
+notice (repeated every 5 s, so one started late joins within seconds) or a record.
 
 What it stores is checked first, because anything on an open router can publish there: the
 payload must be a record of this schema version, name the run and episode its key names, use
@@ -71,6 +74,7 @@ class Evaluator:
             held = self.leases.get((message.run_id, message.episode_id))
             if held is None or message.attempt >= held.attempt:
                 self.leases[(message.run_id, message.episode_id)] = message
+            self.serve_run(message.run_id)  # repeated every 5 s: an evaluator that missed the manifest joins here
         elif isinstance(message, EpisodeRecord):
             newly = self.store(message.run_id).add(message)
             log.info("%s %s/%s (%s, %s)", "stored" if newly else "duplicate", message.run_id, message.episode_id,

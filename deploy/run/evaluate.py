@@ -26,7 +26,7 @@ from agos.deploy.run.launcher import ROUTER_PORT, Launcher, free_port
 from agos.deploy.run.local import Recording, launch_all, start_attached_recorder
 from agos.deploy.run.orchestrator import STUCK_AFTER_S, Orchestrator
 from agos.deploy.run.plan import RunPlan, stored_episodes
-from agos.deploy.run.presence import LOST_IN_A_ROW, LossStreak, Stall, missing_lines, who_is_here
+from agos.deploy.run.presence import LOST_IN_A_ROW, LossStreak, Stall, missing_lines, started_kinds, who_is_here
 from agos.evaluator.metrics import by_difficulty
 from agos.evaluator.store import ResultStore, results_path
 from agos.evaluator.table import results_table
@@ -106,9 +106,11 @@ class Absences:
     ``LOST_IN_A_ROW`` checks in a row (their worker gives up on unstored records after a minute)."""
 
     def __init__(self, cfg: AgosConfig, plan: RunPlan, bus: Bus, orch: Orchestrator, endpoint: str,
-                 console: Console) -> None:
+                 console: Console, launcher: Launcher | None = None) -> None:
+        """``launcher``: the processes this command started (none when attached), which are said to be
+        joining rather than missing while they run."""
         self.every_s, self.plan, self.bus, self.orch, self.endpoint = cfg.run.presence_check_s, plan, bus, orch, endpoint
-        self.console = console
+        self.console, self.launcher = console, launcher
         self.stall = Stall(self.every_s)
         self.unstored = self.workerless = 0
 
@@ -117,19 +119,26 @@ class Absences:
             return None
         run_id = self.plan.run_id
         present = who_is_here(self.bus, run_id)
-        for line in missing_lines(present, run_id, self.endpoint, self.plan.policies):
+        launcher = self.launcher
+        started = started_kinds(n for n in launcher.children if n not in launcher.dead()) if launcher else frozenset()
+        logs = launcher.log_dir if launcher else None
+        for line in missing_lines(present, run_id, self.endpoint, self.plan.policies, started, logs):
             self.console.print(f"[yellow]waiting: {line}", highlight=False)
         self.unstored = self.unstored + 1 if not present.evaluator and self.orch.unacknowledged() else 0
         self.workerless = self.workerless + 1 if not present.worlds else 0
         if self.workerless >= LOST_IN_A_ROW:
-            what, command = f"no world worker joined run {run_id}", "world"
+            what, kind, log = f"no world worker joined run {run_id}", "world", "world-0.log"
         elif self.unstored >= LOST_IN_A_ROW:
-            what, command = f"no evaluator stored the records of {', '.join(self.orch.unacknowledged())}", "evaluator"
+            unstored = ", ".join(self.orch.unacknowledged())
+            what, kind, log = f"no evaluator stored the records of {unstored}", "evaluator", "evaluator.log"
         else:
             return None
-        return Halt(f"[red]stopping: {what} ({LOST_IN_A_ROW} checks {self.every_s:g} s apart); start one with `agos "
-                    f"{command} --connect {self.endpoint} --run {run_id}` and resume with `agos eval --resume "
-                    f"{self.plan.run_dir}`", 3)
+        if kind in started and logs is not None:  # it runs, but never joined: starting another would not help
+            fix = f"see {logs / log}"
+        else:
+            fix = f"start one with `agos {kind} --connect {self.endpoint} --run {run_id}`"
+        return Halt(f"[red]stopping: {what} ({LOST_IN_A_ROW} checks {self.every_s:g} s apart); {fix} and resume with "
+                    f"`agos eval --resume {self.plan.run_dir}`", 3)
 
 
 def exited_children(launcher: Launcher, logs: Path) -> Halt | None:
@@ -213,7 +222,7 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
             console.print(f"resuming {plan.run_dir}: {len(orch.stored)} of {orch.total} episodes already finished; "
                           "the others (infrastructure failures included) run now")
         with Progress(*Bar.COLUMNS, console=console, transient=False) as progress:
-            absences = Absences(cfg, plan, bus, orch, own.connect, progress.console)
+            absences = Absences(cfg, plan, bus, orch, own.connect, progress.console, None if attach else launcher)
             halt = follow(orch, Bar(progress, orch), stop.is_set, Losses(),
                           [absences.check, lambda: exited_children(launcher, plan.run_dir / "logs")], on_record)
             if halt is not None:

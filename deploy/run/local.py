@@ -59,12 +59,20 @@ class ChildSettings:
     run_id: str
     creds: RunCredentials | None = None
 
-    def client(self, identity: str, *, joins_run: bool = True, **sections: dict[str, Any]) -> AgosConfig:
-        """A client of the run's router as ``identity`` (its credentials on a secured bus); ``joins_run``:
-        told the run id too (the evaluator is not: it stores every run it hears)."""
+    def client(self, identity: str, **sections: dict[str, Any]) -> AgosConfig:
+        """A client of the run's router as ``identity`` (its credentials on a secured bus), told the run
+        id. The evaluator too, though it stores every run it hears: it then declares its token under
+        the run as it starts, so a slow start that misses the run's first manifest is never reported
+        as no evaluator (deploy/run/presence.py)."""
         zenoh = {"connect": self.endpoint, **(self.creds.files(identity) if self.creds else {})}
-        run = ({"run_id": self.run_id} if joins_run else {}) | sections.pop("run", {})
+        run = {"run_id": self.run_id} | sections.pop("run", {})
         return with_settings(self.shared, zenoh=zenoh, run=run, **sections)
+
+
+def evaluator_settings(children: ChildSettings, plan: RunPlan) -> AgosConfig:
+    """The settings of the run's evaluator: a client of the run's router, told the run (its token is up
+    from its start) and storing beside the run directory."""
+    return children.client("evaluator", run={"runs_dir": plan.run_dir.parent})
 
 
 def start_recorder(launcher: Launcher, recording: Recording, settings: AgosConfig) -> float:
@@ -108,8 +116,7 @@ def launch_all(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, endpoint: str
         return False
     console.print(f"zenoh endpoint: {endpoint}" + (" (mutual TLS, access control)" if creds else ""), highlight=False)
     recorder_since = None if recording is None else start_recorder(launcher, recording, children.client("observer"))
-    launcher.start("evaluator", ["evaluator"],
-                   children.client("evaluator", joins_run=False, run={"runs_dir": plan.run_dir.parent}))
+    launcher.start("evaluator", ["evaluator"], evaluator_settings(children, plan))
     model = _start_vlm(cfg, plan, launcher, console)
     if model is None:
         return False

@@ -2,7 +2,8 @@
 
 While nothing progresses (:class:`Stall`), ``agos eval`` asks the router which processes of the run
 hold their liveliness tokens (world workers, the evaluator, an agent service per role) and prints,
-for each one missing, the exact command that starts it; when agent services are serving other runs,
+for each one missing, the exact command that starts it, or, for one it started itself that has not
+joined yet, where its log is; when agent services are serving other runs,
 it names them (a mistyped ``--run`` is the usual cause). Episodes lost in a row to one
 infrastructure cause (:class:`LossStreak`) stop the run.
 """
@@ -10,7 +11,9 @@ infrastructure cause (:class:`LossStreak`) stop the run.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from agos.agents.names import is_human
 from agos.runtime import keys
@@ -43,22 +46,44 @@ def who_is_here(bus: Bus, run_id: str, timeout_s: float = 1.0) -> Presence:
     return Presence(len(worlds), bool(evaluator), agents, {r: sorted(set(v)) for r, v in elsewhere.items()})
 
 
-def missing_lines(p: Presence, run_id: str, endpoint: str, policies: dict[str, str]) -> list[str]:
-    """One line per missing process, with the command that starts it."""
+STARTED_KINDS = {"evaluator": "evaluator", "agent-uav": "uav", "agent-ugv": "ugv"}
+"""``agos eval``'s children (deploy/run/local.py) by the kind :func:`missing_lines` knows them as;
+``world-<k>`` are ``world``."""
+
+
+def started_kinds(alive_children: Iterable[str]) -> frozenset[str]:
+    """The kinds of process (``world``, ``evaluator``, ``uav``, ``ugv``) among children still running."""
+    return frozenset("world" if name.startswith("world") else STARTED_KINDS[name]
+                     for name in alive_children if name.startswith("world") or name in STARTED_KINDS)
+
+
+def missing_lines(p: Presence, run_id: str, endpoint: str, policies: dict[str, str],
+                  started: frozenset[str] = frozenset(), logs: Path | None = None) -> list[str]:
+    """One line per missing process, with the command that starts it; for a kind in ``started`` (this
+    command started one and it still runs: :func:`started_kinds`), that it has not joined yet and where
+    its log is, since starting another would be the wrong advice."""
     lines = []
-    if not p.worlds:
+
+    def joining(kind: str, what: str, log: str) -> bool:
+        if kind in started:
+            lines.append(f"{what} this command started has not joined run {run_id} yet; see {(logs or Path('.')) / log}")
+        return kind in started
+
+    if not p.worlds and not joining("world", "the world worker", "world-0.log"):
         lines.append(f"no world worker serves run {run_id}: start one with `agos world --connect {endpoint} --run {run_id}`")
-    if not p.evaluator:
+    if not p.evaluator and not joining("evaluator", "the evaluator", "evaluator.log"):
         lines.append(f"no evaluator stores run {run_id}: start one with `agos evaluator --connect {endpoint} --run {run_id}` "
                      "(where this run directory's runs folder is)")
     for role, n in p.agents.items():
+        if not n and joining(role, f"the {role.upper()} agent", f"agent-{role}.log"):
+            continue
         if not n and is_human(policies.get(role, "heuristic")):
             lines.append(f"no person plays the {role.upper()} of run {run_id}: start a console with `agos human --role "
                          f"{role} --connect {endpoint} --run {run_id}` and open the page it names")
         elif not n:
             lines.append(f"no {role.upper()} agent serves run {run_id}: start one with `agos agent --role {role} "
                          f"--policy {policies.get(role, 'heuristic')} --connect {endpoint} --run {run_id}`")
-    if any(not n for n in p.agents.values()) and (line := elsewhere_line(p, run_id)):
+    if any(not n and role not in started for role, n in p.agents.items()) and (line := elsewhere_line(p, run_id)):
         lines.append(line)
     return lines
 
