@@ -1,9 +1,11 @@
-"""``agos view``: refuses what is not a recording, says how to open one without a display, and
-serves rerun's web viewer with ``--web``."""
+"""``agos view``: refuses what is not a recording, says how to open one without a display, serves
+rerun's web viewer with ``--web``, says which process holds a port it needs, and never leaves its
+viewer behind (Ctrl-C, SIGTERM)."""
 
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -50,10 +52,70 @@ def test_view_without_a_display_says_how(recording: Path, agos, monkeypatch: pyt
     assert out.returncode == 0 and f"agos view --web {recording}" in out.stdout
 
 
+@pytest.mark.loopback
+def test_a_port_in_use_is_named_with_the_process_that_holds_it(recording: Path, agos) -> None:
+    from agos.deploy.ops.ports import port_free, port_holder
+
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        assert not port_free(port)
+        if Path("/proc/net/tcp").exists():
+            assert f"(pid {os.getpid()})" in (port_holder(port) or "")
+        for flags, flag in ((("--web-port", str(port)), "--web-port"), (("--grpc-port", str(port)), "--grpc-port")):
+            out = agos("view", "--web", *flags, recording)  # in this process: the viewer may not start
+            assert out.returncode == 2 and not out.stdout, out
+            line = out.stderr.strip()
+            assert "\n" not in line and line.startswith(f"agos view: port {port} is busy, held by ") and flag in line
+            if Path("/proc/net/tcp").exists():
+                assert f"(pid {os.getpid()})" in line
+    assert port_free(port)
+
+
+class _Viewer:
+    """A viewer process as ``subprocess.Popen`` gives it; ``wait`` gets the signal ``signum`` first."""
+
+    def __init__(self, signum: int) -> None:
+        self.signum, self.terminated, self.returncode = signum, 0, None
+
+    def wait(self, timeout: float | None = None) -> int:
+        if self.returncode is None and self.signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        if self.returncode is None:
+            signal.raise_signal(self.signum)  # agos view's handler terminates us
+        assert self.returncode is not None
+        return self.returncode
+
+    def poll(self) -> int | None:
+        return self.returncode
+
+    def terminate(self) -> None:
+        self.terminated += 1
+        if self.returncode is None:
+            self.returncode = -signal.SIGTERM
+
+    def kill(self) -> None:
+        self.returncode = -signal.SIGKILL
+
+
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_sigterm_and_ctrl_c_stop_the_viewer_too(monkeypatch: pytest.MonkeyPatch, signum: int, code: int) -> None:
+    """The viewer used to outlive a SIGTERM (re-parented to pid 1, holding both ports)."""
+    from agos.deploy.recording import view
+
+    viewers: list[_Viewer] = []
+    monkeypatch.setattr(view.subprocess, "Popen", lambda argv, **_: viewers.append(_Viewer(signum)) or viewers[-1])
+    monkeypatch.setattr(view, "_signal_group", lambda proc, _signum: proc.terminate())  # its process group
+    before = signal.getsignal(signal.SIGTERM)
+    assert view.run_viewer(["rerun", "x.rrd"]) == code
+    assert viewers[0].terminated and signal.getsignal(signal.SIGTERM) == before
+
+
 @pytest.mark.e2e
-def test_view_web_serves_the_web_viewer(recording: Path) -> None:
-    port = _free_port()
-    proc = subprocess.Popen([*AGOS, "view", "--web", "--web-port", str(port), str(recording)],
+def test_view_web_serves_the_web_viewer_and_sigterm_stops_it(recording: Path) -> None:
+    port, grpc = _free_port(), _free_port()
+    proc = subprocess.Popen([*AGOS, "view", "--web", "--web-port", str(port), "--grpc-port", str(grpc), str(recording)],
                             stdout=subprocess.PIPE, text=True, start_new_session=True)
     try:
         assert proc.stdout is not None
@@ -66,6 +128,15 @@ def test_view_web_serves_the_web_viewer(recording: Path) -> None:
             except httpx.TransportError:
                 assert time.monotonic() < deadline, "the web viewer never answered"
                 time.sleep(0.3)
+        proc.send_signal(signal.SIGTERM)  # to agos view alone, as a process manager sends it
+        assert proc.wait(timeout=15) == 143
+        from agos.deploy.ops.ports import port_free
+
+        deadline = time.monotonic() + 10
+        while not (port_free(port) and port_free(grpc)):  # the viewer went with it
+            assert time.monotonic() < deadline, "the rerun viewer outlived agos view"
+            time.sleep(0.2)
     finally:
-        os.killpg(proc.pid, 15)
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGTERM)
         proc.wait(timeout=20)

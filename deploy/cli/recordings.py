@@ -63,13 +63,15 @@ def _add_view(sub: Any) -> None:
     view.add_argument("file", type=Path)
     view.add_argument("--web", action="store_true",
                       help="serve rerun's web viewer on loopback instead of opening a window (no display needed)")
-    view.add_argument("--web-port", type=int, default=9090, help="port of the web viewer (with --web)")
+    view.add_argument("--web-port", type=int, default=9090, help="port of the web viewer's page (with --web)")
+    view.add_argument("--grpc-port", type=int, default=9876,
+                      help="port the web viewer reads the recording from (with --web)")
 
 
 def _view(args: argparse.Namespace) -> int:
     from agos.deploy.recording.view import main as view_main
 
-    return view_main(args.file, web=args.web, web_port=args.web_port)
+    return view_main(args.file, web=args.web, web_port=args.web_port, grpc_port=args.grpc_port)
 
 
 RECORD = Command(("record",), _add_record, with_settings(_record))

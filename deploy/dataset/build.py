@@ -29,6 +29,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shlex
 import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -130,7 +131,9 @@ def build(cfg: AgosConfig, split: Path, out_dir: Path, *, workers: int, capture_
         assembler(record)
     try:
         code = evaluate.run(cfg, plan, workers=workers, attach=attach, port=port, config_path=config_path,
-                            console=console, on_record=assembler)
+                            console=console, on_record=assembler,
+                            resume=resume_command(split, out_dir, workers=workers, attach=attach, cfg=cfg,
+                                                  config_path=config_path))
     finally:
         manifest = _write_manifest(out_dir, plan, split, split_sha)
         _write_export(out_dir, sorted(manifest["episodes"]))
@@ -139,6 +142,21 @@ def build(cfg: AgosConfig, split: Path, out_dir: Path, *, workers: int, capture_
                   f"{c['images']} images ({c['bytes'] / 1e6:.1f} MB); {c['failed']} failed; export: {out_dir / EXPORT}",
                   highlight=False)
     return code if code else (1 if c["failed"] else 0)
+
+
+def resume_command(split: Path, out_dir: Path, *, workers: int, attach: bool, cfg: AgosConfig,
+                   config_path: Path | None) -> str:
+    """The command that resumes a build: this one again (``agos eval --resume`` would play the missing
+    episodes but leave the export and the manifest incomplete). The build's configuration is its run's
+    (``run.json``); the flags here say only where and with how many workers."""
+    words = ["agos", "dataset", "build", "--split", str(split), "--out", str(out_dir)]
+    if config_path is not None:
+        words += ["--config", str(config_path)]
+    if workers != 1:
+        words += ["--workers", str(workers)]
+    if attach:
+        words += ["--connect", cfg.zenoh.connect, "--run", cfg.run.run_id]
+    return shlex.join(words)
 
 
 # ----- the files ------------------------------------------------------------------------------

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shlex
 import time
 from collections import deque
 from collections.abc import Callable
@@ -100,17 +101,25 @@ class Losses:
                     3)
 
 
+def resume_command(plan: RunPlan) -> str:
+    """The command that resumes ``plan``'s run: ``agos eval --resume DIR`` (a caller whose run is part of
+    more, as a dataset build, names its own)."""
+    return f"agos eval --resume {shlex.quote(str(plan.run_dir))}"
+
+
 class Absences:
     """While the run makes no progress, every ``[run] presence_check_s``: say which processes are
     missing, and stop once no world worker joined, or no evaluator stored the records, for
     ``LOST_IN_A_ROW`` checks in a row (their worker gives up on unstored records after a minute)."""
 
     def __init__(self, cfg: AgosConfig, plan: RunPlan, bus: Bus, orch: Orchestrator, endpoint: str,
-                 console: Console, launcher: Launcher | None = None) -> None:
+                 console: Console, launcher: Launcher | None = None, resume: str | None = None) -> None:
         """``launcher``: the processes this command started (none when attached), which are said to be
-        joining rather than missing while they run."""
+        joining rather than missing while they run; ``resume``: the command that resumes the run
+        (:func:`resume_command`)."""
         self.every_s, self.plan, self.bus, self.orch, self.endpoint = cfg.run.presence_check_s, plan, bus, orch, endpoint
         self.console, self.launcher = console, launcher
+        self.resume = resume or resume_command(plan)
         self.stall = Stall(self.every_s)
         self.unstored = self.workerless = 0
 
@@ -138,7 +147,7 @@ class Absences:
         else:
             fix = f"start one with `agos {kind} --connect {self.endpoint} --run {run_id}`"
         return Halt(f"[red]stopping: {what} ({LOST_IN_A_ROW} checks {self.every_s:g} s apart); {fix} and resume with "
-                    f"`agos eval --resume {self.plan.run_dir}`", 3)
+                    f"`{self.resume}`", 3)
 
 
 def exited_children(launcher: Launcher, logs: Path) -> Halt | None:
@@ -193,12 +202,13 @@ def _connect(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, side: Launcher 
 def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, port: int | None = None,
         config_path: Path | None = None, console: Console | None = None, stuck_after_s: float = STUCK_AFTER_S,
         secure: bool = False, recording: Recording | None = None,
-        on_record: Callable[[EpisodeRecord], None] | None = None) -> int:
+        on_record: Callable[[EpisodeRecord], None] | None = None, resume: str | None = None) -> int:
     """Run ``plan`` to the end. ``secure``: the processes it starts talk mutual TLS through a router
     enforcing access control, with a throwaway CA made for this run (deploy/ops/certs.py). ``recording``:
     a recorder process writes the run's episodes as rerun files (deploy/recording/recorder.py); an
     attached run starts one too, connected as this command's settings say. ``on_record``: called with
-    each record stored during the run, on this thread (a dataset build assembles the episode's files)."""
+    each record stored during the run, on this thread (a dataset build assembles the episode's files).
+    ``resume``: the command an interrupted or stopped run names to go on (default :func:`resume_command`)."""
     console = console or Console(soft_wrap=True)  # paths and commands it prints are never cut at the width
     stop = install_stop_handlers()
     done_before = stored_episodes(plan.run_dir)
@@ -222,7 +232,8 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
             console.print(f"resuming {plan.run_dir}: {len(orch.stored)} of {orch.total} episodes already finished; "
                           "the others (infrastructure failures included) run now")
         with Progress(*Bar.COLUMNS, console=console, transient=False) as progress:
-            absences = Absences(cfg, plan, bus, orch, own.connect, progress.console, None if attach else launcher)
+            absences = Absences(cfg, plan, bus, orch, own.connect, progress.console, None if attach else launcher,
+                                resume)
             halt = follow(orch, Bar(progress, orch), stop.is_set, Losses(),
                           [absences.check, lambda: exited_children(launcher, plan.run_dir / "logs")], on_record)
             if halt is not None:
@@ -247,7 +258,8 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
     if recording is not None:
         _recording_summary(console, recording)
     if interrupted:
-        console.print(f"[yellow]interrupted: every process stopped; resume with: agos eval --resume {plan.run_dir}")
+        console.print(f"[yellow]interrupted: every process stopped; resume with: {resume or resume_command(plan)}",
+                      highlight=False)
         return 130  # as a shell reports a command stopped by Ctrl-C: scripts must not take it for a finished run
     return 0
 
@@ -266,7 +278,13 @@ def _summary(console: Console, plan: RunPlan, orch: Orchestrator | None, attach:
         title = (f"{plan.run_id}: {len(records)} episodes, {plan.policies['uav']}/{plan.policies['ugv']} policies, "
                  f"comm {plan.config.comm.name}, {where}")
         console.print(results_table(by_difficulty(records), title=title))
-    console.print(f"results: {path}", highlight=False)
+    if path.exists():
+        console.print(f"results: {path}", highlight=False)
+    elif records:
+        console.print(f"results: {len(records)} episodes acknowledged by the run's evaluator, stored where it runs "
+                      f"(not in {path.parent})", highlight=False)
+    else:
+        console.print(f"results: none stored (no episode finished), so no {path}", highlight=False)
     if not attach:
         console.print(f"logs:    {plan.run_dir / 'logs'}", highlight=False)
     if orch is not None and orch.releases:
