@@ -61,7 +61,14 @@ class Observer:
         self.session.close()
 
 
+def _seconds(value: object) -> str:
+    """A time in seconds as ``agos watch`` prints it: to the hundredth (``t=47.27``)."""
+    return f"{value:.2f}" if isinstance(value, float) else str(value)
+
+
 def describe(key: str, payload: bytes) -> str:
+    """One line for a sample: its key, the message's type and version, what tells it apart (role,
+    decision, action, simulated time), its size."""
     try:
         data = msgspec.msgpack.decode(payload)
     except (ValueError, RecursionError):  # msgspec.DecodeError, a string that is not UTF-8, too deep
@@ -70,13 +77,13 @@ def describe(key: str, payload: bytes) -> str:
         return f"{key}  <{type(data).__name__}>"
     extra = ""
     if data.get("type") == "step":
-        extra = f" {data.get('role')}#{data.get('decision_index')} {data.get('applied')} t={data.get('sim_time_s')}"
+        extra = f" {data.get('role')}#{data.get('decision_index')} {data.get('applied')} t={_seconds(data.get('sim_time_s'))}"
     elif data.get("type") == "episode_record":
         extra = f" {data.get('termination')} success={data.get('success')}"
     elif data.get("type") == "viz_frame":
-        extra = f" {data.get('role')}#{data.get('decision_index')} t={data.get('sim_time_s')}"
+        extra = f" {data.get('role')}#{data.get('decision_index')} t={_seconds(data.get('sim_time_s'))}"
     elif data.get("type") == "coordination_state":
-        extra = f" t={data.get('sim_time_s')} candidates={len(data.get('candidates') or [])}"
+        extra = f" t={_seconds(data.get('sim_time_s'))} candidates={len(data.get('candidates') or [])}"
     return f"{key}  v{data.get('v')} {data.get('type')}{extra}  ({len(payload)} B)"
 
 

@@ -124,12 +124,14 @@ def test_every_block_says_what_it_is() -> None:
 
 def _ignore(root: Path):
     gitignore = (root / ".gitignore").read_text().splitlines() if (root / ".gitignore").exists() else []
-    names = {p.strip().strip("/") for p in gitignore if p.strip() and not p.startswith("#")}
+    patterns = [p.strip() for p in gitignore if p.strip() and not p.startswith("#")]
+    names = {p.strip("/") for p in patterns if not p.startswith("/")}
+    rooted = {p.strip("/") for p in patterns if p.startswith("/")}  # `/data/`: the root's data/, not deploy/data/
 
     def ignore(directory: str, entries: list[str]) -> set[str]:
         here = Path(directory)
         rel = here.relative_to(root)
-        made_here = MADE_BY_README if here == root else set()
+        made_here = MADE_BY_README | rooted if here == root else set()
         return {e for e in entries
                 if e in NOT_COPIED or any(fnmatch.fnmatch(e, n) or fnmatch.fnmatch((rel / e).as_posix(), n) for n in names)
                 or any(fnmatch.fnmatch(e, n) for n in made_here)}

@@ -7,6 +7,10 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from agos.runtime.schemas import Difficulty
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -169,15 +173,9 @@ def _episodes(args: argparse.Namespace) -> int:
         from agos.world.sim.scene import Scene
         from agos.world.towns.asset import open_town
 
+        plan = _sample_plan(args, DIFFICULTIES)  # before the town is built: a wrong count costs nothing
         town = open_town(resolve_town(args.town).source)
         with Scene(town.layout, look=args.look) as scene:
-            if args.per_difficulty:
-                plan = [(d, args.per_difficulty) for d in DIFFICULTIES]
-            elif args.difficulty:
-                plan = [(args.difficulty, args.n)]
-            else:
-                print("episodes error: give --difficulty D -n N or --per-difficulty N", file=sys.stderr)
-                return 2
             episodes = [sample_episode(town, scene, d, i, seed=args.seed, stream=DIFFICULTIES.index(d))
                         for d, n in plan for i in range(n)]
         write_episodes(args.out, episodes)
@@ -187,6 +185,19 @@ def _episodes(args: argparse.Namespace) -> int:
     if args.episodes_command == "split":
         return _split(args)
     raise AssertionError(args.episodes_command)
+
+
+def _sample_plan(args: argparse.Namespace, difficulties: tuple[Difficulty, ...]) -> list[tuple[Difficulty, int]]:
+    """``agos episodes sample``'s (difficulty, count) pairs; ValueError (one line) for counts below 1 or none."""
+    if args.per_difficulty is not None:
+        if args.per_difficulty < 1:
+            raise ValueError(f"--per-difficulty {args.per_difficulty}: give at least 1 episode per difficulty")
+        return [(d, args.per_difficulty) for d in difficulties]
+    if args.difficulty:
+        if args.n < 1:
+            raise ValueError(f"-n {args.n}: give at least 1 episode of --difficulty {args.difficulty}")
+        return [(args.difficulty, args.n)]
+    raise ValueError("give --difficulty D -n N or --per-difficulty N: how many episodes to sample")
 
 
 def _split(args: argparse.Namespace) -> int:

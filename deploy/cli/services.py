@@ -21,7 +21,10 @@ from agos.runtime.settings import AgosConfig
 
 
 def _add_watch(sub: Any) -> None:
-    watch = sub.add_parser("watch", help="print every message under agos/** (a read-only observer)")
+    what = ("print the visualisation stream of every run, one line a message (steps, coordination, frames, episode "
+            "specs and records; not the full-resolution frames): a read-only observer. --key 'agos/**' prints "
+            "every message instead")
+    watch = sub.add_parser("watch", help="print the runs' visualisation stream (a read-only observer)", description=what)
     watch.add_argument("--connect", help="zenoh router endpoint (default tcp/127.0.0.1:7447, or from settings)")
     watch.add_argument("--config", type=Path)
     watch.add_argument("--key", help="key expression to watch instead of the visualisation stream, e.g. 'agos/**'")
