@@ -77,7 +77,7 @@ def test_every_draw_has_a_unique_target_and_a_far_ugv_start(towns: dict[str, Tow
     sample = draws(towns, 110)
     assert len(sample) >= 300, len(sample)
     confirm = ConfirmConfig()
-    assert MIN_START_DISTANCE_M > confirm.max_distance_m
+    assert confirm.max_distance_m < MIN_START_DISTANCE_M
     shared_paint = 0
     for town, spec in sample:
         layout = town.layout
