@@ -12,7 +12,7 @@ notice (repeated every 5 s, so one started late joins within seconds) or a recor
 What it stores is checked first, because anything on an open router can publish there: the
 payload must be a record of this schema version, name the run and episode its key names, use
 ids that are names (never paths), hold only finite numbers, and come from the worker that the
-orchestrator's lease notice (``.../ep/<ep>/lease``) names as the episode's current holder; an
+orchestrator's newest lease notice (``.../ep/<ep>/lease``) names as the episode's current holder; an
 episode that was never leased (not in the run's split) has no holder. Anything else is refused
 (runtime/rejections.py), never stored, never acknowledged.
 """
@@ -71,9 +71,11 @@ class Evaluator:
         if reason:
             self.rejections.reject(key, reason, f"{type(message).__name__} from {getattr(message, 'worker_id', '?')}")
         elif isinstance(message, LeaseNotice):
-            held = self.leases.get((message.run_id, message.episode_id))
-            if held is None or message.attempt >= held.attempt:
-                self.leases[(message.run_id, message.episode_id)] = message
+            # The newest notice names the holder, whatever its attempt: a resumed run counts attempts from 1
+            # again, and one forged notice of a high attempt would otherwise refuse the holder's record for
+            # ever. One orchestrator's notices arrive in order, and it repeats them every 5 s (each just
+            # before the records it still waits for), so any other notice holds for seconds at most.
+            self.leases[(message.run_id, message.episode_id)] = message
             self.serve_run(message.run_id)  # repeated every 5 s: an evaluator that missed the manifest joins here
         elif isinstance(message, EpisodeRecord):
             newly = self.store(message.run_id).add(message)

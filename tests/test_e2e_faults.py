@@ -428,7 +428,12 @@ def _forgeries(run: str, episode_ids: list[str], rng) -> list[tuple[str, bytes]]
 def test_a_hostile_client_changes_no_record(tmp_path: Path, episodes: Path, clean_lossy: dict[str, dict]) -> None:
     """Over 1,000 malformed and forged messages on every key the run's processes subscribe to, and
     garbage job requests, during a real run: every process lives, the records equal a clean run's,
-    nothing is written outside the run directory, and every process counts what it refused."""
+    nothing is written outside the run directory, and every process counts what it refused.
+
+    The flood also replays the run's genuine records and lease notices as it hears them (issue 30,
+    item 2): a duplicate before the ack, a record of an episode already stored, the lease notice of a
+    stored episode. The run still ends, within the bound of ``_finish``, with no episode leased twice
+    and every replay stored as nothing new (unit cases: tests/test_run_converges.py)."""
     import random
 
     from agos.runtime.schemas import JobRequest
@@ -440,12 +445,25 @@ def test_a_hostile_client_changes_no_record(tmp_path: Path, episodes: Path, clea
     session = zenoh.open(zenoh_config(connect=[cluster.endpoint]))
     stop = threading.Event()
     sent = [0]
+    genuine: dict[str, bytes] = {}  # key -> the last payload of the run's own processes heard there
+
+    def hear(sample: zenoh.Sample) -> None:
+        payload = sample.payload.to_bytes()
+        try:
+            data = msgpack.unpackb(payload, raw=False)
+        except ValueError:
+            return
+        if isinstance(data, dict) and data.get("worker_id") == "w0" and data.get("v") == 1:  # not a forgery
+            genuine[str(sample.key_expr)] = payload
+
+    listeners = [session.declare_subscriber(keys.result(run, "*"), hear),
+                 session.declare_subscriber(keys.lease(run, "*"), hear)]
 
     def flood() -> None:
         from agos.runtime.codec import encode
 
         while not stop.is_set():
-            for key, payload in _forgeries(run, ids, rng):
+            for key, payload in [*_forgeries(run, ids, rng), *list(genuine.items())]:
                 session.put(key, payload)
                 sent[0] += 1
             for payload in (b"\xc1", encode(JobRequest(worker_id="thief"))):  # a client asking for jobs
@@ -469,6 +487,10 @@ def test_a_hostile_client_changes_no_record(tmp_path: Path, episodes: Path, clea
         thread.join(10)
         assert sent[0] >= 1000, sent[0]
         assert _summaries(cluster.records()) == clean_lossy
+        assert "re-leased episodes" not in out, out
+        assert len([k for k in genuine if k.endswith("/result")]) == len(ids)
+        replays = re.findall(r"duplicate hostile/(\S+) ", (tmp_path / "evaluator.log").read_text())
+        assert set(replays) == set(ids), replays  # each episode's record came again after it was stored
         alive = {name: p.poll() for name, p in cluster.procs.items() if name != "w0"}
         assert all(code is None for code in alive.values()), alive  # w0 exits 0 when the run is over
         assert cluster.procs["w0"].wait(timeout=30) == 0
@@ -477,6 +499,8 @@ def test_a_hostile_client_changes_no_record(tmp_path: Path, episodes: Path, clea
         assert re.search(r"orchestrator rejected \d+ messages", out), out
     finally:
         stop.set()
+        for listener in listeners:
+            listener.undeclare()
         session.close()
         cluster.close()
     counted = {}

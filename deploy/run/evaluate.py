@@ -109,8 +109,11 @@ def resume_command(plan: RunPlan) -> str:
 
 class Absences:
     """While the run makes no progress, every ``[run] presence_check_s``: say which processes are
-    missing, and stop once no world worker joined, or no evaluator stored the records, for
-    ``LOST_IN_A_ROW`` checks in a row (their worker gives up on unstored records after a minute)."""
+    missing, and stop once no world worker joined, or records stayed unstored, for ``LOST_IN_A_ROW``
+    checks in a row (their worker gives up on unstored records after a minute; the orchestrator
+    publishes them again every 5 s). Unstored records stop the run whether or not an evaluator is on
+    the bus: one that is there and does not store them in that time never will, and a run waiting
+    for it would never end."""
 
     def __init__(self, cfg: AgosConfig, plan: RunPlan, bus: Bus, orch: Orchestrator, endpoint: str,
                  console: Console, launcher: Launcher | None = None, resume: str | None = None) -> None:
@@ -133,7 +136,7 @@ class Absences:
         logs = launcher.log_dir if launcher else None
         for line in missing_lines(present, run_id, self.endpoint, self.plan.policies, started, logs):
             self.console.print(f"[yellow]waiting: {line}", highlight=False)
-        self.unstored = self.unstored + 1 if not present.evaluator and self.orch.unacknowledged() else 0
+        self.unstored = self.unstored + 1 if self.orch.unacknowledged() else 0
         self.workerless = self.workerless + 1 if not present.worlds else 0
         if self.workerless >= LOST_IN_A_ROW:
             what, kind, log = f"no world worker joined run {run_id}", "world", "world-0.log"
@@ -142,8 +145,10 @@ class Absences:
             what, kind, log = f"no evaluator stored the records of {unstored}", "evaluator", "evaluator.log"
         else:
             return None
-        if kind in started and logs is not None:  # it runs, but never joined: starting another would not help
+        if kind in started and logs is not None:  # it runs but never joined or stored: another would not help
             fix = f"see {logs / log}"
+        elif kind == "evaluator" and present.evaluator:
+            fix = "see the log of the evaluator serving it"
         else:
             fix = f"start one with `agos {kind} --connect {self.endpoint} --run {run_id}`"
         return Halt(f"[red]stopping: {what} ({LOST_IN_A_ROW} checks {self.every_s:g} s apart); {fix} and resume with "

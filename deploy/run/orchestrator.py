@@ -10,9 +10,14 @@ tracks which episodes are stored.
 * A worker whose liveliness token (``agos/<run>/live/world/<id>``) vanishes, or whose episode
   shows no step event for ``stuck_after_s`` of wall time, loses its leases: those episodes go back
   to the front of the queue with attempt + 1. After ``max_attempts`` the orchestrator submits an
-  infrastructure-failure record itself (``world_crashed``), so the run still ends.
-* An episode is done when the evaluator's ack for it is seen; a late duplicate from a worker
-  thought dead is stored once (the evaluator ignores it).
+  infrastructure-failure record itself (``world_crashed``), so the run still ends. A lease whose
+  holder's record is in is never taken back: the episode is played, and only its storage is awaited
+  (the record is published again every ``LEASE_REPEAT_S``; ``agos eval`` stops a run whose records
+  stay unstored, deploy/run/evaluate.py).
+* An episode is done when the evaluator's ack for it is seen, and is then never leased again;
+  whatever arrives about it later (its record again, a late duplicate from a worker thought dead,
+  another ack, its old lease notice) changes nothing here, and the evaluator stores nothing twice.
+  So every episode ends stored once, or failed with the reason after ``max_attempts``.
 * Imported town assets are served on ``agos/assets/<sha256>`` from the local asset cache.
 """
 
@@ -20,7 +25,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Literal
@@ -31,7 +36,7 @@ from agos.runtime.codec import DecodeError, decode, encode
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.failure_records import failure_record
 from agos.runtime.health import announce
-from agos.runtime.rejections import Rejections
+from agos.runtime.rejections import Rejections, non_finite_field
 from agos.runtime.schemas import (
     EpisodeRecord,
     EpisodeSpec,
@@ -66,6 +71,9 @@ class Lease:
 
 
 class Orchestrator:
+    """The leases of one run's episodes, driven by :meth:`pump`. ``episodes`` must name each episode
+    once (``ValueError`` otherwise: a run waiting for two stored episodes of one id never ends)."""
+
     def __init__(self, bus: Bus, run_id: str, episodes: list[EpisodeSpec], *, policies: dict[str, str],
                  config: EpisodeConfig | None = None,
                  stuck_after_s: float = STUCK_AFTER_S, max_attempts: int = 3, already_stored: set[str] | None = None,
@@ -82,6 +90,9 @@ class Orchestrator:
         done = already_stored or set()
         self.total = len(episodes)
         self.episode_ids = {e.episode_id for e in episodes}
+        if len(self.episode_ids) != self.total:
+            twice = next(e for e, n in Counter(e.episode_id for e in episodes).items() if n > 1)
+            raise ValueError(f"episode {twice} twice in the run's episodes: every episode needs its own id")
         self.stored: set[str] = {e.episode_id for e in episodes if e.episode_id in done}
         self.already = len(self.stored)
         self.pending: deque[tuple[EpisodeSpec, int]] = deque((e, 1) for e in episodes if e.episode_id not in done)
@@ -162,10 +173,12 @@ class Orchestrator:
                 self.rejections.reject(s.key, "not an episode of this run named alike by key and payload")
                 continue
             if isinstance(message, EpisodeRecord):
-                if self._from_holder(message):
-                    self.records.setdefault(message.episode_id, message)
-                else:
+                if not self._from_holder(message):
                     self.rejections.reject(s.key, "not from the lease holder")
+                elif non_finite_field(message):  # the evaluator refuses it too: it must not count here
+                    self.rejections.reject(s.key, "a number that is not finite")
+                else:
+                    self.records.setdefault(message.episode_id, message)
             elif isinstance(message, ResultAck) and message.episode_id not in self.records:
                 # The evaluator acknowledges only a record it stored, and it stores only the holder's; an
                 # honest ack overtakes its (larger) record now and then, so this is not a hostile sign: the
@@ -186,7 +199,7 @@ class Orchestrator:
                 self.live_workers.discard(worker)
                 self._release_worker(worker, "its liveliness token vanished")
         for episode_id, lease in list(self.leases.items()):
-            if now - lease.last_progress > self.stuck_after_s:
+            if now - lease.last_progress > self.stuck_after_s and episode_id not in self.records:
                 self._release(episode_id, f"no progress for {self.stuck_after_s:.0f} s on {lease.worker}")
         if now >= self._repeat_at:
             self._repeat_at = now + LEASE_REPEAT_S
@@ -215,8 +228,9 @@ class Orchestrator:
             run_id=self.run_id, episode_id=lease.spec.episode_id, worker_id=lease.worker, attempt=lease.attempt))
 
     def _release_worker(self, worker: str, why: str) -> None:
+        """Take back ``worker``'s leases but those whose record is in (played: only storage is awaited)."""
         for episode_id, lease in list(self.leases.items()):
-            if lease.worker == worker:
+            if lease.worker == worker and episode_id not in self.records:
                 self._release(episode_id, f"worker {worker}: {why}")
 
     def _release(self, episode_id: str, why: str, status: Literal["world_crashed", "agent_crashed"] = "world_crashed") -> None:
@@ -257,6 +271,8 @@ class Orchestrator:
             log.debug("no job for %s: no liveliness token of that world worker", worker)
             query.reply(encode(JobGrant(worker_id=worker, episode=None, run_finished=self.finished)))
             return
+        while self.pending and self.pending[0][0].episode_id in self.stored:
+            self.pending.popleft()  # never lease a stored episode again
         if self.pending:
             spec, attempt = self.pending.popleft()
             now = self._clock()
