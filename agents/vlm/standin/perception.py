@@ -81,10 +81,10 @@ CAP_GAP_M, CAP_BAND_M = 0.08, 0.40
 """The band above an object's painted top where a cap (a roof box, a contrasting roof) shows."""
 CAP_MIN_PX = 40
 CAP_SAT_TOLERANCE, CAP_VALUE_TOLERANCE = 50, 50
-CAP_MIN_SHARE = 0.35
+CAP_MIN_SHARE = 0.15
 BOX_SATURATION = 40
 BOX_VALUE = (70, 200)
-BOX_MAX_SHARE = 0.6
+BOX_MAX_SHARE = 0.4
 REGION_MATCH_M = 2.0
 """A region belongs to an object of :func:`~agos.agents.heuristic.ground.find_target` this close."""
 
@@ -376,13 +376,16 @@ def ground_view_from_rgb(name: str, rgb: np.ndarray, profile: TargetProfile, *, 
                          world_from_camera: np.ndarray, bottom: PaintBottom) -> RgbGroundView:
     """A :class:`~agos.agents.heuristic.ground.GroundView` of an RGB ground view with a depth image
     estimated from it: the road plane everywhere, except that each region of the paint's hue
-    (joined across the glass band) stands on the vertical face above its bottom edge.
+    (joined across the glass band) stands on a vertical face at one distance from the camera.
 
-    The bottom edge is taken at ``bottom.height_m`` above the road, which fixes each column's
-    distance. Where the paint begins is known only within ``bottom``'s range, and a region standing
-    taller than the camera is sensitive to it (its top's height scales with the distance): the
-    region's distances are then scaled, within what that range allows, towards the ones that put
-    its top at the reference's painted top. A car's top is near the camera's height, so its scale
+    The region's bottom edge (the lower convex hull of its lowest pixels) is taken at
+    ``bottom.height_m`` above the road, which fixes each column's distance; the region stands at
+    their median. An oblique vehicle then measures its extent across the line of sight, which for
+    the target stays within its length plus the heuristic's ``LENGTH_TOLERANCE_M``. Where the paint
+    begins is known only within ``bottom``'s range, and a region standing taller than the camera
+    is sensitive to it (its top's height scales with the distance): the region's distance is then
+    scaled, within what that range allows, towards the one that puts its top at the reference's
+    painted top. A car's top is near the camera's height, so its scale
     barely moves it; a box truck's top 1.6 m above the camera may move by a few decimetres.
     """
     h, w = rgb.shape[:2]
@@ -413,26 +416,25 @@ def ground_view_from_rgb(name: str, rgb: np.ndarray, profile: TargetProfile, *, 
         ray = np.stack([(cols - intrinsics.cx_px) / intrinsics.fx_px, (edge - intrinsics.cy_px) / intrinsics.fy_px,
                         np.ones(len(cols))], -1) @ rot.T
         meets = ray[:, 2] < -1e-6
-        reach = np.full(len(cols), np.inf)
-        reach[meets] = drop / -ray[meets, 2] * np.hypot(ray[meets, 0], ray[meets, 1])
-        per_col = np.full(w, np.inf)
-        per_col[cols] = reach
-        t = per_col[us] / np.maximum(horizontal[vs, us], 1e-9)
-        finite = np.isfinite(t)
-        if finite.any():
-            rise = world_rays[vs[finite], us[finite], 2] * t[finite]  # height above the camera at scale 1
-            top = float(np.percentile(rise, 98))
-            want = profile.paint_top_m - eye[2]
-            if abs(top) > 1e-3 and want * top > 0:
-                lo, hi = (eye[2] - bottom.high_m) / drop, (eye[2] - bottom.low_m) / drop
-                scale = min(max(want / top, lo), hi)
-                t[finite] *= scale
-                reach *= scale
-        depth[vs, us] = np.minimum(np.where(finite, t, FAR_M), FAR_M)
-        if meets.any():
-            ground = eye[:2] + ray[meets, :2] / np.hypot(ray[meets, 0], ray[meets, 1])[:, None] * reach[meets, None]
-            x, y = np.median(ground, axis=0)
-            regions.append(Region(name, cols[meets], reach[meets], float(x), float(y)))
+        if not meets.any():
+            continue  # its lowest pixels look above the horizon: it does not stand on the road in view
+        # One distance for the whole region, the median of its columns': a column's distance is
+        # sensitive to a pixel of its edge (0.4 m a pixel at 10 m), and per-column distances
+        # stretch an oblique vehicle along the line of sight past its length.
+        reach = np.full(len(cols), float(np.median(drop / -ray[meets, 2] * np.hypot(ray[meets, 0], ray[meets, 1]))))
+        t = reach[0] / np.maximum(horizontal[vs, us], 1e-9)
+        rise = world_rays[vs, us, 2] * t  # height above the camera at scale 1
+        top = float(np.percentile(rise, 98))
+        want = profile.paint_top_m - eye[2]
+        if abs(top) > 1e-3 and want * top > 0:
+            lo, hi = (eye[2] - bottom.high_m) / drop, (eye[2] - bottom.low_m) / drop
+            scale = min(max(want / top, lo), hi)
+            t *= scale
+            reach *= scale
+        depth[vs, us] = np.minimum(t, FAR_M)
+        ground = eye[:2] + ray[:, :2] / np.maximum(np.hypot(ray[:, 0], ray[:, 1]), 1e-9)[:, None] * reach[:, None]
+        x, y = np.median(ground, axis=0)
+        regions.append(Region(name, cols, reach, float(x), float(y)))
     return RgbGroundView(GroundView(name, rgb, depth.astype(np.float32), intrinsics, pose), tuple(regions))
 
 
@@ -471,27 +473,42 @@ def reference_cap(side_rgba: np.ndarray, intrinsics: CameraIntrinsics, world_fro
 
 
 def cap_share(view: GroundView, region: Region, top_m: float, cap: Cap) -> float:
-    """Share of the pixels just above an object's painted top (``CAP_GAP_M`` to ``CAP_BAND_M`` higher,
-    on the face the region stands on, over the middle half of its columns) that look like ``cap``
-    (or, with no cap, like a roof box: grey, ``BOX_SATURATION`` or less); 0 when none is in view."""
+    """How much more of the band just above an object's painted top (``CAP_GAP_M`` to ``CAP_BAND_M``
+    higher, on the face the region stands on) looks like ``cap`` (or, with no cap, like a roof box:
+    grey, ``BOX_SATURATION`` or less) over the middle half of the region's columns than beside the
+    region, in as many columns either side: something standing on the roof, not the background
+    behind it. 0 when none of the band is in view."""
     hsv = _hsv(view.rgb)
-    rays = _rays(hsv.shape[:2], view.intrinsics) @ view.world_from_camera[:3, :3].T
+    h, w = hsv.shape[:2]
+    rays = _rays((h, w), view.intrinsics) @ view.world_from_camera[:3, :3].T
     eye_z = float(view.world_from_camera[2, 3])
     n = len(region.cols)
-    middle = slice(n // 4, max(n // 4 + 1, 3 * n // 4))
-    hits = total = 0
-    for c, r in zip(region.cols[middle].tolist(), region.reach_m[middle].tolist(), strict=True):
-        col = rays[:, c]
-        z = eye_z + r * col[:, 2] / np.maximum(np.hypot(col[:, 0], col[:, 1]), 1e-9)
-        rows = (z >= top_m + CAP_GAP_M) & (z <= top_m + CAP_BAND_M)
-        px = hsv[rows, c].astype(np.float32)
-        if cap.present:
-            like = (np.abs(px[:, 1] - cap.saturation) <= CAP_SAT_TOLERANCE) & (np.abs(px[:, 2] - cap.value) <= CAP_VALUE_TOLERANCE)
-        else:
-            like = (px[:, 1] <= BOX_SATURATION) & (px[:, 2] >= BOX_VALUE[0]) & (px[:, 2] <= BOX_VALUE[1])
-        hits += int(like.sum())
-        total += len(px)
-    return hits / total if total else 0.0
+    quarter = max(1, n // 4)
+    reach = float(np.median(region.reach_m))
+    lo, hi = int(region.cols[0]), int(region.cols[-1])
+    middle = region.cols[quarter:max(quarter + 1, n - quarter)]
+    beside = np.concatenate([np.arange(lo - quarter, lo), np.arange(hi + 1, hi + 1 + quarter)])
+    beside = beside[(beside >= 0) & (beside < w)]
+
+    def share(cols: np.ndarray) -> float | None:
+        hits = total = 0
+        for c in cols.tolist():
+            col = rays[:, c]
+            z = eye_z + reach * col[:, 2] / np.maximum(np.hypot(col[:, 0], col[:, 1]), 1e-9)
+            px = hsv[(z >= top_m + CAP_GAP_M) & (z <= top_m + CAP_BAND_M), c].astype(np.float32)
+            if cap.present:
+                like = ((np.abs(px[:, 1] - cap.saturation) <= CAP_SAT_TOLERANCE)
+                        & (np.abs(px[:, 2] - cap.value) <= CAP_VALUE_TOLERANCE))
+            else:
+                like = (px[:, 1] <= BOX_SATURATION) & (px[:, 2] >= BOX_VALUE[0]) & (px[:, 2] <= BOX_VALUE[1])
+            hits += int(like.sum())
+            total += len(px)
+        return hits / total if total else None
+
+    above, aside = share(middle), share(beside)
+    if above is None:
+        return 0.0
+    return max(0.0, above - (aside or 0.0))
 
 
 def find_target_rgb(views: list[RgbGroundView], profile: TargetProfile, *, min_pixels: int,
