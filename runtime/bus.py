@@ -32,6 +32,7 @@ from typing import Any, Generic, Protocol, TypeVar
 import zenoh
 
 from agos.runtime.codec import encode
+from agos.runtime.process import Interrupted, stop_requested
 from agos.runtime.settings import ZenohSettings
 
 log = logging.getLogger(__name__)
@@ -251,11 +252,35 @@ class RouterUnreachable(RuntimeError):
     """No session: the router is not there, the port is wrong, or (TLS) the credentials were refused."""
 
 
+OPEN_POLL_S = 0.1
+"""How often a process waiting for its zenoh session looks whether it was asked to stop."""
+
+
 def open_session(config: zenoh.Config) -> zenoh.Session:
-    """``zenoh.open``, failing with one line that names the endpoint and what to check."""
-    try:
-        return zenoh.open(config)
-    except zenoh.ZError as exc:
+    """``zenoh.open``, failing with one line that names the endpoint and what to check.
+
+    The connection is made on a thread of its own while this one waits, so a stop signal during the
+    wait (up to ``[zenoh] connect_timeout_s`` when no router answers) is heard at once: Ctrl-C raises
+    ``KeyboardInterrupt`` here, a process with a stop flag (runtime/process.py) gets
+    :class:`~agos.runtime.process.Interrupted`. A session that opens after that is left to the exit."""
+    outcome: list[zenoh.Session | BaseException] = []
+
+    def connect() -> None:
+        try:
+            outcome.append(zenoh.open(config))
+        except BaseException as exc:  # handed to the waiting thread
+            outcome.append(exc)
+
+    thread = threading.Thread(target=connect, name="zenoh-open", daemon=True)
+    thread.start()
+    while thread.is_alive():
+        thread.join(OPEN_POLL_S)
+        if stop_requested():
+            raise Interrupted("stopped while connecting to the zenoh router")
+    if isinstance(outcome[0], zenoh.Session):
+        return outcome[0]
+    exc = outcome[0]
+    if isinstance(exc, zenoh.ZError):
         try:
             endpoints = ", ".join(json.loads(config.get_json("connect/endpoints"))) or "?"
         except Exception:  # the config has no connect endpoints (a router): say what zenoh said
@@ -264,6 +289,7 @@ def open_session(config: zenoh.Config) -> zenoh.Session:
         raise RouterUnreachable(
             f"cannot reach the zenoh router at {endpoints}: is `agos router` running there and is the port "
             f"right? (--connect or AGOS_ZENOH__CONNECT){tls} [{str(exc).split(' at ')[0]}]") from None
+    raise exc
 
 
 class ZenohBus:

@@ -1,5 +1,6 @@
 """``agos dataset build`` end to end: router, evaluator, world worker and the two expert agents as
-separate processes on loopback, a sampled split of each difficulty, then a second build that resumes.
+separate processes on loopback, a sampled split of each difficulty, interrupted by Ctrl-C once its first
+episode is assembled and resumed by the same command to the end, then a third build that resumes.
 
 Checks the issue's "Done when": trajectories, actions, messages, images and the JSONL export are
 written; every export line's answer validates against the action schema the agents send, and every
@@ -19,6 +20,8 @@ import pytest
 
 from agos.agents.vlm.protocol import action_schema
 
+from support.interrupt import Interruptible
+
 AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 pytestmark = pytest.mark.e2e
 
@@ -30,9 +33,20 @@ def built(tmp_path_factory) -> tuple[Path, Path, str]:
     subprocess.run([*AGOS, "episodes", "sample", "--town", "grid-s7", "--per-difficulty", "1", "--seed", "4",
                     "--out", str(split)], check=True, capture_output=True, timeout=300)
     out = root / "data"
-    done = subprocess.run([*AGOS, "dataset", "build", "--split", str(split), "--out", str(out), "--port", "7611"],
-                          capture_output=True, text=True, timeout=600)
+    args = ["dataset", "build", "--split", str(split), "--out", str(out), "--port", "7611"]
+    # Ctrl-C mid-work (issue 30, item 3; the other moments: tests/test_ctrl_c.py): every process stops
+    # within 10 s, exit 130, and the assembled episode stays, untouched by the build that resumes.
+    first = Interruptible(root, args)
+    first.wait_for(lambda: any((out / "episodes").glob("*/episode.json")), timeout_s=300)
+    first.ctrl_c()
+    said = " ".join(first.out().split())
+    assert f"resume with: agos dataset build --split {split} --out {out}" in said, said
+    kept = {p.parent.name: (p.parent / "files.sha256").read_bytes() for p in (out / "episodes").glob("*/episode.json")}
+    assert kept and len(json.loads((out / "manifest.json").read_text())["episodes"]) == len(kept)
+    done = subprocess.run([*AGOS, *args], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    assert "resuming the build" in " ".join(done.stdout.split()), done.stdout[-3000:]
+    assert {e: (out / "episodes" / e / "files.sha256").read_bytes() for e in kept} == kept
     return split, out, done.stdout
 
 

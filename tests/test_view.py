@@ -1,18 +1,15 @@
-"""``agos view``: refuses what is not a recording, says how to open one without a display, serves
-rerun's web viewer with ``--web``, says which process holds a port it needs, and never leaves its
-viewer behind (Ctrl-C, SIGTERM)."""
+"""``agos view``: refuses what is not a recording, says how to open one without a display, says which
+process holds a port it needs, and never leaves its viewer behind (Ctrl-C, SIGTERM). The web viewer
+served for real and stopped by Ctrl-C: tests/test_ctrl_c.py::test_view_web."""
 
 from __future__ import annotations
 
 import os
 import signal
 import socket
-import subprocess
 import sys
-import time
 from pathlib import Path
 
-import httpx
 import pytest
 
 AGOS = [sys.executable, "-m", "agos.deploy.cli"]
@@ -110,33 +107,3 @@ def test_sigterm_and_ctrl_c_stop_the_viewer_too(monkeypatch: pytest.MonkeyPatch,
     before = signal.getsignal(signal.SIGTERM)
     assert view.run_viewer(["rerun", "x.rrd"]) == code
     assert viewers[0].terminated and signal.getsignal(signal.SIGTERM) == before
-
-
-@pytest.mark.e2e
-def test_view_web_serves_the_web_viewer_and_sigterm_stops_it(recording: Path) -> None:
-    port, grpc = _free_port(), _free_port()
-    proc = subprocess.Popen([*AGOS, "view", "--web", "--web-port", str(port), "--grpc-port", str(grpc), str(recording)],
-                            stdout=subprocess.PIPE, text=True, start_new_session=True)
-    try:
-        assert proc.stdout is not None
-        assert f"http://127.0.0.1:{port}/" in proc.stdout.readline()
-        deadline = time.monotonic() + 30
-        while True:
-            try:
-                assert httpx.get(f"http://127.0.0.1:{port}/", timeout=2).status_code == 200
-                break
-            except httpx.TransportError:
-                assert time.monotonic() < deadline, "the web viewer never answered"
-                time.sleep(0.3)
-        proc.send_signal(signal.SIGTERM)  # to agos view alone, as a process manager sends it
-        assert proc.wait(timeout=15) == 143
-        from agos.deploy.ops.ports import port_free
-
-        deadline = time.monotonic() + 10
-        while not (port_free(port) and port_free(grpc)):  # the viewer went with it
-            assert time.monotonic() < deadline, "the rerun viewer outlived agos view"
-            time.sleep(0.2)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGTERM)
-        proc.wait(timeout=20)

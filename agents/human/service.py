@@ -114,7 +114,8 @@ def _serve_page(source: PageBoard, host: str, port: int, what: str) -> ConsoleSe
 
 def main(cfg: AgosConfig, *, roles: tuple[Role, ...], host: str = "127.0.0.1", port: int = 8765,
          player: str = "person", trace_file: Path | None = None) -> int:
-    """Play ``roles`` of the configured run through a page on ``host:port``."""
+    """Play ``roles`` of the configured run through a page on ``host:port`` until stopped: 130 after
+    Ctrl-C (also while it still connects), 0 after SIGTERM (its launcher ending the run)."""
     setup_logging("human")
     stop = install_stop_handlers()
     board = DecisionBoard(roles, player=player, trace_file=trace_file)
@@ -122,15 +123,17 @@ def main(cfg: AgosConfig, *, roles: tuple[Role, ...], host: str = "127.0.0.1", p
     server = _serve_page(board, host, port, what)
     if server is None:
         return 2
-    with ZenohBus.from_settings(cfg.zenoh) as bus:
-        try:
-            return asyncio.run(serve_async(bus, board, cfg.run.run_id, stop))
-        finally:
-            server.close()
+    try:
+        with ZenohBus.from_settings(cfg.zenoh) as bus:
+            asyncio.run(serve_async(bus, board, cfg.run.run_id, stop))
+    finally:
+        server.close()
+    return stop.exit_code()
 
 
 def spectate(cfg: AgosConfig, *, run_id: str | None, host: str = "127.0.0.1", port: int = 8766) -> int:
-    """Serve the read-only page of the visualisation stream of ``run_id`` (every run when None)."""
+    """Serve the read-only page of the visualisation stream of ``run_id`` (every run when None) until
+    stopped: 130 after Ctrl-C, 0 after SIGTERM."""
     from agos.runtime.observer import Observer
 
     setup_logging("spectator")
@@ -150,4 +153,4 @@ def spectate(cfg: AgosConfig, *, run_id: str | None, host: str = "127.0.0.1", po
             observer.close()
     finally:
         server.close()
-    return 0
+    return stop.exit_code()

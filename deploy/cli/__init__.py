@@ -34,10 +34,13 @@ import contextlib
 import os
 import sys
 
-from agos.deploy.cli import datasets, ops, recordings, reports, runs, services
-from agos.deploy.cli.common import Command
-from agos.runtime.bus import RouterUnreachable
-from agos.runtime.settings import ConfigError
+try:  # a second or two of imports: Ctrl-C here is the same exit 130 as later, without a traceback
+    from agos.deploy.cli import datasets, ops, recordings, reports, runs, services
+    from agos.deploy.cli.common import Command
+    from agos.runtime.bus import RouterUnreachable
+    from agos.runtime.settings import ConfigError
+except KeyboardInterrupt:
+    raise SystemExit(130) from None
 
 
 def _add_world_parsers(sub: argparse._SubParsersAction) -> None:
@@ -84,7 +87,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run one ``agos`` command; its exit status. Ctrl-C at any moment is 130 (a command that stops its
+    own children and keeps its finished work says so before)."""
+    try:
+        args = build_parser().parse_args(argv)
+    except KeyboardInterrupt:
+        return 130
     try:
         code = _dispatch(args)
         sys.stdout.flush()  # here, where a reader that left (BrokenPipeError) is caught, not at exit

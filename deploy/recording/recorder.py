@@ -47,7 +47,7 @@ from agos.deploy.reports.episode_map import EpisodeMap, episode_map
 from agos.runtime import keys
 from agos.runtime.bus import Bus, Inbox, Sample, ZenohBus
 from agos.runtime.codec import DecodeError, decode
-from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
+from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging, stop_requested
 from agos.runtime.rejections import Rejections
 from agos.runtime.schemas import CoordinationState, EpisodeRecord, EpisodeSpec, EpisodeStarted, StepEvent, VizFrame
 from agos.runtime.settings import AgosConfig
@@ -248,10 +248,11 @@ def main(cfg: AgosConfig, out_dir: Path, *, full: bool = False) -> int:
 
 def wait_ready(out_dir: Path, timeout_s: float, since: float, alive: Callable[[], bool] = lambda: True) -> bool:
     """Whether a recorder started at ``since`` (epoch seconds) has subscribed and says so in
-    ``DIR/recorder.json`` within ``timeout_s`` (False at once when ``alive()`` says it exited)."""
+    ``DIR/recorder.json`` within ``timeout_s`` (False at once when ``alive()`` says it exited, or this
+    process was asked to stop: the run is not going to start)."""
     deadline = time.monotonic() + timeout_s
     path = out_dir / STATUS_FILE
-    while time.monotonic() < deadline and alive():
+    while time.monotonic() < deadline and alive() and not stop_requested():
         try:
             if path.stat().st_mtime >= since - 1 and json.loads(path.read_text()).get("status") == "recording":
                 return True

@@ -32,7 +32,7 @@ from agos.evaluator.metrics import by_difficulty
 from agos.evaluator.store import ResultStore, results_path
 from agos.evaluator.table import results_table
 from agos.runtime.bus import Bus, ZenohBus
-from agos.runtime.process import install_stop_handlers
+from agos.runtime.process import Interrupted, install_stop_handlers
 from agos.runtime.schemas import EpisodeRecord
 from agos.runtime.settings import AgosConfig, ZenohSettings
 
@@ -250,6 +250,8 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
         orch.publish_manifest("interrupted" if interrupted else "finished")
         if not interrupted:
             time.sleep(EVALUATOR_TABLE_S)
+    except Interrupted:  # Ctrl-C while this command's own session was still connecting
+        interrupted = True
     finally:
         if launcher.children:
             launcher.stop_all(order=[n for n in launcher.children if n.startswith("world")] + STOP_ORDER)

@@ -4,6 +4,10 @@ Each child runs ``python -m agos.deploy.cli ...`` in its own session (a terminal
 reaches only the launcher, which then stops the children in order) with its output in
 ``<log_dir>/<name>.log``. On Linux a child also dies with its parent. A child's settings travel in
 its environment (deploy/run/children.py), its command line holds only the command's arguments.
+
+Once this process is asked to stop (Ctrl-C while a run starts), it starts no more children and waits
+for no more listeners: :meth:`Launcher.start` and :func:`wait_listening` raise
+:class:`~agos.runtime.process.Interrupted`, and the caller stops the children already started.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ import time
 from pathlib import Path
 
 from agos.deploy.run.children import child_environ
-from agos.runtime.process import die_with_parent
+from agos.runtime.process import Interrupted, die_with_parent, stop_requested
 from agos.runtime.settings import AgosConfig
 
 log = logging.getLogger("agos.launcher")
@@ -44,7 +48,10 @@ class Launcher:
     def start(self, name: str, args: list[str], settings: AgosConfig | None = None) -> subprocess.Popen:
         """Start ``agos ARGS`` as ``name``. ``settings``: the child's settings, which reach it as its
         environment (:func:`~agos.deploy.run.children.child_environ`; credentials travel there, never
-        in ``args``, which any user can read in a process listing); None: it inherits this process's."""
+        in ``args``, which any user can read in a process listing); None: it inherits this process's.
+        :class:`~agos.runtime.process.Interrupted` instead once this process was asked to stop."""
+        if stop_requested():
+            raise Interrupted(f"stopped before starting {name}")
         # Appended, never truncated: a resumed run keeps the logs of its earlier attempts.
         out = (self.log_dir / f"{name}.log").open("ab")
         out.write(f"===== agos {args[0]} started {time.strftime('%Y-%m-%d %H:%M:%S')} =====\n".encode())
@@ -93,8 +100,12 @@ def free_port(preferred: int = ROUTER_PORT, host: str = "127.0.0.1") -> int:
 
 
 def wait_listening(host: str, port: int, timeout_s: float) -> bool:
+    """Whether something listens on ``host:port`` within ``timeout_s``; :class:`~agos.runtime.process.Interrupted`
+    as soon as this process is asked to stop."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
+        if stop_requested():
+            raise Interrupted(f"stopped while waiting for {host}:{port}")
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
             sock.settimeout(0.2)
             if sock.connect_ex((host, port)) == 0:

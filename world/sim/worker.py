@@ -51,6 +51,11 @@ SUBMIT_ATTEMPTS = 20
 RESEND_S = 5.0
 """An observation still unanswered after this long is published again (same decision index), so
 an agent service that restarted picks it up; the decision is counted once."""
+STOP_WITHIN_S = 3.0
+"""A worker asked to stop (Ctrl-C, or its launcher's SIGTERM) that is still busy this long after, in
+a computation that does not look at its stop flag (an expert's plan, a scene being built), ends
+itself: an interrupted episode is never submitted, so nothing is lost, and ``agos eval`` and
+``agos dataset build`` stop within seconds (runtime/process.py)."""
 
 
 class BusSink:
@@ -417,7 +422,7 @@ class WorldWorker:
 
 def main(cfg: AgosConfig, *, worker_id: str | None = None) -> int:
     setup_logging("world")
-    stop = install_stop_handlers()
+    stop = install_stop_handlers(exit_after_s=STOP_WITHIN_S)
     ident = worker_id or unique_id(host_prefix())
     with ZenohBus.from_settings(cfg.zenoh) as bus:
         return WorldWorker(cfg, bus, stop, keys.check_chunk(ident, what="worker id")).serve()

@@ -186,9 +186,15 @@ def manifest(town: Town) -> dict[str, Any]:
 
 
 def save_town(town: Town, out_dir: Path) -> Path:
+    """Write ``town`` into ``out_dir`` (``asset.msgpack``, ``manifest.json``). Each file appears whole or
+    not at all (written beside, then renamed), the asset first: an interrupted save (Ctrl-C in ``agos
+    map import``) leaves no cut file, and a manifest of an older asset is refused by its hash."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "asset.msgpack").write_bytes(town.document)
-    (out_dir / "manifest.json").write_text(json.dumps(manifest(town), indent=2) + "\n")
+    for name, data in (("asset.msgpack", town.document),
+                       ("manifest.json", (json.dumps(manifest(town), indent=2) + "\n").encode())):
+        part = out_dir / f".{name}.part"
+        part.write_bytes(data)
+        os.replace(part, out_dir / name)
     return out_dir
 
 
