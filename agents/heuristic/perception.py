@@ -7,7 +7,7 @@ A :class:`TargetProfile` is read from the references: the paint colour (HSV of t
 pixels), the painted and the whole body's length and width seen from above, and the height of
 the painted parts and of the body seen from the side. :func:`detect_from_above` finds connected
 regions of paint-coloured pixels in a nadir RGB image whose metric size (from the altitude)
-agrees with the profile: what an agent without depth can do (the stand-in VLM). The heuristic
+agrees with the profile (the heuristic UAV's fallback without a depth image). The heuristic
 policies use the depth-aware detectors of :mod:`aerial` and :mod:`ground`.
 """
 

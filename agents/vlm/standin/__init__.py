@@ -8,6 +8,8 @@ One concern per module:
 * :mod:`~agos.agents.vlm.standin.replies`: the content each outcome gives, the completion object;
 * :mod:`~agos.agents.vlm.standin.server`: the HTTP server (:class:`~agos.agents.vlm.standin.server.StandinServer`);
 * :mod:`~agos.agents.vlm.standin.brain`: the default responder (OpenCV on the request, no ground truth);
+* :mod:`~agos.agents.vlm.standin.perception`: what the brain sees: the heuristic's detectors fed with
+  the request's RGB images, camera poses and references (no depth image);
 * :mod:`~agos.agents.vlm.standin.cli`: the ``vlm-standin`` command's parser and run.
 
 The transport half is the server; the decisions come from a *responder*: a callable that takes the

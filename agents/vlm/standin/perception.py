@@ -20,18 +20,21 @@ from those, the way a careful viewer reads a picture, and never decides by colou
 * **From the ground** (:func:`ground_view_from_rgb`, :func:`find_target_rgb`): a vehicle stands on
   the road, so where a paint-hued region's lowest pixels meet the road fixes its distance along
   the camera rays. The lowest painted point is not the road but the sill, at the height the side
-  reference shows (:func:`paint_bottom_m`); the region's bottom edge is taken as its lower convex
-  hull (wheel arches do not pull it up). Every pixel of the region is then placed on the vertical
-  face above that edge, the rest of the view on the road plane: a depth image a monocular viewer
-  would draw. :func:`~agos.agents.heuristic.ground.find_target` judges it as it judges a real one
-  (hue mean, brightness in the light the object stands in, top height, length), against the
-  reference's *painted* top, since only paint-hued pixels are raised.
+  reference shows (:func:`paint_bottom`); the region's bottom edge is taken as its lower convex
+  hull (wheel arches do not pull it up), and the region stands on one vertical face at the median
+  of its columns' distances, the rest of the view on the road plane: a depth image a monocular
+  viewer would draw. :func:`~agos.agents.heuristic.ground.find_target` judges it as it judges a
+  real one (hue mean, brightness in the light the object stands in, top height, length), against
+  the reference's *painted* top, since only paint-hued pixels are raised. What stands on the
+  paint in the side reference (:func:`reference_cap`: a roof box, a two-tone roof) is looked for
+  above each match, against the background beside it (:func:`cap_share`).
 
-What it costs against depth: from above a sedan and an SUV of one paint differ by a few pixels,
-and nothing tells a car's height; from the ground the silhouette is the paint's, so an attribute
-that adds no paint (a roof rack's grey box) is not seen, and an occluded sill pushes an object
-back (it is then judged too tall and rejected, never accepted). Deterministic: the same images
-and state give the same detections.
+What it costs against depth (docs/AGENTS.md, "What the stand-in sees, and what that costs"): from
+above a sedan and an SUV of one paint differ by a few pixels, nothing tells a car's height, and a
+flat patch of the paint with a car's layout would pass; from the ground the silhouette is the
+paint's, a stripe is not checked, a roof box is judged against whatever stands behind it, and an
+occluded sill pushes an object back (it is then judged too tall and rejected, never accepted).
+Deterministic: the same images and state give the same detections.
 """
 
 from __future__ import annotations
