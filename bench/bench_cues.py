@@ -14,6 +14,20 @@ score. Goal for the rich look: every pair the sampler uses at least 90 % from th
 lines of the rich look's ground view end with the table ``CUE_GROUND_PCT`` to paste into
 world/episodes/lookalikes.py (the sampler uses a pair only at 90 % or more).
 
+Its noise. ``--repeats N`` runs N times at seeds ``--seed``, ``--seed`` + 1, ... (new poses each
+time), prints every pair's mean, the sd of one run and the range, and ends with three tables to
+paste: ``CUE_GROUND_PCT`` (the means), ``CUE_GROUND_SD`` (the sd of one run) and ``CUE_CHECK_PCT``
+(mean and sd of the figure measured on ``CUE_CHECK_CROPS`` crops a class, over the disjoint blocks
+of consecutive poses the runs hold: five a run of 300 crops in blocks of 60). Re-measure whenever
+the look, the meshes, the ground camera or the town's traffic changes.
+
+``--check`` measures the rich look's ground pairs once on ``CUE_CHECK_CROPS`` crops a class at a
+fixed seed (``CHECK_SEED``, never one of the pinned runs) and compares each figure with its
+``CUE_CHECK_PCT`` reference: a pair further than ``CHECK_Z`` sd from it (the sd taken as at least
+``CHECK_MIN_SD``) is named and the exit status is 1. A smaller classifier is trained on fewer
+crops, so the check compares with the reference measured at its own size, never with the table
+itself. ``make bench`` runs it (bench/run_all.py), and a failure there fails ``make bench``.
+
 How a crop is made. A *pose* is drawn per index from the seed: a free, uncovered parking slot
 whose neighbours are free (a bus fits), a heading along the slot or reversed (the world has one
 sun: the light comes from any side of the vehicle, and buildings' drawn shadows darken some), a
@@ -34,6 +48,8 @@ visible share is printed). Crops are split by pose into three folds (poses of th
 never seen in training); each crop is tested once.
 
     .venv/bin/python bench/bench_cues.py                        # both looks, both views, 300 crops a class
+    .venv/bin/python bench/bench_cues.py --looks rich --views ground --repeats 3   # the tables to paste
+    .venv/bin/python bench/bench_cues.py --check                # the pinned tables still true?
     .venv/bin/python bench/bench_cues.py --looks rich --views ground --ground-px 384
     .venv/bin/python bench/bench_cues.py --quick                # smoke test, a few seconds
 """
@@ -51,11 +67,21 @@ from typing import Any
 
 import cv2
 import numpy as np
+from figures import Figures
 
 from agos.runtime.codec import decode_image, encode_jpeg
 from agos.runtime.episode_config import CameraConfig
 from agos.runtime.process import interruptible_imap
-from agos.world.episodes.lookalikes import ATTRIBUTES, MIN_CUE_PCT, PLAIN, pair_key, pairs
+from agos.world.episodes.lookalikes import (
+    ATTRIBUTES,
+    CUE_CHECK_CROPS,
+    CUE_CHECK_PCT,
+    CUE_GROUND_PCT,
+    MIN_CUE_PCT,
+    PLAIN,
+    pair_key,
+    pairs,
+)
 from agos.world.episodes.sampling import long_slots
 from agos.world.sim import sensors
 from agos.world.sim.evidence import target_points
@@ -79,6 +105,13 @@ AIR_CROP_PX = (64, 32)
 AIR_WINDOW_PX = 96
 FOLDS = 3
 QUICK_CLASSES = {"type": ("sedan", "suv"), "paint": ("red", "maroon"), "attribute": (PLAIN, "roof")}
+CHECK_SEED = 101
+"""``--check``'s poses: a seed the pinned runs did not use (they start at 1)."""
+CHECK_Z = 3.5
+"""``--check`` fails a pair further than this many sd from its reference (29 pairs: about one false
+alarm in 70 checks of an unchanged world, were the figures normal)."""
+CHECK_MIN_SD = 1.5
+"""The least sd ``--check`` assumes, in points: pairs near 100 % show almost none over the blocks."""
 
 
 @dataclass(frozen=True)
@@ -354,16 +387,19 @@ def render_job(job: Job) -> tuple[Job, dict[tuple[str, str], Crops]]:
 
 
 # ----- classification -----------------------------------------------------------------------------
-def pair_predictions(a: Crops, b: Crops, n: int) -> tuple[np.ndarray, np.ndarray]:
+def pair_predictions(a: Crops, b: Crops, n: int, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Whether each crop is labelled right, each tested once by a linear SVM trained on the other
-    folds of poses (fold = pose index mod 3), and its distance; the first ``n`` crops of each class."""
+    folds of poses (fold = pose index mod 3), and its distance; ``n`` crops of each class from the
+    ``start``-th (in pose order)."""
     from sklearn.pipeline import make_pipeline
     from sklearn.preprocessing import StandardScaler
     from sklearn.svm import LinearSVC
 
-    x = np.vstack([np.asarray(a.features[:n]), np.asarray(b.features[:n])])
-    y = np.concatenate([np.zeros(min(n, len(a.features))), np.ones(min(n, len(b.features)))])
-    fold = np.concatenate([np.asarray(a.poses[:n]), np.asarray(b.poses[:n])]) % FOLDS
+    span = slice(start, start + n)
+    fa, fb = a.features[span], b.features[span]
+    x = np.vstack([np.asarray(fa), np.asarray(fb)])
+    y = np.concatenate([np.zeros(len(fa)), np.ones(len(fb))])
+    fold = np.concatenate([np.asarray(a.poses[span]), np.asarray(b.poses[span])]) % FOLDS
     right = np.zeros(len(y), bool)
     for f in range(FOLDS):
         train, test = fold != f, fold == f
@@ -372,7 +408,34 @@ def pair_predictions(a: Crops, b: Crops, n: int) -> tuple[np.ndarray, np.ndarray
         model = make_pipeline(StandardScaler(), LinearSVC(C=0.001, max_iter=10000, random_state=0))
         model.fit(x[train], y[train])
         right[test] = model.predict(x[test]) == y[test]
-    return right, np.concatenate([np.asarray(a.distance_m[:n]), np.asarray(b.distance_m[:n])])
+    return right, np.concatenate([np.asarray(a.distance_m[span]), np.asarray(b.distance_m[span])])
+
+
+PairId = tuple[str, str, str, str, str]
+"""(look, view, kind, a, b), a < b."""
+
+
+def pair_ids(looks: tuple[str, ...], views: tuple[str, ...], quick: bool) -> list[PairId]:
+    """The pairs a run measures, in the order it prints them."""
+    out = []
+    for look in looks:
+        for view in views:
+            for kind, kind_pairs in pairs(look).items():
+                classes = classes_of(look, kind, quick)
+                out += [(look, view, kind, a, b) for a, b in kind_pairs if a in classes and b in classes]
+    return out
+
+
+def pair_crops(crops: dict[tuple[str, str, str, str], Crops], pid: PairId) -> tuple[Crops, Crops]:
+    look, view, kind, a, b = pid
+    return crops[(look, kind, a, view)], crops[(look, kind, b, view)]
+
+
+def block_pcts(crops: dict[tuple[str, str, str, str], Crops], pid: PairId, total: int, block: int) -> list[float]:
+    """The pair's accuracy on each of ``total // block`` disjoint blocks of ``block`` crops a class
+    (consecutive poses): as many independent measurements of the ``--check`` size as the run holds."""
+    a, b = pair_crops(crops, pid)
+    return [100.0 * float(pair_predictions(a, b, block, k * block)[0].mean()) for k in range(total // block)]
 
 
 # ----- the run ------------------------------------------------------------------------------------
@@ -419,26 +482,22 @@ def run(s: Settings, looks: tuple[str, ...], *, quick: bool, workers: int) -> di
     return {key: c.in_pose_order(s.keep_images) for key, c in crops.items()}
 
 
-def report(s: Settings, looks: tuple[str, ...], crops: dict, quick: bool) -> list[str]:
-    lines, table = [], []
+def report(s: Settings, looks: tuple[str, ...], crops: dict, quick: bool, *, table: bool = True) -> dict[PairId, float]:
+    """Prints one line per pair and view, the visible shares and (``table``) the rich look's ground
+    table; the figures by pair."""
+    lines, pcts = [], {}
     for look in looks:
         for view in s.views:
-            for kind, kind_pairs in pairs(look).items():
-                classes = classes_of(look, kind, quick)
-                for a, b in kind_pairs:
-                    if a not in classes or b not in classes:
-                        continue
-                    right, dist = pair_predictions(crops[(look, kind, a, view)], crops[(look, kind, b, view)], s.crops)
-                    pct = 100.0 * float(right.mean())
-                    line = f"cue {look} {view} {a} vs {b}: {pct:.1f}%"
-                    if view == "ground" and pct < MIN_CUE_PCT and not quick:
-                        mid = sum(s.distance_m) / 2
-                        near, far = right[dist <= mid], right[dist > mid]
-                        line += (f"   ({s.distance_m[0]:.0f}-{mid:.1f} m: {100 * near.mean():.1f}%, "
-                                 f"{mid:.1f}-{s.distance_m[1]:.0f} m: {100 * far.mean():.1f}%)")
-                    lines.append(line)
-                    if look == "rich" and view == "ground":
-                        table.append((pair_key(kind, a, b), pct))
+            for pid in pair_ids((look,), (view,), quick):
+                right, dist = pair_predictions(*pair_crops(crops, pid), s.crops)
+                pct = pcts[pid] = 100.0 * float(right.mean())
+                line = f"cue {look} {view} {pid[3]} vs {pid[4]}: {pct:.1f}%"
+                if view == "ground" and pct < MIN_CUE_PCT and not quick:
+                    mid = sum(s.distance_m) / 2
+                    near, far = right[dist <= mid], right[dist > mid]
+                    line += (f"   ({s.distance_m[0]:.0f}-{mid:.1f} m: {100 * near.mean():.1f}%, "
+                             f"{mid:.1f}-{s.distance_m[1]:.0f} m: {100 * far.mean():.1f}%)")
+                lines.append(line)
             if look == "flat":
                 lines.append(f"cue flat {view} plain vs {'/'.join(ATTRIBUTES)}: n/a (the flat look draws no attributes)")
     for line in lines:
@@ -448,14 +507,100 @@ def report(s: Settings, looks: tuple[str, ...], crops: dict, quick: bool) -> lis
             vis = [v for key, c in crops.items() if key[0] == look and key[3] == view for v in c.visible]
             if vis:
                 print(f"visible share of kept crops, {look} {view}: mean {np.mean(vis):.2f}, min {np.min(vis):.2f}")
-    if table:
+    ground = {pair_key(*pid[2:]): pct for pid, pct in pcts.items() if pid[:2] == ("rich", "ground")}
+    if table and ground:
         print(f"\n# rich look, ground {s.ground_px} px, {s.crops} crops a class, seed {s.seed} "
               f"(bench/bench_cues.py); pairs below {MIN_CUE_PCT:.0f} are not sampled")
-        print("CUE_GROUND_PCT: dict[tuple[LookalikeKind, str, str], float] = {")
-        for key, pct in sorted(table):
-            print(f"    {key!r}: {pct:.1f},")
-        print("}")
-    return lines
+        print_dict("CUE_GROUND_PCT", "float", {k: f"{v:.1f}" for k, v in ground.items()})
+    return pcts
+
+
+def print_dict(name: str, value_type: str, values: dict[tuple[str, str, str], str]) -> None:
+    print(f"{name}: dict[tuple[LookalikeKind, str, str], {value_type}] = {{")
+    for key in sorted(values):
+        print(f"    {key!r}: {values[key]},")
+    print("}")
+
+
+def sd(values: list[float]) -> float:
+    """Sample standard deviation (0 for one value)."""
+    return float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
+
+
+def summary(s: Settings, seeds: list[int], runs: list[dict[PairId, float]], blocks: dict[PairId, list[float]]) -> None:
+    """Mean and spread of every pair over the repeats; for the rich look's ground view, the three
+    tables to paste into world/episodes/lookalikes.py."""
+    print(f"\n{len(seeds)} runs (seeds {', '.join(map(str, seeds))}), {s.crops} crops a class each: "
+          "mean, sd of one run, range")
+    ground_pct, ground_sd = {}, {}
+    for pid in runs[0]:
+        values = [r[pid] for r in runs]
+        mean = float(np.mean(values))
+        print(f"cue {pid[0]} {pid[1]} {pid[3]} vs {pid[4]}: mean {mean:.1f}%, sd {sd(values):.1f} "
+              f"({min(values):.1f}-{max(values):.1f}: {' / '.join(f'{v:.1f}' for v in values)})")
+        if pid[:2] == ("rich", "ground"):
+            ground_pct[pair_key(*pid[2:])], ground_sd[pair_key(*pid[2:])] = mean, sd(values)
+    if not ground_pct:
+        return
+    spread = list(ground_sd.values())
+    print(f"sd of one run, rich ground: median {np.median(spread):.1f}, root mean square "
+          f"{math.sqrt(np.mean(np.square(spread))):.1f}, max {max(spread):.1f} points")
+    print(f"\n# rich look, ground {s.ground_px} px, {s.crops} crops a class, mean of {len(seeds)} runs (seeds "
+          f"{', '.join(map(str, seeds))}; bench/bench_cues.py --repeats {len(seeds)}); pairs below "
+          f"{MIN_CUE_PCT:.0f} are not sampled")
+    print_dict("CUE_GROUND_PCT", "float", {k: f"{v:.1f}" for k, v in ground_pct.items()})
+    print(f"# sd of one run's figure over the {len(seeds)} runs (the mean's is sd / sqrt({len(seeds)}))")
+    print_dict("CUE_GROUND_SD", "float", {k: f"{v:.1f}" for k, v in ground_sd.items()})
+    checks = {pair_key(*pid[2:]): v for pid, v in blocks.items() if pid[:2] == ("rich", "ground")}
+    if checks and min(len(v) for v in checks.values()) >= 2:
+        n = min(len(v) for v in checks.values())
+        print(f"# bench/bench_cues.py --check's reference: mean and sd of the figure on {CUE_CHECK_CROPS} crops a "
+              f"class, over {n} disjoint blocks of the runs above")
+        print_dict("CUE_CHECK_PCT", "tuple[float, float]",
+                   {k: f"({np.mean(v):.1f}, {sd(v):.1f})" for k, v in checks.items()})
+
+
+def judge(pct: float, reference: tuple[float, float]) -> tuple[float, bool]:
+    """A ``--check`` figure against its reference (mean, sd): its z (the sd at least CHECK_MIN_SD) and
+    whether it is out of tolerance (|z| > CHECK_Z)."""
+    mean, spread = reference
+    z = (pct - mean) / max(spread, CHECK_MIN_SD)
+    return z, abs(z) > CHECK_Z
+
+
+def check(s: Settings, workers: int, figures: Figures) -> int:
+    """The pinned table against a fresh measurement of the ``--check`` size: 0 when every rich ground
+    pair is within CHECK_Z sd of its reference (CUE_CHECK_PCT), 1 naming those that are not."""
+    crops = run(s, ("rich",), quick=False, workers=workers)
+    bad, worst = [], (0.0, "")
+    for pid in pair_ids(("rich",), ("ground",), False):
+        key = pair_key(*pid[2:])
+        pct = 100.0 * float(pair_predictions(*pair_crops(crops, pid), s.crops)[0].mean())
+        if key not in CUE_CHECK_PCT:
+            bad.append(f"{pid[3]} vs {pid[4]} ({pid[2]}): {pct:.1f}%, not in CUE_CHECK_PCT")
+            print(f"cue rich ground {pid[3]} vs {pid[4]}: {pct:.1f}%, no reference: OUT")
+            continue
+        mean, spread = CUE_CHECK_PCT[key]
+        z, out = judge(pct, (mean, spread))
+        print(f"cue rich ground {pid[3]} vs {pid[4]}: {pct:.1f}% (reference {mean:.1f} +- {spread:.1f}, "
+              f"z {z:+.1f}; table {CUE_GROUND_PCT.get(key, float('nan')):.1f}){': OUT' if out else ''}")
+        if abs(z) >= abs(worst[0]):
+            worst = (z, f"{pid[3]} vs {pid[4]}")
+        if out:
+            bad.append(f"{pid[3]} vs {pid[4]} ({pid[2]}): {pct:.1f}%, reference {mean:.1f} +- {spread:.1f}")
+            figures.add(f"cues: {pid[3]} vs {pid[4]}", pct, f"{pct:.1f}% (z {z:+.1f})",
+                        f"{mean:.1f} +- {CHECK_Z:g} sd", False)
+    total = len(pair_ids(("rich",), ("ground",), False))
+    figures.add("cues: rich ground pairs within noise of the table", total - len(bad),
+                f"{total - len(bad)}/{total} (worst {worst[1]}, z {worst[0]:+.1f})", f"{total}/{total}", not bad)
+    if bad:
+        print(f"\nCUE_GROUND_PCT disagrees with this measurement beyond its noise (|z| > {CHECK_Z:g}) for "
+              f"{len(bad)} pair(s):\n  " + "\n  ".join(bad) + "\nre-measure the table: bench/bench_cues.py "
+              "--looks rich --views ground --repeats 3 (docs/WORLD.md), and paste its three tables into "
+              "world/episodes/lookalikes.py", file=sys.stderr)
+        return 1
+    print(f"\nall {total} rich ground pairs within {CHECK_Z:g} sd of CUE_CHECK_PCT (worst {worst[1]}, z {worst[0]:+.1f})")
+    return 0
 
 
 def contact_sheet(path: Path, crops: dict, s: Settings) -> None:
@@ -485,6 +630,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--town", default="grid-s7")
     parser.add_argument("--crops", type=int, default=300, help="crops a class and view (default 300)")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--repeats", type=int, default=1,
+                        help="runs at seeds seed, seed + 1, ...: each pair's mean and spread, and the tables to paste")
     parser.add_argument("--looks", default="flat,rich")
     parser.add_argument("--views", default="ground,air")
     parser.add_argument("--ground-px", type=int, default=cam.ground_px)
@@ -494,26 +641,51 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=1)
     parser.add_argument("--sheet", type=Path, help="write a contact sheet of crops (PNG) here")
     parser.add_argument("--quick", action="store_true", help="smoke test: two classes a kind, 6 crops")
+    parser.add_argument("--check", action="store_true",
+                        help=f"the pinned table against a fresh measurement ({CUE_CHECK_CROPS} crops a class, rich "
+                             f"ground, seed {CHECK_SEED}); exits 1 naming the pairs beyond {CHECK_Z:g} sd")
+    parser.add_argument("--json", action="store_true", help="also print each figure as a BENCH-FIGURE line (--check)")
     args = parser.parse_args(argv)
     looks = tuple(x for x in args.looks.split(",") if x)
     views = tuple(x for x in args.views.split(",") if x)
     if not set(looks) <= set(LOOKS) or not set(views) <= set(VIEWS):
         parser.error(f"looks are {', '.join(LOOKS)}; views are {', '.join(VIEWS)}")
-    s = Settings(args.town, 6 if args.quick else args.crops, args.seed, args.ground_px, args.nadir_px,
-                 cam.ground_fov_deg, cam.nadir_fov_deg, 80.0, tuple(args.distance_m), args.min_visible, views)
+    if args.repeats < 1 or (args.check and (args.quick or args.repeats > 1)):
+        parser.error("--repeats is 1 or more; --check takes neither --quick nor --repeats")
+    crops_a_class = 6 if args.quick else CUE_CHECK_CROPS if args.check else args.crops
+    seeds = [CHECK_SEED] if args.check else [args.seed + k for k in range(args.repeats)]
+    if args.check:
+        looks, views = ("rich",), ("ground",)
     started = time.perf_counter()
-    print(f"town {s.town}, ground {s.ground_px} px / {s.ground_fov_deg:.0f} deg at {s.distance_m[0]:.0f}-"
-          f"{s.distance_m[1]:.0f} m, air {s.nadir_px} px / {s.nadir_fov_deg:.0f} deg at {s.altitude_m:.0f} m, "
-          f"{s.crops} crops a class and view, seed {s.seed}", flush=True)
-    try:
-        crops = run(s, looks, quick=args.quick, workers=args.workers)
-    except KeyboardInterrupt:
-        print("interrupted: no figures", file=sys.stderr)
-        return 130
-    report(s, looks, crops, args.quick)
-    if args.sheet:
-        contact_sheet(args.sheet, crops, s)
-        print(f"crops: {args.sheet}")
+    runs: list[dict[PairId, float]] = []
+    blocks: dict[PairId, list[float]] = defaultdict(list)
+    for seed in seeds:
+        s = Settings(args.town, crops_a_class, seed, args.ground_px, args.nadir_px, cam.ground_fov_deg,
+                     cam.nadir_fov_deg, 80.0, tuple(args.distance_m), args.min_visible, views)
+        run_started = time.perf_counter()
+        print(f"town {s.town}, ground {s.ground_px} px / {s.ground_fov_deg:.0f} deg at {s.distance_m[0]:.0f}-"
+              f"{s.distance_m[1]:.0f} m, air {s.nadir_px} px / {s.nadir_fov_deg:.0f} deg at {s.altitude_m:.0f} m, "
+              f"{s.crops} crops a class and view, seed {s.seed}", flush=True)
+        try:
+            if args.check:
+                code = check(s, args.workers, Figures(args.json))
+                print(f"{time.perf_counter() - started:.0f} s")
+                return code
+            crops = run(s, looks, quick=args.quick, workers=args.workers)
+        except KeyboardInterrupt:
+            print("interrupted: no figures", file=sys.stderr)
+            return 130
+        runs.append(report(s, looks, crops, args.quick, table=args.repeats == 1))
+        if not args.quick and s.crops >= 2 * CUE_CHECK_CROPS:
+            for pid in runs[-1]:
+                if pid[:2] == ("rich", "ground"):
+                    blocks[pid] += block_pcts(crops, pid, s.crops, CUE_CHECK_CROPS)
+        if args.sheet and seed == seeds[0]:
+            contact_sheet(args.sheet, crops, s)
+            print(f"crops: {args.sheet}")
+        print(f"seed {seed}: {time.perf_counter() - run_started:.0f} s", flush=True)
+    if args.repeats > 1:
+        summary(s, seeds, runs, blocks)
     print(f"{time.perf_counter() - started:.0f} s")
     return 0
 

@@ -6,12 +6,14 @@ line per figure), one after another, so they do not share the cores; its whole o
 met. Every figure is a ratio against a baseline measured in the same run (the recorder's is a
 guard on an absolute cost), but a shared machine moves them: a missed goal is a reason to rerun
 that bench alone (its log names the command) and read its own output, never a failure here. The
-exit status is non-zero only when a bench crashed, timed out or printed no figure.
+exit status is non-zero when a bench crashed, timed out or printed no figure, and when a *gating*
+bench missed a goal: ``bench_cues.py --check`` (the look-alike table against a fresh measurement
+at a fixed seed; not a timing, so a shared machine does not move it).
 
     .venv/bin/python bench/run_all.py [--only roundtrip --only metrics] [--logs DIR]
 
-Not here: ``bench_cues.py`` (a separability floor, not a ratio; its ``--quick`` is a smoke test
-whose percentages mean nothing) and ``oracle_sweep.py`` (correctness, not timing).
+Not here: ``bench_cues.py``'s full run (a separability floor, not a ratio, 12 min a repeat) and
+``oracle_sweep.py`` (correctness, not timing).
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ class Bench:
     args: list[str]
     timeout_s: int
     figures: list[dict[str, Any]] = field(default_factory=list)
+    gate: bool = False
+    """A missed goal fails ``make bench`` (a deterministic check, not a timing)."""
     status: str = "not run"
     wall_s: float = 0.0
 
@@ -55,6 +59,7 @@ def benches() -> list[Bench]:
         Bench("expert", "bench_expert.py", ["--quick"], 300),
         Bench("eval", "bench_eval.py", ["--quick"], 420),
         Bench("dataset", "bench_dataset.py", ["--quick", "--workers", "1", "--no-breakdown"], 600),
+        Bench("cues", "bench_cues.py", ["--check"], 600, gate=True),  # the look-alike table still true
     ]
 
 
@@ -77,7 +82,7 @@ def run(bench: Bench, logs: Path, console: Console) -> None:
         bench.status = f"timed out after {bench.timeout_s} s"
     elif not bench.figures:
         bench.status = f"crashed (exit {code}, no figure)" if code else "no figure printed"
-    elif code not in (0, 1):  # bench_expert exits 1 when a goal is missed; that is a figure, not a crash
+    elif code not in (0, 1):  # bench_expert and bench_cues exit 1 when a goal is missed: a figure, not a crash
         bench.status = f"crashed (exit {code})"
     else:
         bench.status = "ran"
@@ -94,7 +99,7 @@ def table(done: list[Bench], wall_s: float) -> Table:
     for bench in done:
         for f in bench.figures:
             met = f.get("met")
-            result = "info" if met is None else ("pass" if met else "[red]FAIL")
+            result = "info" if met is None else ("pass" if met else "[red]FAIL" + (" (gate)" if bench.gate else ""))
             t.add_row(bench.name, f["figure"], f["shown"], f.get("goal", ""), result)
         if bench.status != "ran":
             t.add_row(bench.name, f"[red]{bench.status}", "", "", "[red]ERROR")
@@ -125,10 +130,14 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(line.rstrip() for line in captured.get().splitlines() if line.strip()))
     missed = sum(1 for b in done for f in b.figures if f.get("met") is False)
     broken = [b.name for b in done if b.status != "ran"]
-    console.print(f"{sum(len(b.figures) for b in done)} figures, {missed} goals missed (a missed goal does not fail "
-                  f"make bench: rerun that bench alone and read its own output); logs in {logs}", highlight=False)
+    gated = [b.name for b in done if b.gate and any(f.get("met") is False for f in b.figures)]
+    console.print(f"{sum(len(b.figures) for b in done)} figures, {missed} goals missed (a missed timing goal does not "
+                  f"fail make bench: rerun that bench alone and read its own output); logs in {logs}", highlight=False)
     if broken:
         console.print(f"[red]benches that did not run to a figure: {', '.join(broken)}")
+    if gated:
+        console.print(f"[red]gating checks that failed: {', '.join(gated)} (their logs name what to do)")
+    if broken or gated:
         return 1
     return 130 if len(done) < len(todo) else 0
 

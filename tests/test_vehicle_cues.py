@@ -1,10 +1,12 @@
 """Vehicle cues in episodes (issue 22, items 1, 5, 8): attributes in VehicleSpec, the flat look's
 refusal, the rich sampler's look-alike kinds and its table of separable pairs, reference views that
-show the attributes, today's flat episodes unchanged, and bench/bench_cues.py --quick."""
+show the attributes, today's flat episodes unchanged, and bench/bench_cues.py --quick; the table's
+noise and the tolerance of bench/bench_cues.py --check (issue 29, item 9)."""
 
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import math
 import re
 import subprocess
@@ -19,7 +21,16 @@ from agos.runtime.codec import decode, decode_as, decode_image, encode, from_jso
 from agos.runtime.episode_config import CameraConfig
 from agos.runtime.schemas import EpisodeSpec, JobGrant, TownRef, VehicleSpec
 from agos.world.episodes import sampling
-from agos.world.episodes.lookalikes import ATTRIBUTES, CUE_GROUND_PCT, MIN_CUE_PCT, PLAIN, pairs, separable
+from agos.world.episodes.lookalikes import (
+    ATTRIBUTES,
+    CUE_CHECK_PCT,
+    CUE_GROUND_PCT,
+    CUE_GROUND_SD,
+    MIN_CUE_PCT,
+    PLAIN,
+    pairs,
+    separable,
+)
 from agos.world.episodes.sampling import sample_episode
 from agos.world.sim import sensors
 from agos.world.sim.engine import EpisodeRunner
@@ -160,6 +171,44 @@ def test_the_table_holds_every_rich_pair_and_the_sampler_uses_only_those_at_the_
         assert separable(kind, a, b, look="rich") == (pct >= MIN_CUE_PCT)
         assert separable(kind, b, a, look="rich") == (pct >= MIN_CUE_PCT)
         assert separable(kind, a, b, look="flat")  # the flat look keeps every pair
+
+
+def test_the_table_carries_its_noise_and_the_checks_reference():
+    every = {(kind, a, b) for kind, kind_pairs in pairs("rich").items() for a, b in kind_pairs}
+    assert set(CUE_GROUND_SD) == every and set(CUE_CHECK_PCT) == every, "paste all three tables of --repeats"
+    for key, pct in CUE_GROUND_PCT.items():
+        mean, spread = CUE_CHECK_PCT[key]
+        assert 0.0 <= CUE_GROUND_SD[key] < 10.0 and 0.0 <= spread < 15.0
+        assert mean <= pct + 3 * max(spread, 1.0), key  # fewer crops train a weaker classifier, never a better one
+
+
+def _bench(name: str):
+    """A bench script as a module (registered first: its dataclasses look their module up)."""
+    if name not in sys.modules:
+        bench_dir = ROOT / "bench"
+        if str(bench_dir) not in sys.path:
+            sys.path.insert(0, str(bench_dir))  # its sibling modules (figures), as when run as a script
+        spec = importlib.util.spec_from_file_location(name, bench_dir / f"{name}.py")
+        assert spec is not None and spec.loader is not None
+        sys.modules[name] = module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+def test_the_cue_check_fails_a_pair_only_beyond_its_noise_and_gates_make_bench():
+    bench = _bench("bench_cues")
+    z_max, floor = bench.CHECK_Z, bench.CHECK_MIN_SD
+    assert bench.judge(90.0, (90.0, 2.0)) == (0.0, False)
+    assert not bench.judge(90.0 - 0.99 * z_max * 2.0, (90.0, 2.0))[1]
+    z, out = bench.judge(90.0 - 1.01 * z_max * 2.0, (90.0, 2.0))
+    assert out and z < -z_max
+    assert bench.judge(90.0 + 1.01 * z_max * 2.0, (90.0, 2.0))[1]  # a pair that got easier is out too
+    assert not bench.judge(100.0 - 0.99 * z_max * floor, (100.0, 0.0))[1]  # an sd of 0 is taken as the floor
+    assert bench.judge(100.0 - 1.01 * z_max * floor, (100.0, 0.0))[1]
+    for reference in CUE_CHECK_PCT.values():
+        assert not bench.judge(reference[0], reference)[1]
+    cues = {b.name: b for b in _bench("run_all").benches()}["cues"]
+    assert cues.script == "bench_cues.py" and cues.args == ["--check"] and cues.gate
 
 
 def test_a_bus_parks_only_where_its_neighbours_are_free(town):
