@@ -19,6 +19,8 @@ from agos.runtime.codec import decode, encode
 from agos.runtime.process import StopFlag
 from agos.runtime.schemas import Action, CoordinationState, EpisodeRecord, Observation, Pose, Waypoint
 
+from support.waiting import wait_until
+
 RUN = "svc"
 
 
@@ -32,13 +34,6 @@ def _obs(episode: str = "e1", index: int = 1) -> Observation:
         coordination=CoordinationState(run_id=RUN, episode_id=episode, sim_time_s=float(index)))
 
 
-def wait_until(condition, timeout_s: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.01)
-    return True
 
 
 class Serving:

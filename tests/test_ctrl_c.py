@@ -26,6 +26,7 @@ from pathlib import Path
 import pytest
 
 from support.interrupt import AGOS, Interruptible, descendants
+from support.recordings import write_tiny_recording
 
 
 def _free_port() -> int:
@@ -57,16 +58,7 @@ def split(tmp_path: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    import rerun as rr
-
-    path = tmp_path_factory.mktemp("rrd") / "ep.rrd"
-    rec = rr.RecordingStream("agos", recording_id="ep")
-    rec.save(str(path))
-    rec.set_time("decision", sequence=1)
-    rec.log("log/steps", rr.TextLog("step 1"))
-    rec.flush()
-    rec.disconnect()
-    return path
+    return write_tiny_recording(tmp_path_factory.mktemp("rrd") / "ep.rrd")
 
 
 TIMINGS: dict[str, float] = {}

@@ -29,6 +29,7 @@ from agos.runtime.schemas import LeaseNotice, RunManifest
 from agos.runtime.settings import AgosConfig
 
 from support.episodes import minimal_spec
+from support.waiting import wait_until
 
 RUN = "r1"
 POLICIES = {"uav": "heuristic", "ugv": "heuristic"}
@@ -44,13 +45,6 @@ def _manifest(status: str = "running") -> RunManifest:
     return RunManifest(run_id=RUN, status=status, policies=POLICIES, n_episodes=1, created_utc="2026-01-01T00:00:00")
 
 
-def _until(condition, timeout_s: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.01)
-    return True
 
 
 def test_the_evaluator_eval_starts_is_present_though_it_missed_the_runs_start(plan: RunPlan) -> None:
@@ -65,7 +59,7 @@ def test_the_evaluator_eval_starts_is_present_though_it_missed_the_runs_start(pl
                                   kwargs={"announce_run": settings.run.run_id}, daemon=True)
         thread.start()
         try:
-            assert _until(lambda: who_is_here(bus, RUN).evaluator)
+            assert wait_until(lambda: who_is_here(bus, RUN).evaluator)
             assert not [line for line in missing_lines(who_is_here(bus, RUN), RUN, "tcp/x", POLICIES) if "evaluator" in line]
         finally:
             stop.set()

@@ -12,21 +12,14 @@ from pathlib import Path
 
 import pytest
 
+from support.recordings import write_tiny_recording
+
 AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 
 
 @pytest.fixture
 def recording(tmp_path: Path) -> Path:
-    import rerun as rr
-
-    path = tmp_path / "ep.rrd"
-    rec = rr.RecordingStream("agos", recording_id="ep")
-    rec.save(str(path))
-    rec.set_time("decision", sequence=1)
-    rec.log("log/steps", rr.TextLog("step 1"))
-    rec.flush()
-    rec.disconnect()
-    return path
+    return write_tiny_recording(tmp_path / "ep.rrd")
 
 
 def _free_port() -> int:
