@@ -326,12 +326,7 @@ def paint_bottom(side_rgba: np.ndarray, intrinsics: CameraIntrinsics, world_from
     lowest = np.full(mask.shape[1], -1)
     np.maximum.at(lowest, us, vs)
     vb = lowest[cols].astype(float)
-    pose = np.asarray(world_from_camera, dtype=float).reshape(4, 4)
-    rays = pose[:3, :3] @ np.stack([(cols - intrinsics.cx_px) / intrinsics.fx_px, (vb - intrinsics.cy_px) / intrinsics.fy_px,
-                                    np.ones(len(cols))])
-    eye = pose[:3, 3]
-    near = math.hypot(eye[0], eye[1]) - profile.width_m / 2
-    z = eye[2] + near / np.maximum(np.hypot(rays[0], rays[1]), 1e-9) * rays[2]
+    z = _near_side_heights(cols, vb, intrinsics, world_from_camera, profile.width_m)
     lo, mid, hi = (float(np.percentile(z, q)) for q in (10, 50, 90))
     return PaintBottom(max(0.0, mid), max(0.0, lo - BOTTOM_SLACK_M), hi + BOTTOM_SLACK_M)
 
@@ -460,12 +455,7 @@ def reference_cap(side_rgba: np.ndarray, intrinsics: CameraIntrinsics, world_fro
     vs, us = np.nonzero(body)
     if len(vs) == 0:
         return Cap(False, 0.0, 0.0)
-    pose = np.asarray(world_from_camera, dtype=float).reshape(4, 4)
-    rays = pose[:3, :3] @ np.stack([(us - intrinsics.cx_px) / intrinsics.fx_px, (vs - intrinsics.cy_px) / intrinsics.fy_px,
-                                    np.ones(len(us))])
-    eye = pose[:3, 3]
-    near = math.hypot(eye[0], eye[1]) - profile.width_m / 2
-    z = eye[2] + near / np.maximum(np.hypot(rays[0], rays[1]), 1e-9) * rays[2]
+    z = _near_side_heights(us, vs, intrinsics, world_from_camera, profile.width_m)
     hsv = _hsv(side_rgba)[vs, us]
     paint = (hue_distance(hsv[:, 0], profile.hue) <= HUE_TOLERANCE) & (hsv[:, 1] >= SAT_MIN)
     above = (z >= profile.paint_top_m + CAP_GAP_M) & ~paint
@@ -538,3 +528,15 @@ def find_target_rgb(views: list[RgbGroundView], profile: TargetProfile, *, min_p
         if (share >= CAP_MIN_SHARE) if cap.present else (share < BOX_MAX_SHARE):
             kept.append(obj)
     return kept
+
+
+def _near_side_heights(us: np.ndarray, vs: np.ndarray, intrinsics: CameraIntrinsics,
+                       world_from_camera: list[float], width_m: float) -> np.ndarray:
+    """Heights above the road where the rays through pixels (``us``, ``vs``) of a side reference meet
+    the vehicle's near side (a vertical plane ``width_m`` / 2 from its centre line)."""
+    pose = np.asarray(world_from_camera, dtype=float).reshape(4, 4)
+    rays = pose[:3, :3] @ np.stack([(us - intrinsics.cx_px) / intrinsics.fx_px, (vs - intrinsics.cy_px) / intrinsics.fy_px,
+                                    np.ones(len(us))])
+    eye = pose[:3, 3]
+    near = math.hypot(eye[0], eye[1]) - width_m / 2
+    return eye[2] + near / np.maximum(np.hypot(rays[0], rays[1]), 1e-9) * rays[2]
