@@ -531,7 +531,7 @@ def find_target_rgb(views: list[RgbGroundView], profile: TargetProfile, *, min_p
 
 
 def _near_side_heights(us: np.ndarray, vs: np.ndarray, intrinsics: CameraIntrinsics,
-                       world_from_camera: list[float], width_m: float) -> np.ndarray:
+                       world_from_camera: np.ndarray | list[float], width_m: float) -> np.ndarray:
     """Heights above the road where the rays through pixels (``us``, ``vs``) of a side reference meet
     the vehicle's near side (a vertical plane ``width_m`` / 2 from its centre line)."""
     pose = np.asarray(world_from_camera, dtype=float).reshape(4, 4)
