@@ -75,14 +75,18 @@ def draw_same_paint_view(split: Path, out: Path) -> str:
     from agos.world.sim import sensors
     from agos.world.sim.episode_vehicles import add_episode_vehicles
     from agos.world.sim.scene import Scene
-    from agos.world.towns.asset import town_for
+    from agos.world.towns.asset import Town, town_for
 
     cam = CameraConfig()
     best = None
+    towns: dict[str, Town] = {}  # asset hash -> town: built once, not once an episode
     for spec in read_episodes(split):
         if spec.difficulty != "mid" or spec.town.generator == "opendrive":
             continue
-        town = town_for(spec.town.generator, spec.town.seed, spec.asset_sha256, town_id=spec.town.town_id)
+        if spec.asset_sha256 not in towns:
+            towns[spec.asset_sha256] = town_for(spec.town.generator, spec.town.seed, spec.asset_sha256,
+                                                town_id=spec.town.town_id)
+        town = towns[spec.asset_sha256]
         tx, ty = spec.target.position_world_m[:2]
         node = min(town.uav_grid.nodes.values(),
                    key=lambda n: (n.position_world_m[0] - tx) ** 2 + (n.position_world_m[1] - ty) ** 2)
