@@ -41,3 +41,11 @@ def action_for(obs: Observation, name: str, **fields: Any) -> Action:
     agent service checks it before sending it, and the world refuses an action that is not legal."""
     return Action(run_id=obs.run_id, episode_id=obs.episode_id, role=obs.role,
                   decision_index=obs.decision_index, attempt=obs.attempt, action=cast(ActionName, name), **fields)
+
+
+class FatalPolicyError(Exception):
+    """A policy error after which its agent service must stop answering rather than answer WAIT (a
+    replay of recorded model calls that lacks one): the service logs the message as one ERROR line
+    and exits with :attr:`exit_code`, and ``agos eval`` shows that line."""
+
+    exit_code = 4

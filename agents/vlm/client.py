@@ -22,9 +22,12 @@ import os
 import random
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import httpx
+
+if TYPE_CHECKING:
+    from agos.agents.vlm.cache import CallTag, ReplyCache
 
 RETRY_STATUS = {408, 409, 429, 500, 502, 503, 504}
 
@@ -58,8 +61,10 @@ class VlmClient:
     def __init__(self, base_url: str, model: str, *, api_key_env: str = "OPENAI_API_KEY", timeout_s: float = 60.0,
                  max_retries: int = 4, concurrency: int = 8, structured: bool = True, max_tokens: int = 512,
                  backoff_base_s: float = 0.5, backoff_max_s: float = 20.0, transport: httpx.AsyncBaseTransport | None = None,
-                 rng: random.Random | None = None) -> None:
+                 rng: random.Random | None = None, cache: ReplyCache | None = None) -> None:
         self.base_url = base_url.rstrip("/")
+        self.cache = cache
+        """Record/replay of requests (``--vlm-cache``); None: every request goes to the endpoint."""
         self.model = model
         self.max_retries, self.structured, self.max_tokens = max_retries, structured, max_tokens
         self.backoff_base_s, self.backoff_max_s = backoff_base_s, backoff_max_s
@@ -108,8 +113,17 @@ class VlmClient:
                     pass
         return self._rng.uniform(0.0, min(self.backoff_max_s, self.backoff_base_s * 2 ** attempt))
 
-    async def complete(self, messages: list[dict[str, Any]], *, schema: dict[str, Any] | None = None) -> Reply:
+    async def complete(self, messages: list[dict[str, Any]], *, schema: dict[str, Any] | None = None,
+                       call: CallTag | None = None) -> Reply:
+        """The model's reply to ``messages``. With a ``cache`` (agents/vlm/cache.py), the cache answers
+        or records the request; ``call`` names the decision asking (its replay stream and index)."""
         body = self._body(messages, schema)
+        if self.cache is not None:
+            return await self.cache.complete(body, call, self._send)
+        return await self._send(body)
+
+    async def _send(self, body: dict[str, Any]) -> Reply:
+        """``body`` posted to the endpoint, with retries (see the module docstring)."""
         started = time.monotonic()
         last_error = "no attempt"
         async with self._limit:
