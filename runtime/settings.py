@@ -100,6 +100,16 @@ class VlmOptions(_Section):
     """``view_only`` sends only the role's camera view(s) and the top reference (small image limits)."""
     trace_file: Path | None = None
     """Also append every decision trace as a JSON line here (agent side)."""
+    cache_dir: Path | None = None
+    """Record and replay model calls in this directory (``--vlm-cache``; agents/vlm/cache.py)."""
+    cache_mode: Literal["record", "replay", "off"] = "record"
+    """With ``cache_dir``: ``record`` (serve recorded replies, ask the endpoint for the rest and store
+    them), ``replay`` (no network: a request not recorded stops the run) or ``off``."""
+
+    @property
+    def replaying(self) -> bool:
+        """Replies come from the cache alone: no endpoint is needed or asked."""
+        return self.cache_dir is not None and self.cache_mode == "replay"
 
 
 class AgosConfig(_Section):

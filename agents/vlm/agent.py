@@ -25,8 +25,10 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
+from agos.agents.contract import FatalPolicyError
 from agos.agents.names import split_name
 from agos.agents.vlm import agos_prompts, baseline_prompts
+from agos.agents.vlm.cache import CallTag, ReplyCache
 from agos.agents.vlm.client import VlmClient, VlmError, image_part
 from agos.agents.vlm.parse import Parsed, to_action
 from agos.agents.vlm.protocol import action_schema
@@ -55,7 +57,7 @@ BUILDERS: dict[tuple[str, Role], Builder] = {
 }
 
 
-class VlmAgent:
+class VlmAgent(Policy):
     """A policy whose decisions come from a vision-language model (see the module docstring)."""
 
     def __init__(self, role: Role, name: str, options: VlmOptions, *, client: VlmClient | None = None) -> None:
@@ -68,17 +70,21 @@ class VlmAgent:
         self._answers: dict[str, dict[int, asyncio.Future[Action]]] = {}
         """Per episode: the decision being answered (or answered last), for repeated requests."""
         self._trace_path: Path | None = options.trace_file
+        self._cache: ReplyCache | None = None
+        if options.cache_dir is not None and options.cache_mode != "off":  # a bad cache fails here, before serving
+            self._cache = ReplyCache(options.cache_dir, options.cache_mode)
 
     # ----- lifecycle --------------------------------------------------------------------------
     def _new_client(self, **overrides: object) -> VlmClient:
         o = self.options
         kw: dict = {"api_key_env": o.api_key_env, "timeout_s": o.timeout_s, "max_retries": o.max_retries,
                     "concurrency": o.concurrency, "structured": o.structured, "max_tokens": o.max_tokens, **overrides}
-        return VlmClient(str(o.base_url), str(o.model), **kw)
+        return VlmClient(o.base_url or "", str(o.model), **kw)  # no base URL: a replay, which sends nothing
 
     def client(self) -> VlmClient:
+        """The client decisions ask through (with the cache of ``--vlm-cache``; the preflight's has none)."""
         if self._client is None:
-            self._client = self._new_client()
+            self._client = self._new_client(cache=self._cache)
         return self._client
 
     async def aclose(self) -> None:
@@ -88,8 +94,15 @@ class VlmAgent:
 
     async def preflight(self) -> list[str]:
         """Before serving: the endpoint is up, serves the model, and accepts this role's largest request
-        (as many images as a six-view decision sends). Raises VlmError saying what to change."""
+        (as many images as a six-view decision sends). Raises VlmError saying what to change.
+        A replay asks nothing: the cache must hold calls of the model."""
         o = self.options
+        if self._cache is not None and self._cache.mode == "replay":
+            models = self._cache.models()
+            if o.model not in models:
+                raise VlmError(f"--vlm-cache {o.cache_dir} holds no call of model {o.model!r} to replay "
+                               f"(it holds: {', '.join(models) or 'nothing'})")
+            return models
         client = self._new_client(max_retries=min(o.max_retries, 2), max_tokens=32)
         try:
             models = await client.preflight()
@@ -113,6 +126,8 @@ class VlmAgent:
     def end_episode(self, episode_id: str) -> None:
         self._memory.pop(episode_id, None)
         self._answers.pop(episode_id, None)
+        if self._cache is not None:  # a re-leased attempt replays its calls from the stream's start
+            self._cache.forget(episode_id, self.role)
 
     def act(self, obs: Observation) -> Action:
         """Synchronous use (in-process runners): one event loop and one HTTP client per call."""
@@ -146,6 +161,8 @@ class VlmAgent:
     async def _decide_safely(self, obs: Observation) -> Action:
         try:
             return await self._decide(obs)
+        except FatalPolicyError:  # a replay without the recorded reply: the service stops
+            raise
         except Exception as exc:  # a bug or an unforeseen reply shape costs a decision, never the episode
             log.exception("%s %s #%d: decision failed; fallback WAIT", obs.episode_id, self.role, obs.decision_index)
             action = to_action(None, obs).action
@@ -177,9 +194,10 @@ class VlmAgent:
         raw: str | None = None
         error: str | None = None
         parsed: Parsed | None = None
+        call = CallTag(obs.episode_id, self.role, obs.decision_index)
         for ask in range(self.options.reasks + 1):
             try:
-                reply = await self.client().complete(messages, schema=schema)
+                reply = await self.client().complete(messages, schema=schema, call=call)
             except VlmError as exc:
                 error = str(exc)
                 attempts += exc.attempts

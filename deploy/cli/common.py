@@ -59,6 +59,10 @@ def vlm_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vlm-max-retries", type=int, help="HTTP retries per request (default 4)")
     p.add_argument("--vlm-no-structured", action="store_true", help="do not send a JSON schema (servers that mishandle it)")
     p.add_argument("--vlm-trace", type=Path, help="also append every decision trace to this JSONL file")
+    p.add_argument("--vlm-cache", type=Path, metavar="DIR",
+                   help="record every model call in DIR and serve recorded ones from it (docs/AGENTS.md)")
+    p.add_argument("--vlm-cache-mode", choices=["record", "replay", "off"],
+                   help="with --vlm-cache: record (default), replay (no endpoint: a call not recorded stops the run) or off")
 
 
 def _int_or_none(value: object) -> int | None:
@@ -72,7 +76,8 @@ def settings_of(args: argparse.Namespace) -> AgosConfig:
                 "api_key_env": getattr(args, "vlm_api_key_env", None), "timeout_s": getattr(args, "vlm_timeout", None),
                 "max_retries": getattr(args, "vlm_max_retries", None),
                 "structured": False if getattr(args, "vlm_no_structured", False) else None,
-                "trace_file": getattr(args, "vlm_trace", None)},
+                "trace_file": getattr(args, "vlm_trace", None), "cache_dir": getattr(args, "vlm_cache", None),
+                "cache_mode": getattr(args, "vlm_cache_mode", None)},
         "zenoh": {"connect": getattr(args, "connect", None), "listen": getattr(args, "listen", None)},
         "world": {"decision_timeout_s": getattr(args, "decision_timeout", None),
                   "uav_during_verification": getattr(args, "uav_verification", None)},
