@@ -145,6 +145,10 @@ def _start_vlm(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, console: Cons
     model); starts the stand-in server when the plan asks for it. None when the stand-in did not come up."""
     if not plan.vlm:
         return {}
+    if cfg.vlm.replaying:  # every reply comes from the cache: no endpoint, no stand-in to start
+        console.print(f"VLM calls replayed from {cfg.vlm.cache_dir} (model {plan.vlm['model']}; no endpoint)",
+                      highlight=False)
+        return {"base_url": None, "model": plan.vlm["model"]}
     if "standin" not in plan.vlm:
         return {"base_url": plan.vlm["base_url"], "model": plan.vlm["model"]}
     port = free_port(STANDIN_PORT)

@@ -64,16 +64,42 @@ def generated_episodes(cfg: AgosConfig) -> list[EpisodeSpec]:
 
 
 def vlm_plan(cfg: AgosConfig, policies: dict[str, str], standin: str | None) -> dict[str, Any]:
-    """Where the run's VLM policies get their model; {} when no policy needs one."""
+    """Where the run's VLM policies get their model; {} when no policy needs one. A replay of recorded
+    calls (``--vlm-cache DIR --vlm-cache-mode replay``) needs no endpoint, only the model's name; the
+    cache is checked here, before anything starts."""
     if not any(needs_vlm(p) for p in policies.values()):
         return {}
+    cache = vlm_cache_plan(cfg, STANDIN_MODEL if standin is not None else cfg.vlm.model)
     if standin is not None:
-        return {"standin": standin, "model": STANDIN_MODEL}
-    if not cfg.vlm.base_url or not cfg.vlm.model:
+        return {"standin": standin, "model": STANDIN_MODEL, **cache}
+    if not cfg.vlm.model or not (cfg.vlm.base_url or cfg.vlm.replaying):
         names = ", ".join(sorted({p for p in policies.values() if needs_vlm(p)}))
         raise RunDirError(f"policy {names} asks a VLM: give --vlm-base-url URL --model NAME, or --vlm-standin for the "
-                          "offline stand-in server")
-    return {"base_url": cfg.vlm.base_url, "model": cfg.vlm.model}
+                          "offline stand-in server" + (" (a replay needs only --model)" if cfg.vlm.replaying else ""))
+    return {"base_url": cfg.vlm.base_url, "model": cfg.vlm.model, **cache}
+
+
+def vlm_cache_plan(cfg: AgosConfig, model: str | None) -> dict[str, Any]:
+    """``--vlm-cache``'s directory and mode as run.json keeps them ({} without a cache); RunDirError
+    when the cache cannot be used (not a cache, a replay of a missing one or of another model)."""
+    from agos.agents.vlm.cache import CacheError, ReplyCache
+
+    o = cfg.vlm
+    if o.cache_dir is None:
+        return {}
+    if o.cache_mode != "off":
+        try:
+            cache = ReplyCache(o.cache_dir, o.cache_mode)
+        except CacheError as exc:
+            raise RunDirError(str(exc)) from None
+        try:
+            models = cache.models()
+        finally:
+            cache.close()
+        if o.cache_mode == "replay" and model not in models:
+            raise RunDirError(f"--vlm-cache {o.cache_dir} holds no call of model {model!r} to replay "
+                              f"(it holds: {', '.join(models) or 'nothing'}); give --model as recorded")
+    return {"cache_dir": str(Path(o.cache_dir).resolve()), "cache_mode": o.cache_mode}
 
 
 def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: str, stamp: bool,
