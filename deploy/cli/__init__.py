@@ -13,6 +13,7 @@
     agos compare RUN_A RUN_B        paired differences with bootstrap intervals and tests
     agos report RUN... --out DIR    paper-style tables and the stage-wise plot
     agos vlm-standin [--port 8000]  OpenAI-compatible stand-in VLM server (latency, injected faults)
+    agos vlm-cache stats DIR        a cache of recorded model calls: hits, misses, tokens, size
     agos health KIND                is that process's liveliness token on the bus? (healthchecks)
     agos record --out DIR ...       the recorder: one rerun file per episode (eval/demo --record DIR)
     agos view FILE.rrd              the rerun viewer on a recording
@@ -21,7 +22,7 @@
 
 Each command's parser lives in one module, by command group: runs (demo, eval, sweep, check),
 services (router, world, agent, human, evaluator, watch), recordings (record, view and the
-``--record`` flags), reports (plot, metrics, compare, report), datasets (dataset) and ops (health,
+``--record`` flags), reports (plot, metrics, compare, report, vlm-cache), datasets (dataset) and ops (health,
 certs). Two groups keep their parsers in their own layer, beside the code that runs them:
 ``agos map``/``agos episodes`` in world/cli.py, and ``agos vlm-standin`` in agents/vlm/standin/cli.py,
 whose own ``main`` needs it. :data:`COMMANDS` is the table that dispatches a parsed command.
@@ -72,7 +73,7 @@ COMMANDS: tuple[Command, ...] = (
     services.ROUTER, services.WORLD, services.AGENT, services.HUMAN, services.EVALUATOR,
     Command(("map", "episodes"), _add_world_parsers, _world_cli),
     reports.METRICS, reports.COMPARE, reports.REPORT, runs.CHECK, ops.HEALTH, ops.CERTS,
-    Command(("vlm-standin",), _add_standin_parser, _standin),
+    Command(("vlm-standin",), _add_standin_parser, _standin), reports.VLM_CACHE,
 )
 """Every ``agos`` command, in the order ``agos --help`` lists them."""
 _BY_NAME = {name: command for command in COMMANDS for name in command.names}

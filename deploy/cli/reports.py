@@ -5,6 +5,7 @@ evaluator's metrics, comparisons and tables (evaluator/cli.py runs those).
     agos metrics PATH [--json]      every metric of a run (run dir, sqlite or JSONL summaries)
     agos compare RUN_A RUN_B        paired differences with bootstrap intervals and tests
     agos report RUN... --out DIR    paper-style tables and the stage-wise plot
+    agos vlm-cache stats DIR        what a cache of model calls holds: hits, misses, tokens, size
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from agos.deploy.cli.common import Command
+from agos.deploy.cli.common import Command, by_subcommand
 
 
 def _add_plot(sub: Any) -> None:
@@ -83,7 +84,39 @@ def _evaluator_cli(args: argparse.Namespace) -> int:
     return evaluator_cli.run(args)
 
 
+def _add_vlm_cache(sub: Any) -> None:
+    cache = sub.add_parser("vlm-cache", help="a cache of recorded model calls (--vlm-cache DIR; docs/AGENTS.md)")
+    what = cache.add_subparsers(dest="cache_what", required=True)
+    stats = what.add_parser("stats", help="per model: requests, replies, hits, misses, tokens; the cache's size")
+    stats.add_argument("dir", type=Path, help="the directory given to --vlm-cache")
+
+
+def _vlm_cache_stats(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from agos.agents.vlm.cache import CacheError, cache_stats
+
+    try:
+        stats = cache_stats(args.dir)
+    except CacheError as exc:
+        print(f"vlm-cache error: {exc}", file=sys.stderr)
+        return 2
+    table = Table(title=f"VLM cache {args.dir}")
+    for name in ("model", "requests", "replies", "errors", "hits", "misses", "prompt tokens", "completion tokens"):
+        table.add_column(name, justify="left" if name == "model" else "right")
+    for m in stats.models:
+        table.add_row(m.model, *(f"{v:,}" for v in (m.requests, m.replies, m.errors, m.hits, m.misses, m.prompt_tokens,
+                                                     m.completion_tokens)))
+    console = Console(soft_wrap=True)
+    console.print(table)
+    console.print(f"size: {stats.file_bytes / 1e6:.1f} MB ({stats.images:,} images, {stats.image_bytes / 1e6:.1f} MB); "
+                  "hits and misses count every lookup of every run, replies errors included", highlight=False)
+    return 0
+
+
 PLOT = Command(("plot",), _add_plot, _plot)
 METRICS = Command(("metrics",), _add_metrics, _evaluator_cli)
 COMPARE = Command(("compare",), _add_compare, _evaluator_cli)
 REPORT = Command(("report",), _add_report, _evaluator_cli)
+VLM_CACHE = Command(("vlm-cache",), _add_vlm_cache, by_subcommand("cache_what", {"stats": _vlm_cache_stats}))
