@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from agos.deploy.ops.certs import RunCredentials
@@ -155,13 +156,33 @@ class Absences:
                     f"`{self.resume}`", 3)
 
 
+def last_error(log: Path, tail_bytes: int = 32_768) -> str | None:
+    """The message of the last ERROR line a child logged since its latest start (the launcher's
+    ``=====`` line), one line; None when there is none (or no log)."""
+    try:
+        with log.open("rb") as f:
+            f.seek(max(0, f.seek(0, 2) - tail_bytes))
+            text = f.read().decode(errors="replace")
+    except OSError:
+        return None
+    found = None
+    for line in text.splitlines():
+        if line.startswith("===== agos "):
+            found = None
+        elif " ERROR " in line:
+            found = line.split(" ERROR ", 1)[1].split(": ", 1)[-1].strip()
+    return found
+
+
 def exited_children(launcher: Launcher, logs: Path) -> Halt | None:
     """A child that must not die did (a recorder that dies loses the recording, never the run), or
     every world worker exited."""
     dead = {n: c for n, c in launcher.dead().items() if not n.startswith("world") and n != "recorder"}
     if dead:
         names = ", ".join(f"{n} (exit {c})" for n, c in dead.items())
-        return Halt(f"[red]process exited early: {names}; logs in {logs}", 1, announce=False)
+        reasons = dict.fromkeys(r for n in dead if (r := last_error(logs / f"{n}.log")))  # each once, in order
+        why = f": {escape('; '.join(reasons))}" if reasons else ""
+        return Halt(f"[red]process exited early: {names}{why}; logs in {logs}", 1, announce=False)
     if launcher.children and all(n in launcher.dead() for n in launcher.children if n.startswith("world")):
         return Halt(f"[red]every world worker exited; logs in {logs}", 1, announce=False)
     return None
