@@ -4,10 +4,13 @@ llama.cpp server, hosted APIs), for VLM policies.
 * Images go as ``image_url`` parts with base64 data URLs (JPEG for RGB, PNG otherwise).
 * Structured output: ``response_format`` with a JSON schema when the backend supports it
   (``structured=True``); the reply is always validated by the caller anyway.
-* Retries on 408, 409, 429, 5xx, timeouts and connection errors: honour ``Retry-After`` (seconds)
-  and ``retry-after-ms``, else exponential back-off with full jitter; at most ``max_retries``.
+* Retries on 408, 409, 429, 5xx, timeouts and connection errors: honour ``retry-after-ms``, then
+  ``Retry-After`` (seconds) or LiteLLM's renamed ``llm_provider-retry-after``, else exponential
+  back-off with full jitter; at most ``max_retries``.
 * At most ``concurrency`` requests in flight per client.
-* :meth:`preflight` reads ``/models`` so a run fails before it starts when the model is missing.
+* :meth:`preflight` reads ``/models`` so a run fails before it starts when the endpoint cannot be
+  reached, refuses the key or does not serve the model, with one line saying which
+  (agents/vlm/endpoint.py); a 401/403 to any request says the same about the key.
 * The API key is read from an environment variable and is never logged or returned.
 
 Every call returns a :class:`Reply` with the text, ``finish_reason``, token usage, latency and the
@@ -26,6 +29,8 @@ from typing import TYPE_CHECKING, Any
 
 import httpx
 
+from agos.agents.vlm.endpoint import key_failure, listing_failure, model_failure, server_message, transport_failure
+
 if TYPE_CHECKING:
     from agos.agents.vlm.cache import CallTag, ReplyCache
 
@@ -35,10 +40,12 @@ RETRY_STATUS = {408, 409, 429, 500, 502, 503, 504}
 class VlmError(RuntimeError):
     """The endpoint could not give an answer (after retries); the message says why, never the key."""
 
-    def __init__(self, message: str, *, attempts: int = 0) -> None:
+    def __init__(self, message: str, *, attempts: int = 0, kind: str = "http") -> None:
         super().__init__(message)
         self.attempts = attempts
         """HTTP requests made before giving up."""
+        self.kind = kind
+        """What failed (agents/vlm/endpoint.py's ``KINDS``): refused, unreachable, timeout, auth, model, http."""
 
 
 @dataclass
@@ -66,6 +73,7 @@ class VlmClient:
         self.cache = cache
         """Record/replay of requests (``--vlm-cache``); None: every request goes to the endpoint."""
         self.model = model
+        self.api_key_env, self.timeout_s = api_key_env, timeout_s
         self.max_retries, self.structured, self.max_tokens = max_retries, structured, max_tokens
         self.backoff_base_s, self.backoff_max_s = backoff_base_s, backoff_max_s
         self._limit = asyncio.Semaphore(concurrency)
@@ -78,16 +86,29 @@ class VlmClient:
     async def close(self) -> None:
         await self._http.aclose()
 
-    async def preflight(self) -> list[str]:
-        """Models the server offers; raises VlmError when it is unreachable or lacks ``model``."""
+    async def preflight(self, timeout_s: float | None = None) -> list[str]:
+        """Models the server offers. Raises VlmError with one line (agents/vlm/endpoint.py) when it is
+        unreachable or refuses the connection, gives no answer within ``timeout_s`` (default: the
+        client's), answers 401/403, answers anything but a model list, or does not list ``model``."""
+        timeout = self.timeout_s if timeout_s is None else timeout_s
         try:
-            response = await self._http.get("/models")
-            response.raise_for_status()
-            models = [m.get("id") for m in response.json().get("data", [])]
-        except (httpx.HTTPError, ValueError) as exc:
-            raise VlmError(f"{self.base_url}/models: {type(exc).__name__}: {exc}") from None
+            response = await self._http.get("/models", timeout=timeout)
+        except httpx.HTTPError as exc:
+            kind, line = transport_failure(self.base_url, exc, timeout)
+            raise VlmError(self._redact(line), kind=kind, attempts=1) from None
+        said = self._redact(server_message(response))
+        if response.status_code in (401, 403):
+            raise VlmError(key_failure(self.base_url, response.status_code, self.api_key_env, self._secret is not None, said),
+                           kind="auth", attempts=1)
+        try:
+            data = response.json().get("data") if response.is_success else None
+        except (ValueError, AttributeError):
+            data = None
+        if not isinstance(data, list):
+            raise VlmError(listing_failure(self.base_url, response, said), kind="http", attempts=1)
+        models = [str(m.get("id")) for m in data if isinstance(m, dict)]
         if self.model not in models:
-            raise VlmError(f"{self.base_url}: model {self.model!r} not served (available: {', '.join(map(str, models))})")
+            raise VlmError(model_failure(self.base_url, self.model, models), kind="model", attempts=1)
         return models
 
     def _body(self, messages: list[dict[str, Any]], schema: dict[str, Any] | None) -> dict[str, Any]:
@@ -105,12 +126,13 @@ class VlmClient:
                     return min(self.backoff_max_s, float(ms) / 1000.0)
                 except ValueError:
                     pass
-            seconds = response.headers.get("retry-after")
-            if seconds is not None:
-                try:
-                    return min(self.backoff_max_s, float(seconds))
-                except ValueError:
-                    pass
+            for name in ("retry-after", "llm_provider-retry-after"):  # LiteLLM renames the provider's header
+                seconds = response.headers.get(name)
+                if seconds is not None:
+                    try:
+                        return min(self.backoff_max_s, max(0.0, float(seconds)))
+                    except ValueError:
+                        pass
         return self._rng.uniform(0.0, min(self.backoff_max_s, self.backoff_base_s * 2 ** attempt))
 
     async def complete(self, messages: list[dict[str, Any]], *, schema: dict[str, Any] | None = None,
@@ -133,6 +155,10 @@ class VlmClient:
                     response = await self._http.post("/chat/completions", json=body)
                     if response.status_code in RETRY_STATUS:
                         last_error = f"HTTP {response.status_code}"
+                    elif response.status_code in (401, 403):
+                        raise VlmError(key_failure(self.base_url, response.status_code, self.api_key_env,
+                                                   self._secret is not None, self._redact(server_message(response))),
+                                       attempts=attempt + 1, kind="auth")
                     elif response.is_error:
                         raise VlmError(f"{self.base_url}: HTTP {response.status_code}: {self._redact(response.text[:200])}",
                                        attempts=attempt + 1)
