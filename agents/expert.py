@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 
-from agos.agents.contract import action_for
+from agos.agents.contract import Policy, action_for
 from agos.runtime.schemas import Action, Observation, Role
 
 log = logging.getLogger(__name__)
@@ -22,7 +22,7 @@ log = logging.getLogger(__name__)
 TIME_TOLERANCE_S = 1e-6
 
 
-class ExpertPolicy:
+class ExpertPolicy(Policy):
     name = "expert"
     inline = True  # a list lookup, no I/O: answered on the receiving thread (agents/service.py)
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agos.agents.contract import action_for
+from agos.agents.contract import Policy, action_for
 from agos.agents.navigation import Navigator, uav_route
 from agos.runtime.camera import cell_of_pixel, ground_to_pixel
 from agos.runtime.schemas import Action, Observation, OracleHints, Role
@@ -39,7 +39,7 @@ def _hints(obs: Observation) -> OracleHints:
     return obs.oracle
 
 
-class OracleUav:
+class OracleUav(Policy):
     role: Role = "uav"
     name = "oracle"
     inline = True  # under a millisecond, no I/O: answered on the receiving thread (agents/service.py)
@@ -96,7 +96,7 @@ class _UgvMemory:
     """Sim time when that last changed."""
 
 
-class OracleUgv:
+class OracleUgv(Policy):
     role: Role = "ugv"
     name = "oracle"
     inline = True

@@ -9,11 +9,11 @@ import zlib
 
 import numpy as np
 
-from agos.agents.contract import action_for
+from agos.agents.contract import Policy, action_for
 from agos.runtime.schemas import Action, Observation, Role
 
 
-class RandomPolicy:
+class RandomPolicy(Policy):
     name = "random"
     inline = True  # microseconds, no I/O: answered on the receiving thread (agents/service.py)
 

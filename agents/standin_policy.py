@@ -11,11 +11,11 @@ from __future__ import annotations
 import asyncio
 import time
 
-from agos.agents.contract import action_for
+from agos.agents.contract import Policy, action_for
 from agos.runtime.schemas import Action, Observation, Role
 
 
-class FixedLatencyPolicy:
+class FixedLatencyPolicy(Policy):
     name = "standin"
 
     def __init__(self, role: Role, latency_s: float) -> None:

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from agos.agents.contract import action_for
+from agos.agents.contract import Policy, action_for
 from agos.agents.registry import make_policy
 from agos.agents.service import serve_async
 from agos.runtime import keys
@@ -70,14 +70,14 @@ def test_inline_policy_is_answered_on_the_publishing_thread() -> None:
 
 def test_async_policies_are_answered_on_the_loop() -> None:
     with Serving(make_policy("standin-20ms", "uav")) as svc:
-        assert not getattr(svc.policy, "inline", False)
+        assert not svc.policy.inline
         svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(_obs()))
         sample = svc.actions.get(5.0)
         assert sample is not None and decode(sample.payload).action == "MOVE_TO_UAV_WAYPOINT"
         assert decode(sample.payload).agent_wall_latency_s > 0
 
 
-class Gated:
+class Gated(Policy):
     """A plain ``act`` policy that answers only once the test opens its gate."""
 
     role, name = "uav", "gated"
@@ -105,7 +105,7 @@ def test_plain_policies_run_in_worker_threads() -> None:
         assert policy.threads and policy.threads[0] not in (threading.get_ident(), svc.thread.ident)
 
 
-class Exploding:
+class Exploding(Policy):
     role, name = "uav", "exploding"
 
     def __init__(self, inline: bool) -> None:
@@ -146,11 +146,11 @@ def test_policy_errors_cost_a_wait_and_episodes_end(inline: bool) -> None:
         assert policy.ended == ["e1"]
 
 
-class Mistyped:
+class Mistyped(Policy):
     """Answers through ``action_for`` (an ``Action`` struct, built without checks) with values the
     world would refuse, or with no action at all."""
 
-    role, name, inline = "uav", "mistyped", True
+    name, inline = "mistyped", True
 
     def act(self, obs) -> Action:
         if obs.decision_index == 1:
@@ -164,7 +164,7 @@ class Mistyped:
 
 
 def test_mistyped_answers_cost_a_wait() -> None:
-    with Serving(Mistyped()) as svc:
+    with Serving(Mistyped("uav")) as svc:
         for index in (1, 2, 3):
             svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(_obs(index=index)))
         got = [decode(svc.actions.get(5.0).payload) for _ in range(3)]
@@ -212,7 +212,7 @@ def test_a_service_started_after_the_world_serves_the_episodes_in_flight() -> No
         thread.join(5)
 
 
-class _Remembering:
+class _Remembering(Policy):
     """A policy whose answer depends on its memory of the episode: the number of decisions it has
     seen, as the waypoint id it names."""
 

@@ -30,6 +30,7 @@ from typing import Any
 
 import msgspec
 
+from agos.agents.contract import Policy
 from agos.agents.dataset.example import chat_example, reply_json
 from agos.agents.expert import ExpertPolicy
 from agos.agents.vlm.agent import VlmAgent
@@ -81,7 +82,7 @@ class _Episode:
             f.write(json.dumps(line, separators=(",", ":")) + "\n")
 
 
-class DatasetWriter:
+class DatasetWriter(Policy):
     """The expert policy of one role, writing each decision under ``out_dir`` (module docstring)."""
 
     name = "expert"

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from agos.agents.contract import action_for
+from agos.agents.contract import Policy, action_for
 from agos.agents.heuristic.aerial import detect_vehicles_from_above
 from agos.agents.heuristic.perception import AerialDetection, TargetProfile, detect_from_above, profile_from_references
 from agos.runtime.camera import cell_of_pixel, pixel_to_ground
@@ -35,7 +35,7 @@ class _Memory:
     seen: set[str] = field(default_factory=set)
 
 
-class HeuristicUav:
+class HeuristicUav(Policy):
     role: Role = "uav"
     name = "heuristic"
 

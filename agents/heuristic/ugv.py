@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from agos.agents.contract import action_for
+from agos.agents.contract import Policy, action_for
 from agos.agents.heuristic.ground import GroundView, find_target
 from agos.agents.heuristic.perception import TargetProfile, profile_from_references
 from agos.agents.navigation import Navigator
@@ -26,7 +26,7 @@ MIN_PIXELS = 80
 APPROACH_WITHIN_M = 12.0
 
 
-class HeuristicUgv:
+class HeuristicUgv(Policy):
     role: Role = "ugv"
     name = "heuristic"
 

@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from agos.agents.contract import Policy
 from agos.agents.human.board import DecisionBoard, PageBoard
 from agos.agents.human.server import ConsoleServer
 from agos.agents.human.spectator import SpectatorBoard
@@ -41,7 +42,7 @@ from agos.runtime.settings import AgosConfig
 log = logging.getLogger("agos.human")
 
 
-class HumanPolicy:
+class HumanPolicy(Policy):
     """The policy the service's dispatch holds for one role: a person, through the board. Its
     decisions are taken in :func:`serve_async` (never through :meth:`act`)."""
 

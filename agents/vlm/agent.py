@@ -25,7 +25,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-from agos.agents.contract import FatalPolicyError
+from agos.agents.contract import FatalPolicyError, Policy
 from agos.agents.names import split_name
 from agos.agents.vlm import agos_prompts, baseline_prompts
 from agos.agents.vlm.cache import CallTag, ReplyCache
