@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
 import os
 import random
 import re
+import socket
 import subprocess
 import sys
 import threading
@@ -21,9 +23,10 @@ import numpy as np
 import pytest
 
 from agos.agents.vlm.client import VlmClient, VlmError, image_part
-from agos.agents.vlm.protocol import AERIAL, SIX_VIEWS, SplitRequest, image_caption, state_text
+from agos.agents.vlm.protocol import AERIAL, SIX_VIEWS, SplitRequest, action_schema, image_caption, state_text
 from agos.agents.vlm.standin.faults import FAULT_KINDS, FaultSpecError, draw_outcome, fault_sequence, parse_faults
 from agos.agents.vlm.standin.requests import image_size, image_tokens
+from agos.agents.vlm.standin.schema import check_schema, violation
 from agos.agents.vlm.standin.server import StandinServer, default_responder, wait_responder
 
 pytestmark = pytest.mark.loopback  # the server listens on loopback in this process
@@ -71,9 +74,9 @@ def standin() -> Iterator:
 
 
 def chat(server: StandinServer, messages: list[dict] | None = None, *, model: str = MODEL, timeout: float = 10.0,
-         **extra) -> httpx.Response:
+         headers: dict[str, str] | None = None, **extra) -> httpx.Response:
     body = {"model": model, "messages": messages or agos_messages(views=0), **extra}
-    return httpx.post(f"{server.url}/chat/completions", json=body, timeout=timeout)
+    return httpx.post(f"{server.url}/chat/completions", json=body, timeout=timeout, headers=headers)
 
 
 def content(response: httpx.Response) -> str | None:
@@ -109,7 +112,7 @@ def test_models_list_and_client_preflight(standin) -> None:
             await c.close()
 
     assert asyncio.run(preflight(MODEL)) == ["qwen-vl", MODEL]
-    with pytest.raises(VlmError, match="available: qwen-vl, agos-standin"):
+    with pytest.raises(VlmError, match="its /models lists: qwen-vl, agos-standin"):
         asyncio.run(preflight("gpt-99"))
 
 
@@ -240,7 +243,8 @@ def content_of(body: dict) -> str:
 def test_fault_429_has_retry_after_headers(standin) -> None:
     server = standin(faults={"429": 1.0}, retry_after_s=0.25)
     response = chat(server)
-    assert response.status_code == 429 and response.json()["error"]["code"] == 429
+    error = response.json()["error"]
+    assert response.status_code == 429 and (error["type"], error["code"]) == ("rate_limit_error", "rate_limit_exceeded")
     assert response.headers["Retry-After"] == "0.25" and response.headers["retry-after-ms"] == "250"
 
 
@@ -435,25 +439,137 @@ def _listening_url(proc: subprocess.Popen, lines: list[str]) -> str | None:
 
 @pytest.mark.e2e
 def test_cli_serves_on_a_free_port_and_stops_cleanly() -> None:
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "AGOS_STANDIN_TEST_KEY": "cli-key"}
     proc = subprocess.Popen([sys.executable, "-m", "agos.deploy.cli", "vlm-standin", "--port", "0", "--model", "cli-vl",
-                             "--faults", "fenced=0.5", "--seed", "2"],
+                             "--faults", "fenced=0.5", "--seed", "2", "--api-key-env", "AGOS_STANDIN_TEST_KEY"],
                             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []
     try:
         url = _listening_url(proc, lines)
         assert url is not None, "".join(lines)
         assert url.startswith("http://127.0.0.1:") and not url.startswith("http://127.0.0.1:0/")
-        assert [m["id"] for m in httpx.get(f"{url}/models", timeout=10).json()["data"]] == ["cli-vl"]
+        assert httpx.get(f"{url}/models", timeout=10).status_code == 401  # --api-key-env: no key, no answer
+        listing = httpx.get(f"{url}/models", timeout=10, headers={"Authorization": "Bearer cli-key"})
+        assert [m["id"] for m in listing.json()["data"]] == ["cli-vl"]
     finally:
         proc.terminate()
         proc.wait(timeout=30)
     assert proc.stdout is not None
     text = "".join(lines) + proc.stdout.read()  # the rest, including what the line iterator had buffered
     assert proc.returncode == 0, text
-    assert f"--vlm-base-url {url} --model cli-vl" in text and "stopped after" in text
+    assert f"--vlm-base-url {url} --model cli-vl --vlm-api-key-env AGOS_STANDIN_TEST_KEY" in text and "stopped after" in text
+    assert "cli-key" not in text
 
 
 def test_cli_rejects_a_bad_fault_spec_naming_the_entry(agos) -> None:
     result = agos("vlm-standin", "--faults", "429=0.1,flaky=0.2")
     assert result.returncode == 2 and "'flaky=0.2'" in result.stderr and "unknown fault 'flaky'" in result.stderr
+
+
+def test_cli_refuses_an_unset_api_key_variable(agos, monkeypatch) -> None:
+    monkeypatch.delenv("AGOS_STANDIN_UNSET_KEY", raising=False)
+    result = agos("vlm-standin", "--port", "0", "--api-key-env", "AGOS_STANDIN_UNSET_KEY")
+    assert result.returncode == 2 and result.stderr.count("\n") == 1
+    assert "--api-key-env AGOS_STANDIN_UNSET_KEY: AGOS_STANDIN_UNSET_KEY is not set" in result.stderr
+
+
+# --- behaving like a real endpoint (issue 31, item 7) ----------------------------------------------------
+
+
+def test_n_returns_n_choices_and_a_bad_n_is_a_400(standin) -> None:
+    server = standin(wrap_p=0.5, seed=3)
+    body = chat(server, n=4).json()
+    assert [c["index"] for c in body["choices"]] == [0, 1, 2, 3]
+    texts = [c["message"]["content"] for c in body["choices"]]
+    assert all(json.dumps(REPLY) in t for t in texts)  # the same answer, each choice wrapped by its own draw
+    assert body["usage"]["completion_tokens"] == sum(math.ceil(len(t) / 4) for t in texts)
+    assert len(chat(server, n=None).json()["choices"]) == 1  # null is the default, one choice
+    for bad in (0, 129, "2", 1.5, True):
+        response = chat(server, n=bad)
+        error = response.json()["error"]
+        assert response.status_code == 400 and error["param"] == "n" and error["type"] == "invalid_request_error", bad
+    assert server.stats()["chat_completions"] == 7 and server.stats()["outcomes"]["ok"] == 2  # refusals draw nothing
+
+
+def _strict(schema: object, name: str = "answer") -> dict:
+    return {"type": "json_schema", "json_schema": {"name": name, "strict": True, "schema": schema}}
+
+
+def test_a_strict_schema_is_honoured_or_the_request_refused(standin) -> None:
+    server = standin()
+    own = chat(server, response_format=_strict(action_schema(["WAIT", "MOVE_TO"]), "action"))
+    assert own.status_code == 200 and json.loads(content(own)) == REPLY  # agos's action schema: the answer conforms
+    foreign = {"type": "object", "properties": {"answer": {"type": "string"}}, "required": ["answer"],
+               "additionalProperties": False}
+    refused = chat(server, response_format=_strict(foreign))
+    error = refused.json()["error"]
+    assert refused.status_code == 400 and (error["type"], error["param"]) == ("invalid_request_error", "response_format")
+    assert "cannot answer the strict json_schema" in error["message"] and "required 'answer' missing" in error["message"]
+    loose = chat(server, response_format={"type": "json_schema", "json_schema": {"name": "answer", "schema": foreign}})
+    assert loose.status_code == 200  # not strict: a schema is a hint, as OpenAI's non-strict mode
+    unsupported = chat(server, response_format=_strict({"type": "object", "patternProperties": {"^a": {}}}))
+    assert unsupported.status_code == 400 and "'patternProperties' is not supported" in unsupported.json()["error"]["message"]
+
+
+@pytest.mark.parametrize(("value", "schema", "problem"), [
+    ({"action": "WAIT"}, {"type": "object", "properties": {"action": {"enum": ["GO"]}}}, "$.action: 'WAIT' is not one of"),
+    ({"a": 1}, {"type": "object", "additionalProperties": False}, "property 'a' is not allowed"),
+    ({"a": [1, "x"]}, {"properties": {"a": {"type": "array", "items": {"type": "integer"}}}}, "$.a[1]: 'x' is not of type integer"),
+    ({"c": "Z9"}, {"properties": {"c": {"type": "string", "pattern": "^[A-E][1-5]$"}}}, "does not match"),
+    ({"r": "x" * 5}, {"properties": {"r": {"type": "string", "maxLength": 4}}}, "outside its length bounds"),
+    ({"v": None}, {"properties": {"v": {"anyOf": [{"type": "string"}, {"type": "integer"}]}}}, "matches none of anyOf"),
+    ({"v": 1}, {"$defs": {"s": {"type": "string"}}, "properties": {"v": {"$ref": "#/$defs/s"}}}, "is not of type string"),
+    (True, {"type": "integer"}, "is not of type integer"),
+    ({"v": 3}, {"properties": {"v": {"type": ["integer", "null"], "maximum": 2}}}, "outside its bounds"),
+])
+def test_schema_violations_name_the_place(value, schema, problem: str) -> None:
+    check_schema(schema)
+    found = violation(value, schema)
+    assert found is not None and problem in found
+    assert violation(value, {"type": ["object", "boolean"]}) is None
+
+
+def test_error_bodies_use_openai_types_and_string_or_null_codes(standin) -> None:
+    server = standin(models=(MODEL,), script=("500",))
+    cases = [
+        (chat(server), 500, "server_error", None),
+        (chat(server, model="gpt-99"), 404, "invalid_request_error", "model_not_found"),
+        (chat(server, max_tokens=0), 400, "invalid_request_error", None),
+        (httpx.get(f"{server.url}/embeddings"), 404, "invalid_request_error", None),
+        (httpx.request("DELETE", f"{server.url}/models"), 501, "invalid_request_error", None),
+    ]
+    for response, status, kind, code in cases:
+        error = response.json()["error"]
+        assert (response.status_code, error["type"], error["code"]) == (status, kind, code), response.text
+        assert set(error) == {"message", "type", "param", "code"}
+
+
+def test_api_key_is_checked_when_configured_and_never_echoed(standin) -> None:
+    server = standin(api_key="sk-standin-secret")
+    missing = httpx.get(f"{server.url}/models")
+    wrong = chat(server, headers={"Authorization": "Bearer sk-guess"})
+    for response, code in ((missing, "missing_api_key"), (wrong, "invalid_api_key")):
+        error = response.json()["error"]
+        assert (response.status_code, error["type"], error["code"]) == (401, "authentication_error", code)
+        assert "sk-guess" not in response.text and "sk-standin-secret" not in response.text
+    good = {"Authorization": "Bearer sk-standin-secret"}
+    assert httpx.get(f"{server.url}/models", headers=good).status_code == 200
+    assert chat(server, headers=good).status_code == 200
+    assert httpx.get(f"http://127.0.0.1:{server.port}/stats").status_code == 200  # not part of the API: open
+    stats = server.stats()
+    assert stats["chat_completions"] == 1 and stats["errors"] == {"401": 2}  # a refused request draws no outcome
+
+
+def test_an_answer_is_one_write_so_keep_alive_requests_do_not_wait_for_an_ack(standin) -> None:
+    """Headers and body written separately reach a keep-alive client as two segments, the second held
+    back by Nagle's algorithm until the client's delayed ACK (~40 ms a request). One write: one read
+    gets the whole answer."""
+    server = standin()
+    with socket.create_connection((server.host, server.port), timeout=10) as conn:
+        for _ in range(3):  # the same connection, kept alive
+            conn.sendall(f"GET /v1/models HTTP/1.1\r\nHost: {server.host}\r\n\r\n".encode())
+            data = conn.recv(65536)
+            head, _, body = data.partition(b"\r\n\r\n")
+            length = int(re.search(rb"Content-Length: (\d+)", head).group(1))
+            assert head.startswith(b"HTTP/1.1 200") and len(body) == length, data
+            assert json.loads(body)["object"] == "list"

@@ -4,6 +4,8 @@ loopback, for tests, the demo and new users who have no model.
 One concern per module:
 
 * :mod:`~agos.agents.vlm.standin.requests`: a chat-completion body validated, its token estimate;
+* :mod:`~agos.agents.vlm.standin.schema`: the JSON Schema subset of a strict ``response_format``, and
+  whether an answer conforms to it;
 * :mod:`~agos.agents.vlm.standin.faults`: the fault model (kinds, probabilities, seeded draws);
 * :mod:`~agos.agents.vlm.standin.replies`: the content each outcome gives, the completion object;
 * :mod:`~agos.agents.vlm.standin.server`: the HTTP server (:class:`~agos.agents.vlm.standin.server.StandinServer`);
@@ -23,17 +25,29 @@ Endpoints (under ``/v1``, as vLLM and SGLang serve them):
 * ``POST /v1/chat/completions``: an OpenAI ``chat.completion`` object; ``usage.prompt_tokens`` is
   estimated as text characters / 4 plus, per image, one token per 28x28 pixels (each side rounded
   to a multiple of 28, as Qwen2.5-VL does); ``completion_tokens`` as reply characters / 4.
-  Errors use OpenAI's ``{"error": {"message", "type", "param", "code"}}`` body: an unknown model is
-  a 404 naming it, a malformed body a 400 saying what is wrong, more images than ``max_images`` a
-  400 whose message starts like vLLM's (``At most N image(s) may be provided in one prompt.``).
-  With ``response_format`` (``json_schema`` or ``json_object``) the content is plain JSON; without
-  it the JSON is wrapped as models often do (markdown fences, a leading sentence) with probability
-  ``wrap_p``. ``max_tokens`` is honoured: a longer reply is cut and ends with ``finish_reason="length"``.
+  Errors use OpenAI's ``{"error": {"message", "type", "param", "code"}}`` body with OpenAI's types
+  (``invalid_request_error``, ``authentication_error``, ``rate_limit_error``, ``server_error``) and
+  a string or null ``code``: an unknown model is a 404 naming it (``model_not_found``), a malformed
+  body a 400 saying what is wrong, more images than ``max_images`` a 400 whose message starts like
+  vLLM's (``At most N image(s) may be provided in one prompt.``). With ``response_format``
+  (``json_schema`` or ``json_object``) the content is plain JSON; without it the JSON is wrapped as
+  models often do (markdown fences, a leading sentence) with probability ``wrap_p``. A ``json_schema``
+  with ``strict: true`` is honoured or refused: a schema outside :mod:`~agos.agents.vlm.standin.schema`'s
+  subset, or an answer of the responder that does not conform to it, is a 400 saying where (a
+  non-strict schema is a hint, as in OpenAI's non-strict mode). ``n`` (1 to 128) gives ``n``
+  choices, the same answer each wrapped by its own draw. ``max_tokens`` is honoured: a longer reply
+  is cut and ends with ``finish_reason="length"``.
 * ``GET /stats``: request, outcome and error counts (see :meth:`StandinServer.stats`).
 
+With ``api_key`` (``agos vlm-standin --api-key-env NAME``) every ``/v1`` request must carry
+``Authorization: Bearer <key>``; one without it gets a 401 (``authentication_error``,
+``missing_api_key``), a wrong key a 401 (``invalid_api_key``) that never echoes it; ``/stats`` stays
+open. A refused request draws no outcome.
+
 Latency and faults are drawn per valid chat-completion request, in arrival order, from RNGs seeded
-by ``seed``: the same seed and request order give the same outcomes and reply texts. Requests that
-are rejected (400/404) draw nothing. Outcomes (``FAULT_KINDS`` plus ``"ok"``):
+by ``seed``: the same seed and request order give the same outcomes and reply texts. Requests
+refused on arrival (400/401/404) draw nothing; an answer refused by a strict schema was drawn.
+Outcomes (``FAULT_KINDS`` plus ``"ok"``):
 
 * ``ok``: the responder's JSON after ``latency_ms`` + U(0, ``jitter_ms``) (the responder's own time
   counts toward it).
@@ -49,4 +63,7 @@ are rejected (400/404) draw nothing. Outcomes (``FAULT_KINDS`` plus ``"ok"``):
 
 The server is a ``ThreadingHTTPServer`` (HTTP/1.1, keep-alive): every connection has its own thread,
 so sleeps never hold up other requests, and the responder is called from several threads at once.
+Each answer is one write on a ``TCP_NODELAY`` socket, so back-to-back requests on one keep-alive
+connection take well under a millisecond each (two writes cost ~44 ms a request: Nagle's algorithm
+waiting for the client's delayed ACK).
 """

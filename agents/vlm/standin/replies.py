@@ -47,12 +47,14 @@ def cap_tokens(content: str | None, finish: str, max_tokens: int | None) -> tupl
     return content[:max_tokens * 4], "length"
 
 
-def completion_body(index: int, model: str, content: str | None, finish: str, prompt_tokens: int) -> dict[str, Any]:
-    """An OpenAI ``chat.completion`` object."""
-    completion = text_tokens(content or "")
+def completion_body(index: int, model: str, choices: list[tuple[str | None, str]], prompt_tokens: int) -> dict[str, Any]:
+    """An OpenAI ``chat.completion`` object with one choice per ``(content, finish_reason)``;
+    ``completion_tokens`` counts every choice's content."""
+    completion = sum(text_tokens(content or "") for content, _ in choices)
     return {
         "id": f"chatcmpl-standin-{index}", "object": "chat.completion", "created": int(time.time()), "model": model,
         "system_fingerprint": "agos-vlm-standin",
-        "choices": [{"index": 0, "message": {"role": "assistant", "content": content}, "logprobs": None, "finish_reason": finish}],
+        "choices": [{"index": i, "message": {"role": "assistant", "content": content}, "logprobs": None, "finish_reason": finish}
+                    for i, (content, finish) in enumerate(choices)],
         "usage": {"prompt_tokens": prompt_tokens, "completion_tokens": completion, "total_tokens": prompt_tokens + completion},
     }

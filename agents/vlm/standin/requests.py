@@ -15,25 +15,31 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from agos.agents.vlm.standin.schema import SchemaError, check_schema
+
 if TYPE_CHECKING:
     from agos.agents.vlm.protocol import SplitRequest
 
 TOKEN_PIXELS = 28
+MAX_CHOICES = 128
+"""The largest ``n`` (OpenAI's limit)."""
 
 
 class RequestError(Exception):
-    """A request the server refuses: HTTP status and an OpenAI-style error body."""
+    """A request the server refuses: HTTP status and an OpenAI error body (``type``, a string or null ``code``)."""
 
-    def __init__(self, status: int, message: str, *, kind: str = "BadRequestError", param: str | None = None) -> None:
+    def __init__(self, status: int, message: str, *, kind: str = "invalid_request_error", code: str | None = None,
+                 param: str | None = None) -> None:
         super().__init__(message)
-        self.status, self.message, self.kind, self.param = status, message, kind, param
+        self.status, self.message, self.kind, self.code, self.param = status, message, kind, code, param
 
     def body(self) -> dict[str, Any]:
-        return error_body(self.message, self.kind, self.status, self.param)
+        return error_body(self.message, self.kind, self.code, self.param)
 
 
-def error_body(message: str, kind: str, code: int | str, param: str | None = None) -> dict[str, Any]:
-    """OpenAI's error object."""
+def error_body(message: str, kind: str, code: str | None = None, param: str | None = None) -> dict[str, Any]:
+    """OpenAI's error object: ``type`` as OpenAI names it (``invalid_request_error``, ``authentication_error``,
+    ``rate_limit_error``, ``server_error``), ``code`` a string or null."""
     return {"error": {"message": message, "type": kind, "param": param, "code": code}}
 
 
@@ -101,6 +107,11 @@ class ChatRequest:
     max_tokens: int | None
     text_chars: int
     image_sizes: tuple[tuple[int, int], ...]
+    n: int = 1
+    """Choices asked for (``n``)."""
+    strict_schema: dict[str, Any] | bool | None = None
+    """The schema of a ``json_schema`` response format with ``strict: true`` (checked against the subset of
+    :mod:`~agos.agents.vlm.standin.schema`): every answer must conform to it, or the request is refused."""
 
     @property
     def prompt_tokens(self) -> int:
@@ -123,20 +134,41 @@ def _model(body: dict[str, Any], models: Sequence[str]) -> str:
         raise RequestError(400, "'model' is required (a string)", param="model")
     if model not in models:
         raise RequestError(404, f"The model `{model}` does not exist. This server serves: {', '.join(models)}.",
-                           kind="NotFoundError", param="model")
+                           code="model_not_found", param="model")
     return model
 
 
-def _structured(body: dict[str, Any]) -> bool:
+def _structured(body: dict[str, Any]) -> tuple[bool, dict[str, Any] | bool | None]:
+    """Whether the answer must be plain JSON, and the strict schema it must conform to (None: not strict)."""
     fmt = body.get("response_format")
     if fmt is None:
-        return False
+        return False, None
     kind = fmt.get("type") if isinstance(fmt, dict) else None
     if kind not in ("text", "json_object", "json_schema"):
         raise RequestError(400, "'response_format.type' must be one of text, json_object, json_schema", param="response_format")
-    if kind == "json_schema" and not isinstance(fmt.get("json_schema"), dict):
+    if kind != "json_schema":
+        return kind == "json_object", None
+    spec = fmt.get("json_schema")
+    if not isinstance(spec, dict):
         raise RequestError(400, "'response_format.json_schema' must be an object", param="response_format")
-    return kind != "text"
+    if not spec.get("strict"):
+        return True, None
+    schema = spec.get("schema")
+    try:
+        check_schema(schema, "response_format.json_schema.schema")
+    except SchemaError as exc:
+        raise RequestError(400, f"Invalid schema for response_format {spec.get('name', '')!r}: {exc}",
+                           param="response_format") from None
+    return True, schema
+
+
+def _choices(body: dict[str, Any]) -> int:
+    n = body.get("n", 1)
+    if n is None:
+        return 1
+    if not isinstance(n, int) or isinstance(n, bool) or not 1 <= n <= MAX_CHOICES:
+        raise RequestError(400, f"'n' must be an integer from 1 to {MAX_CHOICES}, not {n!r}", param="n")
+    return n
 
 
 def _max_tokens(body: dict[str, Any]) -> int | None:
@@ -201,7 +233,7 @@ def parse_chat_body(raw: bytes, models: Sequence[str], max_images: int | None = 
         raise RequestError(400, "'messages' must be a non-empty list", param="messages")
     if body.get("stream"):
         raise RequestError(400, "streaming is not supported by agos vlm-standin; send stream=false", param="stream")
-    structured, max_tokens = _structured(body), _max_tokens(body)
+    (structured, strict_schema), max_tokens, n = _structured(body), _max_tokens(body), _choices(body)
     parts = [wp for m, message in enumerate(messages) for wp in _parts(message, m)]
     images = [(where, part) for where, part in parts if part["type"] == "image_url"]
     if max_images is not None and len(images) > max_images:
@@ -213,7 +245,7 @@ def parse_chat_body(raw: bytes, models: Sequence[str], max_images: int | None = 
             raise RequestError(400, f"{where}: the image is not a JPEG or PNG (cannot read its size)", param="messages")
         sizes.append(size)
     chars = sum(len(part["text"]) for _, part in parts if part["type"] == "text")
-    return ChatRequest(body, model, messages, structured, max_tokens, chars, tuple(sizes))
+    return ChatRequest(body, model, messages, structured, max_tokens, chars, tuple(sizes), n, strict_schema)
 
 
 def split_messages(chat: ChatRequest) -> SplitRequest:

@@ -6,6 +6,7 @@ responder for the decision (see :mod:`agos.agents.vlm.standin` for the endpoints
 from __future__ import annotations
 
 import contextlib
+import hmac
 import json
 import random
 import socket
@@ -21,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 from agos.agents.vlm.standin.faults import OK, OUTCOMES, FaultSpecError, check_faults, draw_outcome, fault_rng
 from agos.agents.vlm.standin.replies import cap_tokens, completion_body, render_content
 from agos.agents.vlm.standin.requests import ChatRequest, RequestError, error_body, parse_chat_body, split_messages
+from agos.agents.vlm.standin.schema import violation
 
 if TYPE_CHECKING:
     from agos.agents.vlm.protocol import SplitRequest
@@ -101,7 +103,7 @@ class StandinServer:
                  latency_ms: float = 0.0, jitter_ms: float = 0.0, faults: Mapping[str, float] | None = None,
                  retry_after_s: float = 0.05, hang_s: float = 90.0, max_images: int | None = None, seed: int = 0,
                  wrap_p: float = 0.3, script: Sequence[str] = (), host: str = "127.0.0.1", port: int = 0,
-                 log: Callable[[str], None] | None = None) -> None:
+                 log: Callable[[str], None] | None = None, api_key: str | None = None) -> None:
         if not models:
             raise ValueError("at least one model name is needed")
         if latency_ms < 0 or jitter_ms < 0 or retry_after_s < 0 or hang_s < 0:
@@ -110,6 +112,8 @@ class StandinServer:
             raise ValueError("max_images must be >= 0")
         if not 0.0 <= wrap_p <= 1.0:
             raise ValueError("wrap_p must be in [0, 1]")
+        if api_key is not None and not api_key:
+            raise ValueError("the API key is empty")
         unknown = [s for s in script if s not in OUTCOMES]
         if unknown:
             raise FaultSpecError(f"unknown scripted outcome(s) {unknown} (known: {', '.join(OUTCOMES)})")
@@ -119,6 +123,7 @@ class StandinServer:
         self.faults = check_faults(faults)
         self.retry_after_s, self.hang_s, self.max_images, self.seed, self.wrap_p = retry_after_s, hang_s, max_images, seed, wrap_p
         self.log = log
+        self._api_key = api_key
         self.recorded: deque[Recorded] = deque(maxlen=RECORDED)
         self._script = deque(script)
         self._fault_rng, self._reply_rng = fault_rng(seed), random.Random(f"agos-vlm-standin:{seed}:replies")
@@ -207,12 +212,34 @@ class StandinServer:
         data = [{"id": m, "object": "model", "created": created, "owned_by": "agos-vlm-standin"} for m in self.models]
         return _json_response(200, {"object": "list", "data": data})
 
+    @property
+    def requires_key(self) -> bool:
+        """Whether ``/v1/*`` asks for ``Authorization: Bearer <key>`` (``api_key`` given)."""
+        return self._api_key is not None
+
+    def unauthorized(self, authorization: str | None) -> Response | None:
+        """The 401 a ``/v1/*`` request gets without the server's key (None: let it through). The key is
+        never echoed: a wrong one is named by its length only."""
+        if self._api_key is None:
+            return None
+        scheme, _, given = (authorization or "").strip().partition(" ")
+        given = given.strip()
+        if scheme.lower() != "bearer" or not given:
+            return self._refused(RequestError(
+                401, "You didn't provide an API key: send it as 'Authorization: Bearer KEY' (agos vlm-standin "
+                     "was started with --api-key-env).", kind="authentication_error", code="missing_api_key"))
+        if not hmac.compare_digest(given.encode(), self._api_key.encode()):
+            return self._refused(RequestError(
+                401, f"Incorrect API key provided (a key of {len(given)} characters).", kind="authentication_error",
+                code="invalid_api_key"))
+        return None
+
     def stats_response(self) -> Response:
         return _json_response(200, self.stats())
 
     def not_found(self, method: str, path: str) -> Response:
         return self._refused(RequestError(404, f"{method} {path} is not served (try GET /v1/models, "
-                                                  "POST /v1/chat/completions, GET /stats)", kind="NotFoundError"))
+                                                  "POST /v1/chat/completions, GET /stats)"))
 
     def _plan(self) -> Plan:
         with self._lock:
@@ -251,10 +278,11 @@ class StandinServer:
     def _answer(self, plan: Plan, chat: ChatRequest, split: SplitRequest) -> Response:
         if plan.outcome == "429":
             ms = round(self.retry_after_s * 1000)
-            return _json_response(429, error_body("Rate limit reached (injected by agos vlm-standin)", "rate_limit_exceeded", 429),
+            return _json_response(429, error_body("Rate limit reached (injected by agos vlm-standin)", "rate_limit_error",
+                                                  "rate_limit_exceeded"),
                                   (("Retry-After", f"{self.retry_after_s:g}"), ("retry-after-ms", str(ms))))
         if plan.outcome == "500":
-            return _json_response(500, error_body("Internal server error (injected by agos vlm-standin)", "server_error", 500))
+            return _json_response(500, error_body("Internal server error (injected by agos vlm-standin)", "server_error"))
         started = time.monotonic()
         if plan.outcome == "timeout" and self._closing.wait(self.hang_s):
             return Response(0, None)
@@ -265,16 +293,25 @@ class StandinServer:
         except Exception as exc:  # a responder bug: answer 500 and say so, keep serving
             self._count("responder_errors")
             print(f"vlm-standin: responder {responder_name(self.responder)} failed: {exc!r}", file=sys.stderr)
-            return _json_response(500, error_body(f"stand-in responder failed: {type(exc).__name__}: {exc}", "server_error", 500))
+            return _json_response(500, error_body(f"stand-in responder failed: {type(exc).__name__}: {exc}", "server_error"))
+        if chat.strict_schema is not None:
+            problem = violation(reply, chat.strict_schema)
+            if problem is not None:  # a real endpoint constrains its answer or refuses; it never answers off-schema
+                return self._refused(RequestError(
+                    400, f"agos vlm-standin cannot answer the strict json_schema of this request: its responder's "
+                         f"answer fails it at {problem}", param="response_format"))
         if self._closing.wait(max(0.0, plan.delay_s - (time.monotonic() - started))):
             return Response(0, None)
         if plan.outcome == "garbage":
             return Response(200, b"<html><body><h1>502 Bad Gateway</h1></body></html>", content_type="text/html")
-        rng = random.Random(plan.seed + 1)
-        content, finish = render_content(plan.outcome, reply, structured=chat.structured, wrap_p=self.wrap_p, rng=rng)
-        if plan.outcome == OK:
-            content, finish = cap_tokens(content, finish, chat.max_tokens)
-        return _json_response(200, completion_body(plan.index, chat.model, content, finish, chat.prompt_tokens))
+        choices = []
+        for i in range(chat.n):  # each choice draws its own wrapping (the first as a single answer would)
+            rng = random.Random(plan.seed + 1 + i)
+            content, finish = render_content(plan.outcome, reply, structured=chat.structured, wrap_p=self.wrap_p, rng=rng)
+            if plan.outcome == OK:
+                content, finish = cap_tokens(content, finish, chat.max_tokens)
+            choices.append((content, finish))
+        return _json_response(200, completion_body(plan.index, chat.model, choices, chat.prompt_tokens))
 
 
 class _HttpServer(ThreadingHTTPServer):
@@ -312,6 +349,7 @@ class _Handler(BaseHTTPRequestHandler):
     protocol_version = "HTTP/1.1"
     server_version = "agos-vlm-standin/1"
     timeout = 300  # an idle keep-alive connection is closed after this many seconds
+    disable_nagle_algorithm = True  # TCP_NODELAY: an answer leaves at once
     server: _HttpServer
 
     def log_message(self, format: str, *args: Any) -> None:
@@ -320,22 +358,22 @@ class _Handler(BaseHTTPRequestHandler):
     def send_error(self, code: int, message: str | None = None, explain: str | None = None) -> None:
         """Protocol errors (bad request line, unsupported method) as OpenAI-style JSON."""
         self.close_connection = True
-        self._send(_json_response(code, error_body(message or explain or "bad request", "BadRequestError", code)))
+        self._send(_json_response(code, error_body(message or explain or "bad request", "invalid_request_error")))
 
     def _send(self, response: Response) -> None:
+        """Status line, headers and body in one write (two writes on a keep-alive connection wait for the
+        client's delayed ACK: ~40 ms a request under Nagle's algorithm, which is off here anyway)."""
         if response.body is None:
             self.close_connection = True
             return
+        headers = [("Server", self.version_string()), ("Date", self.date_time_string()), *response.headers,
+                   ("Content-Type", response.content_type), ("Content-Length", str(len(response.body)))]
+        if self.close_connection:
+            headers.append(("Connection", "close"))
+        phrase = self.responses.get(response.status, ("",))[0]
+        head = f"{self.protocol_version} {response.status} {phrase}\r\n" + "".join(f"{k}: {v}\r\n" for k, v in headers)
         try:
-            self.send_response(response.status)
-            for key, value in response.headers:
-                self.send_header(key, value)
-            self.send_header("Content-Type", response.content_type)
-            self.send_header("Content-Length", str(len(response.body)))
-            if self.close_connection:
-                self.send_header("Connection", "close")
-            self.end_headers()
-            self.wfile.write(response.body)
+            self.wfile.write(head.encode("latin-1", "strict") + b"\r\n" + response.body)
             self.wfile.flush()
         except OSError:  # the client went away (e.g. it timed out during a hang)
             self.close_connection = True
@@ -348,7 +386,7 @@ class _Handler(BaseHTTPRequestHandler):
         standin._count("requests")
         path = self._path()
         if path == "/v1/models":
-            self._send(standin.models_response())
+            self._send(standin.unauthorized(self.headers.get("Authorization")) or standin.models_response())
         elif path == "/stats":
             self._send(standin.stats_response())
         else:
@@ -362,7 +400,8 @@ class _Handler(BaseHTTPRequestHandler):
             return
         path = self._path()
         if path == "/v1/chat/completions":
-            self._send(standin.chat_response(raw, dict(self.headers.items())))
+            refusal = standin.unauthorized(self.headers.get("Authorization"))
+            self._send(refusal or standin.chat_response(raw, dict(self.headers.items())))
         else:
             self._send(standin.not_found("POST", path))
 
