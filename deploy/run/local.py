@@ -150,7 +150,7 @@ def _start_vlm(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, console: Cons
                       highlight=False)
         return {"base_url": None, "model": plan.vlm["model"]}
     if "standin" not in plan.vlm:
-        return {"base_url": plan.vlm["base_url"], "model": plan.vlm["model"]}
+        return {"base_url": plan.vlm.get("base_url") or cfg.vlm.base_url, "model": plan.vlm["model"]}  # a replay: none kept
     port = free_port(STANDIN_PORT)
     faults = ["--faults", plan.vlm["standin"]] if plan.vlm["standin"] else []
     launcher.start("vlm-standin", ["vlm-standin", "--port", str(port), "--model", STANDIN_MODEL, *faults,

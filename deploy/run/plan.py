@@ -76,6 +76,8 @@ def vlm_plan(cfg: AgosConfig, policies: dict[str, str], standin: str | None) -> 
         names = ", ".join(sorted({p for p in policies.values() if needs_vlm(p)}))
         raise RunDirError(f"policy {names} asks a VLM: give --vlm-base-url URL --model NAME, or --vlm-standin for the "
                           "offline stand-in server" + (" (a replay needs only --model)" if cfg.vlm.replaying else ""))
+    if cfg.vlm.replaying:  # no endpoint: none is asked, checked or stored
+        return {"model": cfg.vlm.model, **cache}
     return {"base_url": cfg.vlm.base_url, "model": cfg.vlm.model, **cache}
 
 
