@@ -61,11 +61,13 @@ all-tests: $(STAMP)
 contracts: $(STAMP)
 	$(BIN)/lint-imports
 
-# mypy sees the top-level folders under their agos.* names through a folder of links.
+# mypy sees the top-level folders under their agos.* names through a folder of links (and examples/ as
+# a user's code would import it).
 typecheck: $(STAMP)
 	mkdir -p .typecheck/agos
 	for d in runtime world agents evaluator deploy; do ln -sfn ../../$$d .typecheck/agos/$$d; done
-	cd .typecheck && ../$(BIN)/mypy --config-file ../pyproject.toml -p agos
+	ln -sfn ../examples .typecheck/examples
+	cd .typecheck && ../$(BIN)/mypy --config-file ../pyproject.toml -p agos -p examples
 
 # The unit tests on every core; a module's tests stay on one worker, so its fixtures are built once.
 unit: $(STAMP)

@@ -5,8 +5,9 @@
 Every observation on ``agos/<run>/ep/<ep>/obs/<role>`` is answered on the matching
 ``.../act/<role>`` key, for each episode a world announces with its liveliness token
 (``agos/<run>/ep/<ep>/live/<worker>``). Observations are handled concurrently on an asyncio loop, at most
-``concurrency`` at a time: policies with an ``act_async`` coroutine (remote models, the
-fixed-latency stand-in) overlap their waiting; plain ``act`` policies run in worker threads;
+``concurrency`` at a time: the service awaits each policy's ``act_async`` (agents/contract.py), so
+policies that define one (remote models, the fixed-latency stand-in) overlap their waiting, and
+the others run ``act`` in one of ``concurrency`` worker threads (the contract's default);
 ``inline`` policies (microseconds, no I/O: random, oracle, standin-0ms) are answered on the
 thread that received the observation. Policies receive the decoded ``Observation`` struct and
 answer an ``Action`` struct, which is encoded and read back as the world will read it before it
@@ -29,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from agos.agents.contract import Policy, action_for
+from agos.agents.names import needs_vlm
 from agos.agents.registry import make_policy
 from agos.runtime import keys
 from agos.runtime.bus import Bus, Sample, ZenohBus
@@ -54,7 +56,7 @@ class _Dispatch:
     def __init__(self, bus: Bus, policy: Policy, run_id: str, loop: asyncio.AbstractEventLoop,
                  on_loop: Callable[[Observation], None]) -> None:
         self.bus, self.policy, self.run_id, self.loop, self.on_loop = bus, policy, run_id, loop, on_loop
-        self.inline = bool(getattr(policy, "inline", False))
+        self.inline = policy.inline
         self.lock = threading.Lock()
         self.attempts: dict[str, int] = {}  # episode -> the latest attempt observed
         self.rejections = Rejections(log)
@@ -178,10 +180,9 @@ def decide(policy: Policy, obs: Observation) -> Action:
         return _policy_failed(obs)
 
 
-async def answer(policy: Policy, obs: Observation, executor: ThreadPoolExecutor) -> Action:
-    """An action from an ``act_async`` policy, or from ``act`` in a worker thread."""
-    if not hasattr(policy, "act_async"):
-        return await asyncio.get_running_loop().run_in_executor(executor, decide, policy, obs)
+async def answer(policy: Policy, obs: Observation) -> Action:
+    """The policy's ``act_async`` (by default ``act`` in a worker thread of the loop's default
+    executor, which :func:`serve_async` sizes); a policy error is logged and answered with a WAIT."""
     try:
         return await policy.act_async(obs)
     except Exception:
@@ -225,12 +226,13 @@ async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, 
     loop = asyncio.get_running_loop()
     limit = asyncio.Semaphore(concurrency)
     executor = ThreadPoolExecutor(max_workers=concurrency, thread_name_prefix="policy")
+    loop.set_default_executor(executor)  # where the contract's default act_async runs act
     tasks: set[asyncio.Task] = set()
 
     async def handle(obs: Observation) -> None:
         async with limit:
             started = time.monotonic()  # the policy's latency, not the wait for a free slot
-            action = await answer(policy, obs, executor)
+            action = await answer(policy, obs)
         publish_action(bus, run_id, obs, action, started)
 
     def on_loop(message: Observation) -> None:
@@ -265,14 +267,12 @@ def main(cfg: AgosConfig, *, role: Role, policy_name: str | None = None, concurr
     stop = install_stop_handlers()
     name = policy_name or (cfg.run.policy_uav if role == "uav" else cfg.run.policy_ugv)
     policy = make_policy(name, role, vlm=cfg.vlm, dataset_out=dataset_out)
-    if hasattr(policy, "preflight"):
-        from agos.agents.vlm.client import VlmError
-
-        try:
-            asyncio.run(policy.preflight())
-        except VlmError as exc:
-            log.error("VLM preflight failed: %s", exc)
-            return 3
+    try:
+        asyncio.run(policy.preflight())
+    except Exception as exc:  # the policy's own words on what to fix
+        log.error("%s preflight failed: %s", "VLM" if needs_vlm(name) else f"policy {name!r}", exc)
+        return 3
+    if needs_vlm(name):
         log.info("VLM endpoint %s serves %s (checked: model listed, %s-sized requests accepted)",
                  cfg.vlm.base_url, cfg.vlm.model, role)
     with ZenohBus.from_settings(cfg.zenoh) as bus:

@@ -64,13 +64,26 @@ def _demo(args: argparse.Namespace, cfg: AgosConfig) -> int:
         return 2
 
 
+POLICY_HELP = "a name (docs/AGENTS.md), one registered in the agos.policies entry points, or package.module:Class"
+
+
+def _locate_here(args: argparse.Namespace, policies: Any) -> None:
+    """A run that starts its agents here (not ``--connect``): their policies' modules must be found
+    here, before any process starts (agents/registry.py::locate_policy; raises ValueError)."""
+    if not args.connect:
+        from agos.agents.registry import locate_policy
+
+        for name in policies:
+            locate_policy(name)
+
+
 def _add_eval(sub: Any) -> None:
     ev = sub.add_parser("eval", help="evaluate policies on an episode file: leases, fault tolerance, resume")
     ev.add_argument("--config", type=Path)
     ev.add_argument("--split", type=Path, help="JSONL episode file (e.g. a split's val.jsonl); default: generate")
-    ev.add_argument("--policy", help="policy of both roles (default heuristic)")
-    ev.add_argument("--policy-uav")
-    ev.add_argument("--policy-ugv")
+    ev.add_argument("--policy", help=f"policy of both roles (default heuristic): {POLICY_HELP}")
+    ev.add_argument("--policy-uav", help="the UAV's policy (default --policy)")
+    ev.add_argument("--policy-ugv", help="the UGV's policy (default --policy)")
     ev.add_argument("--comm", default="ideal", help="comm profile name (deploy/comm) or TOML file")
     ev.add_argument("--timing", choices=["lockstep", "realtime"], default="lockstep")
     ev.add_argument("--uav-verification", choices=["frozen", "active"],
@@ -112,7 +125,9 @@ def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
     try:
         if args.resume:
             plan = run_plan.resume_plan(args.resume)
+            _locate_here(args, plan.policies.values())
         else:
+            _locate_here(args, (cfg.run.policy_uav, cfg.run.policy_ugv))
             run_dir = args.run_dir
             if run_dir is None and args.connect and args.run_id:
                 run_dir = cfg.run.runs_dir / args.run_id
@@ -149,7 +164,9 @@ def _add_sweep(sub: Any) -> None:
                          "loss.p_bad_to_good ...), beacon_s, or loss.burst_len / blackouts.duration_s (docs/COMMS.md)")
     sw.add_argument("--values", default="0,0.1,0.2,0.3,0.4,0.5", help="comma-separated values")
     sw.add_argument("--seeds", default="0,1", help="comma-separated link seeds")
-    sw.add_argument("--policy", default="heuristic")
+    sw.add_argument("--policy", default="heuristic", help=f"policy of both roles (default heuristic): {POLICY_HELP}")
+    sw.add_argument("--policy-uav", help="the UAV's policy (default --policy)")
+    sw.add_argument("--policy-ugv", help="the UGV's policy (default --policy)")
     sw.add_argument("--workers", type=int, default=2)
     sw.add_argument("--out", type=Path, required=True)
     vlm_flags(sw)
@@ -169,14 +186,15 @@ def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
     try:  # everything that can be wrong with the command fails here, before the progress bar
         values = [float(v) for v in args.values.split(",")]
         seeds = [int(v) for v in args.seeds.split(",")]
-        config = episode_config(cfg, policies={"uav": args.policy, "ugv": args.policy}, comm=args.comm)
+        policies = {"uav": args.policy_uav or args.policy, "ugv": args.policy_ugv or args.policy}
+        config = episode_config(cfg, policies=policies, comm=args.comm)
         for value in values:
             with_param(config.comm, args.param, value)  # an unknown --param, or a value it cannot take
         total = len(values) * len(seeds) * len(read_split(args.split, look=config.look))
         with Progress(TextColumn("[bold]sweep"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()) as bar:
             task = bar.add_task("episodes", total=total)
             table = run_sweep(args.split, args.out, config=config, param=args.param, values=values, seeds=seeds,
-                              policies=(args.policy, args.policy), workers=args.workers,
+                              policies=(policies["uav"], policies["ugv"]), workers=args.workers,
                               progress=lambda: bar.advance(task), vlm=cfg.vlm, vlm_standin=args.vlm_standin)
     except (ProfileError, ValueError) as exc:
         print(f"sweep error: {exc}", file=sys.stderr)
@@ -194,14 +212,22 @@ def _add_check(sub: Any) -> None:
     check_agent.add_argument("--budget", type=int, default=16, help="decisions in the check episode (default 16)")
     check_agent.add_argument("--town", default="grid-s7", help="procedural town of the check episode")
     check_agent.add_argument("--policy", default="heuristic",
-                             help="policy the agents run, for the world's tools (baseline: no candidates; ablations)")
+                             help="policy the agents run, for the world's tools (baseline: no candidates; ablations; "
+                                  "package.module:Class: every tool)")
+    check_agent.add_argument("--policy-uav", help="the UAV agent's policy, for the world's tools (default --policy)")
+    check_agent.add_argument("--policy-ugv", help="the UGV agent's policy, for the world's tools (default --policy)")
     check_agent.add_argument("--agent-wait", type=float, help="seconds to wait for each role's service (default 30)")
 
 
 def _check_agent(args: argparse.Namespace, cfg: AgosConfig) -> int:
     from agos.deploy.run.check import run_check
 
-    return run_check(cfg, budget=args.budget, town_name=args.town, policy=args.policy)
+    policies = {"uav": args.policy_uav or args.policy, "ugv": args.policy_ugv or args.policy}
+    try:
+        return run_check(cfg, budget=args.budget, town_name=args.town, policies=policies)
+    except ValueError as exc:  # a policy name that names none: before the bus is opened
+        print(f"check error: {exc}", file=sys.stderr)
+        return 2
 
 
 DEMO = Command(("demo",), _add_demo, with_settings(_demo))

@@ -67,7 +67,8 @@ def _add_agent(sub: Any) -> None:
     agent = sub.add_parser("agent", help="agent service for one role")
     connection_flags(agent)
     agent.add_argument("--role", choices=["uav", "ugv"], required=True)
-    agent.add_argument("--policy", help="policy name (default from config: heuristic)")
+    agent.add_argument("--policy", help="policy name (default from config: heuristic), one registered in the "
+                       "agos.policies entry points, or package.module:Class (docs/AGENTS.md)")
     agent.add_argument("--concurrency", type=int, default=AGENT_CONCURRENCY,
                        help=f"decisions answered at once (default {AGENT_CONCURRENCY})")
     agent.add_argument("--dataset-out", type=Path,

@@ -15,9 +15,11 @@ per check:
 * ``message``: messages to the teammate are at most 500 characters;
 * ``finished``: the episode ran to its end (confirm, false confirm or budget).
 
-The episode's budget is cut short (``--budget``); ``--policy`` sets the world's tools to what that
-policy expects (Baseline: no candidates; ablations). The check episode's record is not published,
-so no evaluator stores it. The exit status is 0 when every check passed.
+The episode's budget is cut short (``--budget``); ``--policy`` (or ``--policy-uav``/``--policy-ugv``)
+sets the world's tools to what that policy expects (Baseline: no candidates; ablations; a policy
+of one's own, ``package.module:Class``: every tool). The policy's code is not needed here. The
+check episode's record is not published, so no evaluator stores it. The exit status is 0 when
+every check passed.
 """
 
 from __future__ import annotations
@@ -103,8 +105,11 @@ class StepChecks:
         self.inner.message(message)
 
 
-def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "heuristic",
+def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policies: dict[str, str] | None = None,
               console: Console | None = None) -> int:
+    """One check episode; 0 when every check passed, 1 otherwise. ``policies``: the policy each role's
+    agent runs (default heuristic), for the world's tools; a name that names no policy raises
+    ValueError before the bus is opened."""
     from agos.deploy.run.configure import episode_config
     from agos.world.episodes.sampling import generate_episodes
     from agos.world.sim.engine import EpisodeRunner
@@ -113,12 +118,12 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policy: str = "he
     from agos.world.towns.asset import open_town
 
     console = console or Console(soft_wrap=True)  # paths and commands it prints are never cut at the width
+    config = episode_config(cfg, policies=policies or {"uav": "heuristic", "ugv": "heuristic"}, decision_budget=budget)
     stop = install_stop_handlers()
     v = Verdicts()
     run_id = cfg.run.run_id
     bus = ZenohBus.from_settings(cfg.zenoh)
     town = open_town(town_name)
-    config = episode_config(cfg, policies={"uav": policy, "ugv": policy}, decision_budget=budget)
     scene = Scene(town.layout, renderer=config.renderer, look=config.look)
     record: EpisodeRecord | None = None
     with bus, scene:
