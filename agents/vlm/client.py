@@ -160,7 +160,7 @@ class VlmClient:
                                                    self._secret is not None, self._redact(server_message(response))),
                                        attempts=attempt + 1, kind="auth")
                     elif response.is_error:
-                        raise VlmError(f"{self.base_url}: HTTP {response.status_code}: {self._redact(response.text[:200])}",
+                        raise VlmError(f"{self.base_url}: HTTP {response.status_code}: {self._redact(server_message(response))}",
                                        attempts=attempt + 1)
                     else:
                         return self._reply(response.json(), started, attempt + 1)

@@ -125,6 +125,8 @@ def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
     try:
         if args.resume:
             plan = run_plan.resume_plan(args.resume)
+            if not args.connect:  # its agents start here: their endpoint is checked first, as a new run's
+                plan.endpoint = run_plan.check_endpoint(cfg.vlm, plan.vlm)
             _locate_here(args, plan.policies.values())
         else:
             _locate_here(args, (cfg.run.policy_uav, cfg.run.policy_ugv))
@@ -132,7 +134,7 @@ def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
             if run_dir is None and args.connect and args.run_id:
                 run_dir = cfg.run.runs_dir / args.run_id
             plan = run_plan.new_plan(cfg, run_dir=run_dir, comm=args.comm, timing_mode=args.timing, stamp=True,
-                                     vlm_standin=args.vlm_standin, workers=args.workers)
+                                     vlm_standin=args.vlm_standin, workers=args.workers, check_vlm=not args.connect)
     except (run_plan.RunDirError, ProfileError, ValueError) as exc:
         print(f"eval error: {exc}", file=sys.stderr)
         return 2
@@ -179,7 +181,7 @@ def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from agos.deploy.run.configure import episode_config
-    from agos.deploy.run.sweep import run_sweep, with_param
+    from agos.deploy.run.sweep import check_sweep_endpoint, run_sweep, with_param
     from agos.runtime.links import ProfileError
     from agos.world.episodes.files import read_split
 
@@ -190,6 +192,7 @@ def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
         config = episode_config(cfg, policies=policies, comm=args.comm)
         for value in values:
             with_param(config.comm, args.param, value)  # an unknown --param, or a value it cannot take
+        check_sweep_endpoint(policies.values(), cfg.vlm, args.vlm_standin)  # the model endpoint answers /models
         total = len(values) * len(seeds) * len(read_split(args.split, look=config.look))
         with Progress(TextColumn("[bold]sweep"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()) as bar:
             task = bar.add_task("episodes", total=total)

@@ -20,6 +20,6 @@ def main(cfg: AgosConfig, *, config_path: Path | None = None, port: int | None =
          console: Console | None = None, comm: str = "ideal", timing_mode: str = "lockstep", secure: bool = False,
          recording: Recording | None = None) -> int:
     """``recording``: ``--record DIR``, a recorder writes each episode as a rerun file (deploy/recording/recorder.py)."""
-    plan = new_plan(cfg, run_dir=None, comm=comm, timing_mode=timing_mode, stamp=not attach)
+    plan = new_plan(cfg, run_dir=None, comm=comm, timing_mode=timing_mode, stamp=not attach, check_vlm=not attach)
     return evaluate.run(cfg, plan, workers=cfg.run.workers, attach=attach, port=port, config_path=config_path,
                         console=console, secure=secure, recording=recording)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import shlex
 import time
 from collections import deque
@@ -156,22 +157,35 @@ class Absences:
                     f"`{self.resume}`", 3)
 
 
+LOG_RECORD = re.compile(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d")
+"""How a child's log record starts (runtime/process.py's format: its time first); other lines continue one."""
+
+
 def last_error(log: Path, tail_bytes: int = 32_768) -> str | None:
-    """The message of the last ERROR line a child logged since its latest start (the launcher's
-    ``=====`` line), one line; None when there is none (or no log)."""
+    """The message of the last ERROR record a child logged since its latest start (the launcher's
+    ``=====`` line), its continuation lines joined into one line (a traceback left out); None when
+    there is none (or no log)."""
     try:
         with log.open("rb") as f:
             f.seek(max(0, f.seek(0, 2) - tail_bytes))
             text = f.read().decode(errors="replace")
     except OSError:
         return None
-    found = None
+    found: list[str] | None = None
+    continues = False
     for line in text.splitlines():
         if line.startswith("===== agos "):
-            found = None
-        elif " ERROR " in line:
-            found = line.split(" ERROR ", 1)[1].split(": ", 1)[-1].strip()
-    return found
+            found, continues = None, False
+        elif LOG_RECORD.match(line):
+            continues = " ERROR " in line
+            if continues:
+                found = [line.split(" ERROR ", 1)[1].split(": ", 1)[-1].strip()]
+        elif continues and found is not None:
+            if line.startswith("Traceback (most recent call last)"):
+                continues = False
+            elif line.strip():
+                found.append(line.strip())
+    return " ".join(found) if found else None
 
 
 def exited_children(launcher: Launcher, logs: Path) -> Halt | None:
@@ -245,6 +259,8 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
     orch = None
     interrupted = False
     creds = RunCredentials() if secure and not attach else None
+    if plan.endpoint:
+        console.print(plan.endpoint, highlight=False)
     try:
         own = _connect(cfg, plan, launcher, side, attach=attach, port=port, workers=workers, config_path=config_path,
                        console=console, creds=creds, recording=recording)

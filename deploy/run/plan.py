@@ -11,6 +11,7 @@ episodes not yet stored.
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -22,14 +23,23 @@ from agos.evaluator.store import ResultStore
 from agos.runtime.episode_config import EpisodeConfig, StoredConfigError, read_config
 from agos.runtime.provenance import provenance
 from agos.runtime.schemas import EpisodeSpec
-from agos.runtime.settings import AgosConfig
+from agos.runtime.settings import AgosConfig, VlmOptions
 
 RUN_FILE = "run.json"
 STANDIN_MODEL = "agos-standin"
 """The model name of the stand-in VLM server a run starts itself (``--vlm-standin``)."""
 
+PREFLIGHT_TIMEOUT_S = 10.0
+"""The longest :func:`check_endpoint` waits for ``/models`` (``[vlm] timeout_s`` when shorter): a
+listing answers at once on any live server, however slow its model."""
+
+
 class RunDirError(ValueError):
     """A run directory that cannot be created or resumed; the message names it and why."""
+
+
+class EndpointError(ValueError):
+    """The run's model endpoint fails its preflight: one line saying what failed and what to change."""
 
 
 @dataclass
@@ -47,6 +57,8 @@ class RunPlan:
     """``--workers`` as the run was started with (a count or ``auto``): what ``--resume`` uses again."""
     dataset_out: Path | None = None
     """A dataset build (deploy/dataset/build.py): the agents it starts write every decision there."""
+    endpoint: str | None = None
+    """What :func:`check_endpoint` found (a line for the console); None when it did not run."""
 
     @property
     def run_id(self) -> str:
@@ -104,10 +116,49 @@ def vlm_cache_plan(cfg: AgosConfig, model: str | None) -> dict[str, Any]:
     return {"cache_dir": str(Path(o.cache_dir).resolve()), "cache_mode": o.cache_mode}
 
 
+def check_endpoint(options: VlmOptions, vlm: dict[str, Any]) -> str | None:
+    """Before any process starts: the model endpoint of a run's plan (``vlm``, :func:`vlm_plan`) answers
+    ``/models`` and lists the model, with the key of ``options.api_key_env`` when it asks for one.
+    Raises :class:`EndpointError` with the line of agents/vlm/endpoint.py (refused, unreachable,
+    timeout, 401/403 naming the key variable and whether it is set, a model not served); returns the
+    line to print (what was checked, where the key comes from), or None when the plan names no
+    endpoint (no VLM policy, or the stand-in the run starts itself).
+
+    A key variable is *needed* when the endpoint answers 401/403 without it: then an unset one is
+    refused here. An unset variable is accepted, and said so, when the endpoint answers without a key
+    (a local vLLM, SGLang or Ollama server usually asks for none, on loopback or not)."""
+    if "base_url" not in vlm or options.replaying:  # a replay (--vlm-cache-mode replay) asks no endpoint
+        return None
+    import asyncio
+
+    from agos.agents.vlm.client import VlmClient, VlmError
+
+    checked = options.model_copy(update={"base_url": vlm["base_url"], "model": vlm["model"]})
+    timeout_s = min(checked.timeout_s, PREFLIGHT_TIMEOUT_S)
+
+    async def listing() -> list[str]:
+        client = VlmClient(str(checked.base_url), str(checked.model), api_key_env=checked.api_key_env, timeout_s=timeout_s)
+        try:
+            return await client.preflight()
+        finally:
+            await client.close()
+
+    try:
+        asyncio.run(listing())
+    except VlmError as exc:
+        raise EndpointError(f"VLM endpoint {exc}") from None
+    key = (f"API key from {checked.api_key_env}" if os.environ.get(checked.api_key_env)
+           else f"no API key: {checked.api_key_env} is not set and the endpoint answered without one")
+    return f"VLM endpoint: {checked.base_url} serves {checked.model} ({key})"
+
+
 def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: str, stamp: bool,
-             vlm_standin: str | None = None, workers: int | str | None = None, dataset_out: Path | None = None) -> RunPlan:
+             vlm_standin: str | None = None, workers: int | str | None = None, dataset_out: Path | None = None,
+             check_vlm: bool = False) -> RunPlan:
     """A new run directory with its run.json and episodes.jsonl. ``workers``: the command's
-    ``--workers`` (a count or ``auto``), stored for ``--resume``; ``dataset_out``: see :class:`RunPlan`."""
+    ``--workers`` (a count or ``auto``), stored for ``--resume``; ``dataset_out``: see :class:`RunPlan`.
+    ``check_vlm``: the run starts its agents here, so its model endpoint is checked
+    (:func:`check_endpoint`) before episodes are read or generated and anything is written."""
     from agos.world.episodes.files import read_split, write_episodes
 
     # Everything that can be wrong with the command fails before episodes are generated.
@@ -119,13 +170,15 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
     policies = {"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv}
     config = episode_config(cfg, policies=policies, comm=comm, timing_mode=timing_mode)  # bad names fail here
     vlm = vlm_plan(cfg, policies, vlm_standin)
+    endpoint = check_endpoint(cfg.vlm, vlm) if check_vlm else None
     if cfg.run.episodes_file:  # checked as a whole: ids, towns, waypoints, the run's look (world/episodes/files.py)
         episodes = read_split(cfg.run.episodes_file, look=config.look)
     else:
         episodes = generated_episodes(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_episodes(run_dir / "episodes.jsonl", episodes)
-    plan = RunPlan(run_dir, episodes, policies, config, vlm=vlm, workers=workers, dataset_out=dataset_out)
+    plan = RunPlan(run_dir, episodes, policies, config, vlm=vlm, workers=workers, dataset_out=dataset_out,
+                   endpoint=endpoint)
     (run_dir / RUN_FILE).write_text(json.dumps({
         "run_id": plan.run_id, "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "policies": plan.policies, "comm": config.comm.name, "timing_mode": config.timing_mode, "episodes": len(episodes),

@@ -27,7 +27,7 @@ import hashlib
 import json
 import math
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -136,6 +136,17 @@ def _run_point_episode(args: tuple[str, str, list[str], str, str]) -> tuple[int,
     record = EpisodeRunner(scene, town, spec, run_id="sweep", worker_id="sweep",
                            config=config).run(agents)
     return int(point), to_json(record).decode()
+
+
+def check_sweep_endpoint(policies: Iterable[str], vlm: VlmOptions, vlm_standin: str | None) -> None:
+    """The endpoint a sweep's VLM policies will ask answers ``/models`` and lists the model
+    (deploy/run/plan.py::check_endpoint; an EndpointError is one line); nothing to check without a
+    VLM policy, with the stand-in the sweep starts itself, or without an endpoint (make_policy says)."""
+    from agos.agents.names import needs_vlm
+    from agos.deploy.run.plan import check_endpoint
+
+    if vlm_standin is None and vlm.base_url and vlm.model and any(needs_vlm(p) for p in policies):
+        check_endpoint(vlm, {"base_url": vlm.base_url, "model": vlm.model})
 
 
 def run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, param: str, values: list[float],
