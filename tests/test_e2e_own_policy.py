@@ -18,14 +18,19 @@ from agos.evaluator.store import ResultStore
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = "examples.my_policy:Explorer"
 BUDGET = 8
+FLAT_AND_SHORT = {"AGOS_WORLD__LOOK": "flat", "AGOS_WORLD__DECISION_BUDGET": str(BUDGET)}
 
 pytestmark = pytest.mark.e2e
 AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 
 
-def test_agos_eval_runs_the_example_as_agent_processes(tmp_path: Path, sample_mid_episodes) -> None:
-    split = sample_mid_episodes(1, 5)
-    env = {**os.environ, "AGOS_WORLD__DECISION_BUDGET": str(BUDGET)}
+def test_agos_eval_runs_the_example_as_agent_processes(tmp_path: Path) -> None:
+    from agos.deploy.cli import main
+
+    split = tmp_path / "eps.jsonl"  # flat look: the policy sees no pixels, and flat scenes build faster
+    assert main(["episodes", "sample", "--town", "grid-s7", "--difficulty", "mid", "-n", "1", "--seed", "5",
+                 "--look", "flat", "--out", str(split)]) == 0
+    env = {**os.environ, **FLAT_AND_SHORT}
     out = subprocess.run([*AGOS, "eval", "--split", str(split), "--policy", EXAMPLE, "--run-dir", str(tmp_path / "run")],
                          cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stdout + out.stderr
@@ -50,7 +55,8 @@ def test_agos_check_agent_passes_the_example_served_from_elsewhere(tmp_path: Pat
             procs.append(subprocess.Popen([*AGOS, "agent", "--role", role, "--policy", EXAMPLE, "--connect", endpoint,
                                            "--run", "own"], cwd=tmp_path, env=env, stdout=log, stderr=subprocess.STDOUT))
         out = subprocess.run([*AGOS, "check", "agent", "--connect", endpoint, "--run", "own", "--policy", EXAMPLE,
-                              "--budget", str(BUDGET)], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+                              "--budget", str(BUDGET)], cwd=tmp_path, env={**os.environ, **FLAT_AND_SHORT},
+                             capture_output=True, text=True, timeout=120)
         assert out.returncode == 0, out.stdout + out.stderr
         assert "PASS: the agents conform" in out.stdout and f"{BUDGET} decisions, 0 fallbacks" in out.stdout
     finally:

@@ -127,7 +127,8 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policies: dict[st
     scene = Scene(town.layout, renderer=config.renderer, look=config.look)
     record: EpisodeRecord | None = None
     with bus, scene:
-        spec = generate_episodes(town, scene, per_difficulty=1, seed=cfg.run.episode_seed)[0]
+        # the first of the generated episodes; sampling only its difficulty gives the same episode
+        spec = generate_episodes(town, scene, per_difficulty=1, seed=cfg.run.episode_seed, difficulties=("easy",))[0]
         spec = msgspec.structs.replace(spec, episode_id=f"check-{spec.episode_id}")
         console.print(f"checking the agents of run {run_id!r} on {cfg.zenoh.connect}: episode {spec.episode_id}, "
                       f"{budget} decisions (waiting up to {cfg.run.agent_wait_s:.0f} s for the agent services)")
