@@ -78,7 +78,7 @@ def test_the_example_plays_an_episode_in_process(repo_on_path: None) -> None:
         ("Explorer", "explorer", "uav", True), ("Explorer", "explorer", "ugv", True)]
     town = open_town("grid-s7")
     with Scene(town.layout, look="flat") as scene:
-        spec = generate_episodes(town, scene, per_difficulty=1, seed=1)[0]
+        spec = generate_episodes(town, scene, per_difficulty=1, seed=1, difficulties=("easy",))[0]
         record = EpisodeRunner(scene, town, spec, run_id="t", worker_id="w",
                                config=EpisodeConfig(look="flat", decision_budget=10)).run(InProcessAgents(policies))
     assert (record.status, record.termination, record.fallbacks) == ("finished", "budget_exhausted", 0)
