@@ -29,7 +29,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from agos.agents.contract import Policy, action_for
+from agos.agents.contract import FatalPolicyError, Policy, action_for
 from agos.agents.names import needs_vlm
 from agos.agents.registry import make_policy
 from agos.runtime import keys
@@ -185,6 +185,8 @@ async def answer(policy: Policy, obs: Observation) -> Action:
     executor, which :func:`serve_async` sizes); a policy error is logged and answered with a WAIT."""
     try:
         return await policy.act_async(obs)
+    except FatalPolicyError:  # the service stops (serve_async)
+        raise
     except Exception:
         return _policy_failed(obs)
 
@@ -228,11 +230,19 @@ async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, 
     executor = ThreadPoolExecutor(max_workers=concurrency, thread_name_prefix="policy")
     loop.set_default_executor(executor)  # where the contract's default act_async runs act
     tasks: set[asyncio.Task] = set()
+    fatal: list[FatalPolicyError] = []
 
     async def handle(obs: Observation) -> None:
         async with limit:
             started = time.monotonic()  # the policy's latency, not the wait for a free slot
-            action = await answer(policy, obs)
+            try:
+                action = await answer(policy, obs)
+            except FatalPolicyError as exc:  # no answer, no further decisions: the run must not go on
+                if not fatal:
+                    log.error("%s", exc)
+                fatal.append(exc)
+                stop.set()
+                return
         publish_action(bus, run_id, obs, action, started)
 
     def on_loop(message: Observation) -> None:
@@ -258,7 +268,7 @@ async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, 
         for task in tasks:
             task.cancel()
         executor.shutdown(wait=False, cancel_futures=True)
-    return 0
+    return fatal[0].exit_code if fatal else 0
 
 
 def main(cfg: AgosConfig, *, role: Role, policy_name: str | None = None, concurrency: int = 32,
@@ -272,7 +282,9 @@ def main(cfg: AgosConfig, *, role: Role, policy_name: str | None = None, concurr
     except Exception as exc:  # the policy's own words on what to fix
         log.error("%s preflight failed: %s", "VLM" if needs_vlm(name) else f"policy {name!r}", exc)
         return 3
-    if needs_vlm(name):
+    if needs_vlm(name) and cfg.vlm.replaying:
+        log.info("VLM calls of %s replayed from %s (no endpoint)", cfg.vlm.model, cfg.vlm.cache_dir)
+    elif needs_vlm(name):
         log.info("VLM endpoint %s serves %s (checked: model listed, %s-sized requests accepted)",
                  cfg.vlm.base_url, cfg.vlm.model, role)
     with ZenohBus.from_settings(cfg.zenoh) as bus:

@@ -14,6 +14,7 @@ import httpx
 import pytest
 
 from agos.agents.contract import FatalPolicyError
+from agos.agents.service import serve_async
 from agos.agents.vlm.cache import (
     CACHE_FILE,
     CacheError,
@@ -24,7 +25,15 @@ from agos.agents.vlm.cache import (
     canonical_request,
 )
 from agos.agents.vlm.client import Reply, VlmClient, VlmError, image_part
+from agos.deploy.run.evaluate import exited_children
+from agos.runtime import keys
+from agos.runtime.bus import Inbox, MemoryBus
+from agos.runtime.codec import encode
+from agos.runtime.process import StopFlag
+from agos.runtime.schemas import CoordinationState, Observation, Pose
 from agos.runtime.settings import load_config
+
+from support.waiting import wait_until
 
 PNG_A = b"\x89PNG\r\n\x1a\n" + b"a" * 64
 PNG_B = b"\x89PNG\r\n\x1a\n" + b"b" * 64
@@ -248,3 +257,70 @@ def test_stats_prints_hits_misses_tokens_and_size(tmp_path, agos) -> None:
     assert "size:" in result.stdout and "2 images" in result.stdout
     missing = agos("vlm-cache", "stats", tmp_path / "nothing")
     assert missing.returncode == 2 and "no vlm-cache.sqlite" in missing.stderr and "\n" not in missing.stderr.strip()
+
+
+# ----- a miss stops the agent service, and agos eval says why in one line --------------------------------
+class Replaying:
+    """A policy whose every decision is a replay miss."""
+
+    role, name, inline = "uav", "replaying", False
+
+    async def act_async(self, obs):
+        raise CacheMiss(f"VLM cache miss in replay: model m, role uav, decision {obs.episode_id} #{obs.decision_index}, "
+                        "request 0123456789abcdef (never recorded in stream 'e1/uav')")
+
+    def act(self, obs):
+        raise AssertionError("the service awaits act_async")
+
+    def end_episode(self, episode_id: str) -> None:
+        pass
+
+    async def preflight(self) -> None:
+        pass
+
+
+def test_a_miss_stops_the_agent_service_with_exit_4_and_answers_nothing(caplog) -> None:
+    bus, stop, codes = MemoryBus(), StopFlag(), []
+    actions = Inbox()
+    bus.subscribe(keys.act("r", "*", "uav"), actions)
+    thread = threading.Thread(target=lambda: codes.append(asyncio.run(serve_async(bus, Replaying(), "r", stop,
+                                                                                  concurrency=2))), daemon=True)
+    thread.start()
+    try:
+        bus.declare_token(keys.episode_live("r", "e1", "w1"))
+        assert wait_until(lambda: bus.wait_for_subscriber(keys.obs("r", "e1", "uav"), 0))
+        obs = Observation(run_id="r", episode_id="e1", role="uav", decision_index=3, sim_time_s=0.0,
+                          pose=Pose(position_world_m=(0.0, 0.0, 80.0), yaw_rad=0.0), mode="aerial", images=[],
+                          references=[], legal_actions=["WAIT"], waypoint_options=[],
+                          region_world_m=(0.0, 0.0, 10.0, 10.0),
+                          coordination=CoordinationState(run_id="r", episode_id="e1", sim_time_s=0.0))
+        bus.publish(keys.obs("r", "e1", "uav"), encode(obs))
+        thread.join(10)
+    finally:
+        stop.set()
+    assert not thread.is_alive() and codes == [4] and stop.is_set()
+    assert actions.get(0) is None  # no WAIT in the model's name
+    errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+    assert errors == ["VLM cache miss in replay: model m, role uav, decision e1 #3, request 0123456789abcdef "
+                      "(never recorded in stream 'e1/uav')"]
+
+
+def test_agos_eval_names_an_agent_that_stopped_on_a_miss_in_one_line(tmp_path) -> None:
+    miss = "VLM cache miss in replay: model m, role ugv, decision ep-1 #7, request 0123456789abcdef ([never] recorded)"
+    (tmp_path / "agent-ugv.log").write_text(
+        "===== agos agent started 2026-01-01 10:00:00 =====\n"
+        "2026-01-01 10:00:01,000 agent-ugv[9] ERROR agos.agent: an error of an earlier start\n"
+        "===== agos agent started 2026-01-01 11:00:00 =====\n"
+        "2026-01-01 11:00:01,000 agent-ugv[10] INFO agos.agent: ugv agent serving run r\n"
+        f"2026-01-01 11:00:05,000 agent-ugv[10] ERROR agos.agent: {miss}\n")
+
+    class Exited:
+        def __init__(self) -> None:
+            self.children = {"agent-ugv": None, "world-0": None}
+
+        def dead(self) -> dict[str, int]:
+            return {"agent-ugv": 4}
+
+    halt = exited_children(Exited(), tmp_path)  # type: ignore[arg-type]
+    assert halt is not None and halt.code != 0 and "\n" not in halt.line
+    assert "agent-ugv (exit 4)" in halt.line and miss.replace("[", "\\[") in halt.line  # rich markup escaped
