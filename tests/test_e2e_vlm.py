@@ -3,7 +3,8 @@ router, with injected faults; and ``agos check agent`` against attached services
 
 "DS is unchanged by retries": each policy's run with faults is compared, decision for decision,
 with the same episode run in-process against a fault-free stand-in (the stand-in's answers are a
-deterministic function of the request).
+deterministic function of the request). Those runs record their model calls (``--vlm-cache``), and
+AGOS-Agent's is replayed with its endpoint gone: the same records, no HTTP request.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import signal
 import sqlite3
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import msgspec
@@ -22,6 +24,7 @@ import pytest
 from agos.agents.inprocess import InProcessAgents
 from agos.agents.names import tools_for
 from agos.agents.registry import make_policy
+from agos.agents.vlm.cache import cache_stats
 from agos.agents.vlm.standin.server import StandinServer
 from agos.deploy.run.launcher import free_port, wait_listening
 from agos.runtime.episode_config import EpisodeConfig, ToolConfig
@@ -64,6 +67,27 @@ def reference(episode_file) -> dict[str, dict]:
     return out
 
 
+@pytest.fixture(scope="module")
+def faulty_run(episode_file, tmp_path_factory) -> Callable[[str], Path]:
+    """``faulty_run(policy)``: the run directory of ``agos eval`` of the episode with ``policy`` over a
+    stand-in injecting FAULTS that the run starts (and stops) itself, its model calls recorded in
+    ``<run>/../cache``; run once per policy."""
+    runs: dict[str, Path] = {}
+
+    def run(policy: str) -> Path:
+        if policy not in runs:
+            tmp = tmp_path_factory.mktemp(f"faulty-{policy}")
+            proc = subprocess.run([*AGOS, "eval", "--split", str(episode_file), "--policy", policy, "--vlm-standin",
+                                   FAULTS, "--vlm-cache", str(tmp / "cache"), "--run-dir", str(tmp / "run"),
+                                   "--port", str(free_port(21000 + os.getpid() % 400))],
+                                  cwd=tmp, capture_output=True, text=True, timeout=400)
+            assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+            runs[policy] = tmp / "run"
+        return runs[policy]
+
+    return run
+
+
 def _records(run_dir: Path) -> list[dict]:
     with sqlite3.connect(run_dir / "results.sqlite") as db:
         return [json.loads(r) for (r,) in db.execute("SELECT record_json FROM episodes")]
@@ -74,13 +98,9 @@ def _actions(record: dict) -> list[tuple]:
 
 
 @pytest.mark.parametrize("policy", POLICIES)
-def test_policy_completes_over_the_standin_with_faults_and_retries_do_not_change_ds(policy, episode_file, reference,
-                                                                                    tmp_path) -> None:
-    run_dir = tmp_path / "run"
-    proc = subprocess.run([*AGOS, "eval", "--split", str(episode_file), "--policy", policy, "--vlm-standin", FAULTS,
-                           "--run-dir", str(run_dir), "--port", str(free_port(21000 + os.getpid() % 400))],
-                          cwd=tmp_path, capture_output=True, text=True, timeout=400)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+def test_policy_completes_over_the_standin_with_faults_and_retries_do_not_change_ds(policy, faulty_run,
+                                                                                    reference) -> None:
+    run_dir = faulty_run(policy)
     [record] = _records(run_dir)
     ref = reference[policy]
     assert record["status"] == "finished"
@@ -100,6 +120,35 @@ def test_policy_completes_over_the_standin_with_faults_and_retries_do_not_change
         assert record["candidates"], "AGOS-Agent hands off through candidates"
     log = (run_dir / "logs" / "vlm-standin.log").read_text()
     assert "listening on http://127.0.0.1:" in log
+
+
+WALL_CLOCK = ("run_id", "wall_time_s")
+"""What a replay may change in a record: the run's name and the episode's wall time."""
+
+
+def test_a_recorded_run_replays_with_its_endpoint_off_to_the_same_records(faulty_run, episode_file, tmp_path,
+                                                                         agos) -> None:
+    recorded = faulty_run("agos-agent")  # its stand-in, started and stopped by that run, is gone
+    cache = recorded.parent / "cache"
+    with StandinServer(faults={"500": 1.0}) as off:  # an endpoint that answers nothing and counts what reaches it
+        proc = subprocess.run([*AGOS, "eval", "--split", str(episode_file), "--policy", "agos-agent",
+                               "--vlm-base-url", off.url, "--model", "agos-standin", "--vlm-cache", str(cache),
+                               "--vlm-cache-mode", "replay", "--run-dir", str(tmp_path / "replay"),
+                               "--port", str(free_port(21400 + os.getpid() % 400))],
+                              cwd=tmp_path, capture_output=True, text=True, timeout=400)
+        assert off.stats()["requests"] == 0
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "VLM calls replayed from" in proc.stdout
+    [before], [after] = _records(recorded), _records(tmp_path / "replay")
+    stats = before["agent_stats"]
+    assert sum(s["http_attempts"] for s in stats.values()) > sum(s["decisions"] for s in stats.values())  # faults
+    assert {k: v for k, v in after.items() if k not in WALL_CLOCK} == {k: v for k, v in before.items()
+                                                                        if k not in WALL_CLOCK}
+    metrics = [agos("metrics", run, "--json") for run in (recorded, tmp_path / "replay")]
+    assert all(m.returncode == 0 for m in metrics) and metrics[0].stdout == metrics[1].stdout
+    calls = sum(1 + t["reasks"] for t in before["decision_traces"])
+    [model] = cache_stats(cache).models  # every call asked once when recorded, served once when replayed
+    assert (model.model, model.misses, model.hits, model.replies, model.errors) == ("agos-standin", calls, calls, calls, 0)
 
 
 def _start(tmp: Path, name: str, *args: str) -> subprocess.Popen:
