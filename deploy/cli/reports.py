@@ -2,9 +2,9 @@
 evaluator's metrics, comparisons and tables (evaluator/cli.py runs those).
 
     agos plot episode|compare ...   trajectory figures from a run's records
-    agos metrics PATH [--json]      every metric of a run (run dir, sqlite or JSONL summaries)
+    agos metrics PATH [--json]      every metric of a run (run dir, sqlite or JSONL summaries), tokens, cost, latency
     agos compare RUN_A RUN_B        paired differences with bootstrap intervals and tests
-    agos report RUN... --out DIR    paper-style tables and the stage-wise plot
+    agos report RUN... --out DIR    run cards, paper-style tables with SR intervals, cost, the stage-wise plot
     agos vlm-cache stats DIR        what a cache of model calls holds: hits, misses, tokens, size
 """
 
@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from agos.deploy.cli.common import Command, by_subcommand
+from agos.deploy.cli.common import Command, by_subcommand, price_flags
 
 
 def _add_plot(sub: Any) -> None:
@@ -57,6 +57,7 @@ def _add_metrics(sub: Any) -> None:
     metrics.add_argument("--json", action="store_true", help="print JSON (rates as fractions, distances in m)")
     metrics.add_argument("--allow-mixed", action="store_true", help=_MIXED)
     metrics.add_argument("--by", choices=["difficulty", "town"], default="difficulty")
+    price_flags(metrics)  # default: the prices agos eval was given (run.json)
 
 
 def _add_compare(sub: Any) -> None:
@@ -75,6 +76,7 @@ def _add_report(sub: Any) -> None:
     report.add_argument("--out", type=Path, required=True)
     report.add_argument("--allow-mixed", action="store_true", help=_MIXED)
     report.add_argument("--labels", nargs="+", help="one label per run; a leading '+' marks an agent variant row")
+    price_flags(report)  # default: each run's own (run.json)
 
 
 def _evaluator_cli(args: argparse.Namespace) -> int:
@@ -103,7 +105,7 @@ def _vlm_cache_stats(args: argparse.Namespace) -> int:
         print(f"vlm-cache error: {exc}", file=sys.stderr)
         return 2
     table = Table(title=f"VLM cache {args.dir}")
-    for name in ("model", "requests", "replies", "errors", "hits", "misses", "prompt tokens", "completion tokens"):
+    for name in ("model", "requests", "replies", "errors", "hits", "misses", "tokens in", "tokens out"):
         table.add_column(name, justify="left" if name == "model" else "right")
     for m in stats.models:
         table.add_row(m.model, *(f"{v:,}" for v in (m.requests, m.replies, m.errors, m.hits, m.misses, m.prompt_tokens,
