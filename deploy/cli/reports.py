@@ -105,8 +105,9 @@ def _vlm_cache_stats(args: argparse.Namespace) -> int:
         print(f"vlm-cache error: {exc}", file=sys.stderr)
         return 2
     table = Table(title=f"VLM cache {args.dir}")
-    for name in ("model", "requests", "replies", "errors", "hits", "misses", "tokens in", "tokens out"):
-        table.add_column(name, justify="left" if name == "model" else "right")
+    table.add_column("model", no_wrap=True, min_width=max([5, *(len(m.model) for m in stats.models)]))
+    for name in ("requests", "replies", "errors", "hits", "misses", "tokens in", "tokens out"):
+        table.add_column(name, justify="right")
     for m in stats.models:
         table.add_row(m.model, *(f"{v:,}" for v in (m.requests, m.replies, m.errors, m.hits, m.misses, m.prompt_tokens,
                                                      m.completion_tokens)))
