@@ -9,6 +9,12 @@ distance FD and CErr, then the run's ``total`` row as the paper's ablation table
 (:func:`~agos.evaluator.metrics.ablation_total`: GVA, NE, FD and CErr pooled over episodes, the
 rest averaged over the levels). Rates are printed in %, distances in metres, DS in decisions;
 undefined is ``--``. The stage-wise chart shows the macro overall of each run, as the paper's figure.
+
+Each SR cell of the main table carries its Wilson 95 % interval (evaluator/stats.py::wilson_interval:
+md and tex in brackets after the rate, csv in two columns of its own). The cost table gives, per run
+and difficulty and for the run's total, the tokens, their cost at the run's prices, the cost per
+success and the decisions' latency p50/p95 (evaluator/cost.py); the card of each run
+(evaluator/card.py) goes to ``card.md``.
 """
 
 from __future__ import annotations
@@ -20,7 +26,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from agos.evaluator.attribution import OUTCOMES, outcome_counts
+from agos.evaluator.cost import CostSummary, PriceTable, cost_by_group
 from agos.evaluator.metrics import DIFFICULTY_ORDER, Summary, ablation_total, aggregate
+from agos.evaluator.stats import wilson_interval
 from agos.evaluator.summary import EpisodeSummary
 
 MAIN_METRICS = ("SR", "OSR", "SPL", "NE", "DS")
@@ -38,6 +46,10 @@ class RunResults:
     episodes: list[EpisodeSummary]
     human: bool = False
     """A person played both roles (the Human reference row)."""
+    prices: PriceTable | None = None
+    """What the run's tokens cost (None: cost is undefined, ``--``)."""
+    card: list[str] | None = None
+    """The run's card as lines (evaluator/card.py); None: none to show."""
 
     @property
     def indented(self) -> bool:
@@ -50,6 +62,19 @@ class RunResults:
     def summaries(self) -> dict[str, Summary]:
         """Per difficulty and the macro ``overall`` (the main table, the stage-wise chart)."""
         return aggregate(self.episodes, "difficulty")
+
+    def costs(self) -> dict[str, CostSummary]:
+        """Per difficulty present and the run's ``total``: tokens, cost, latency."""
+        present = [d for d in DIFFICULTY_ORDER if any(e.difficulty == d for e in self.episodes)]
+        return cost_by_group(self.episodes, self.prices, present, lambda e: e.difficulty)
+
+    def sr_intervals(self) -> dict[str, tuple[float, float] | None]:
+        """Per difficulty: the Wilson 95 % interval of SR over the scored episodes."""
+        out: dict[str, tuple[float, float] | None] = {}
+        for level in DIFFICULTY_ORDER:
+            scored = [e for e in self.episodes if e.difficulty == level and e.status == "finished"]
+            out[level] = wilson_interval(sum(e.success for e in scored), len(scored))
+        return out
 
     def ablation_summaries(self) -> dict[str, Summary]:
         """Per difficulty and the ``total`` row of the ablation table."""
@@ -65,14 +90,87 @@ def fmt(metric: str, value: float | int | None) -> str:
     return f"{100 * value:.1f}" if metric in PERCENT else f"{value:.1f}"
 
 
-def _main_rows(runs: Sequence[RunResults]) -> tuple[list[str], list[list[str]]]:
-    header = ["Method"] + [f"{d.capitalize()} {m}" for d in DIFFICULTY_ORDER for m in MAIN_METRICS]
+def fmt_interval(interval: tuple[float, float] | None) -> str:
+    """A rate's interval in %, ``[12.1, 48.2]``; ``--`` when undefined."""
+    return UNDEFINED if interval is None else f"[{100 * interval[0]:.1f}, {100 * interval[1]:.1f}]"
+
+
+def main_rows(runs: Sequence[RunResults], *, ci: str = "cell") -> tuple[list[str], list[list[str]]]:
+    """The main table. ``ci``: ``cell`` puts SR's Wilson interval in its cell (md, tex, the console),
+    ``columns`` in two columns after it (csv: numbers stay numbers)."""
+    header = ["Method"]
+    for d in DIFFICULTY_ORDER:
+        for m in MAIN_METRICS:
+            header.append(f"{d.capitalize()} {m}")
+            if m == "SR" and ci == "columns":
+                header += [f"{d.capitalize()} SR CI low", f"{d.capitalize()} SR CI high"]
     rows = []
     for run in runs:
-        s = run.summaries()
-        rows.append([run.label] + [fmt(m, getattr(s[d], m)) if d in s else "-" for d in DIFFICULTY_ORDER
-                                   for m in MAIN_METRICS])
+        s, intervals = run.summaries(), run.sr_intervals()
+        row = [run.label]
+        for d in DIFFICULTY_ORDER:
+            for m in MAIN_METRICS:
+                value = fmt(m, getattr(s[d], m)) if d in s else "-"
+                interval = intervals[d]
+                if m == "SR" and ci == "columns":
+                    row += [value, *(fmt("SR", v) for v in (interval or (None, None)))]
+                elif m == "SR" and interval is not None:
+                    row.append(f"{value} {fmt_interval(interval)}")
+                else:
+                    row.append(value)
+        rows.append(row)
     return header, rows
+
+
+def sr_rows(runs: Sequence[RunResults]) -> tuple[list[str], list[list[str]]]:
+    """The console's success-rate table: per run, each difficulty's SR with its Wilson interval, the
+    overall (macro) SR and the episodes scored (and not scored)."""
+    header = ["Method", *(f"{d.capitalize()} SR % [95% CI]" for d in DIFFICULTY_ORDER), "Overall SR %", "scored",
+              "not scored"]
+    rows = []
+    for run in runs:
+        s, intervals = run.summaries(), run.sr_intervals()
+        cells = [f"{fmt('SR', s[d].SR)} {fmt_interval(intervals[d])}" if d in s and s[d].n else "-"
+                 for d in DIFFICULTY_ORDER]
+        overall = s["overall"]
+        rows.append([run.label, *cells, fmt("SR", overall.SR), str(overall.n), str(overall.excluded)])
+    return header, rows
+
+
+COST_HEADER = ["Method", "Difficulty", "episodes", "decisions", "prompt tok", "completion tok", "tok/decision",
+               "tok/episode", "cost USD", "USD/success", "p50 latency s", "p95 latency s"]
+"""The cost table's columns (tokens are the endpoint's counts; latency is per traced decision)."""
+
+
+def fmt_usd(value: float | None) -> str:
+    """Dollars to four significant figures at least to the cent (``0.0123``, ``12.35``); ``--`` undefined."""
+    if value is None:
+        return UNDEFINED
+    return f"{value:.2f}" if value >= 10 else f"{value:.4g}" if value else "0"
+
+
+def cost_cells(c: CostSummary) -> list[str]:
+    """The cost table's cells after Method and Difficulty (``--`` where undefined)."""
+    def num(v: float | None, spec: str) -> str:
+        return UNDEFINED if v is None else format(v, spec)
+
+    return [str(c.episodes), str(c.decisions), f"{c.prompt_tokens:,}", f"{c.completion_tokens:,}",
+            num(c.tokens_per_decision, ",.0f"), num(c.tokens_per_episode, ",.0f"), fmt_usd(c.cost_usd),
+            fmt_usd(c.cost_per_success_usd), num(c.latency_p50_s, ".3f"), num(c.latency_p95_s, ".3f")]
+
+
+def cost_rows(runs: Sequence[RunResults]) -> tuple[list[str], list[list[str]]]:
+    """Per run, one row per difficulty and its ``total``: tokens, cost, cost per success, latency."""
+    rows = []
+    for run in runs:
+        for level, c in run.costs().items():
+            rows.append([run.name, level, *cost_cells(c)])
+    return COST_HEADER, rows
+
+
+def cards_markdown(runs: Sequence[RunResults]) -> str:
+    """Every run's card, one fenced block each."""
+    return "\n".join(f"```\n{chr(10).join(run.card)}\n```\n" for run in runs if run.card)
 
 
 def _ablation_rows(runs: Sequence[RunResults]) -> tuple[list[str], list[list[str]]]:
@@ -109,7 +207,7 @@ def _tex_escape(text: str) -> str:
 
 
 def main_table_latex(runs: Sequence[RunResults]) -> str:
-    _, rows = _main_rows(runs)
+    _, rows = main_rows(runs)
     cols = "l" + ("r" * len(MAIN_METRICS)) * len(DIFFICULTY_ORDER)
     out = [r"\begin{tabular}{" + cols + "}", r"\toprule",
            " & " + " & ".join(rf"\multicolumn{{{len(MAIN_METRICS)}}}{{c}}{{{d.capitalize()}}}" for d in DIFFICULTY_ORDER)
@@ -119,7 +217,8 @@ def main_table_latex(runs: Sequence[RunResults]) -> str:
            "Method & " + " & ".join(list(MAIN_METRICS) * len(DIFFICULTY_ORDER)) + r" \\", r"\midrule"]
     for k, (run, row) in enumerate(zip(runs, rows, strict=True)):
         name = (r"\quad " if run.indented else "") + _tex_escape(run.name)
-        out.append(name + " & " + " & ".join(row[1:]) + r" \\")
+        cells = [cell.replace(" [", r" {\scriptsize[", 1) + "}" if " [" in cell else cell for cell in row[1:]]
+        out.append(name + " & " + " & ".join(cells) + r" \\")
         if run.human and k + 1 < len(runs) and not runs[k + 1].human:
             out.append(r"\midrule")
     out += [r"\bottomrule", r"\end{tabular}"]
@@ -210,7 +309,8 @@ def stage_chart(runs: Sequence[RunResults], path: Path) -> None:
 
 
 def write_report(runs: Sequence[RunResults], out_dir: Path) -> list[Path]:
-    """Write every table (md, csv, tex), the outcome counts and the stage-wise PNG to ``out_dir``."""
+    """Write every table (md, csv, tex), the cost table, the outcome counts, the stage-wise PNG and,
+    for runs with one, the cards (``card.md``) to ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     runs = [r for r in runs if r.human] + [r for r in runs if not r.human]  # the Human reference first
     written: list[Path] = []
@@ -220,10 +320,15 @@ def write_report(runs: Sequence[RunResults], out_dir: Path) -> list[Path]:
         path.write_text(text)
         written.append(path)
 
-    header, rows = _main_rows(runs)
+    if any(r.card for r in runs):
+        put("card.md", cards_markdown(runs))
+    header, rows = main_rows(runs)
     put("main.md", _markdown(header, rows, [r.indented for r in runs]))
-    put("main.csv", _csv(header, rows))
+    put("main.csv", _csv(*main_rows(runs, ci="columns")))
     put("main.tex", main_table_latex(runs))
+    header, rows = cost_rows(runs)
+    put("cost.md", _markdown(header, rows))
+    put("cost.csv", _csv(header, rows))
     header, rows = _ablation_rows(runs)
     put("ablation.md", _markdown(header, rows))
     put("ablation.csv", _csv(header, rows))

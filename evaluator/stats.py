@@ -210,3 +210,29 @@ def sign_test(only_a: int, only_b: int) -> float | None:
 
 def _none(v: float) -> float | None:
     return None if math.isnan(v) else v
+
+
+WILSON_Z = 1.959963984540054
+"""The normal quantile of a two-sided 95 % interval."""
+
+
+def wilson_interval(successes: int, n: int, z: float = WILSON_Z) -> tuple[float, float] | None:
+    """The Wilson score interval of a success rate (95 % by default), as fractions in [0, 1]; None
+    for n = 0. Unlike the normal approximation it stays inside [0, 1] and is not empty at 0 or n
+    successes (0 of 10 gives [0, 0.278]), which is where small benchmark cells live.
+
+    (p + z²/2n ± z·sqrt(p(1-p)/n + z²/4n²)) / (1 + z²/n), with p = successes / n."""
+    if n <= 0:
+        return None
+    if not 0 <= successes <= n:
+        raise ValueError(f"{successes} successes of {n} episodes")
+    if successes == 0:
+        return 0.0, z * z / (n + z * z)
+    if successes == n:
+        return n / (n + z * z), 1.0
+    p = successes / n
+    z2 = z * z
+    centre = p + z2 / (2 * n)
+    half = z * math.sqrt(p * (1 - p) / n + z2 / (4 * n * n))
+    denominator = 1 + z2 / n
+    return max(0.0, (centre - half) / denominator), min(1.0, (centre + half) / denominator)

@@ -34,6 +34,21 @@ class _CandidateIn(TypedDict):
 
 
 @with_config(ConfigDict(strict=True, extra="ignore"))
+class _UsageIn(TypedDict):
+    model: str
+    prompt_tokens: Count
+    completion_tokens: Count
+
+
+@with_config(ConfigDict(strict=True, extra="ignore"))
+class _TraceIn(TypedDict):
+    model: str
+    latency_s: NonNegative
+    prompt_tokens: NotRequired[Count | None]
+    completion_tokens: NotRequired[Count | None]
+
+
+@with_config(ConfigDict(strict=True, extra="ignore"))
 class _SummaryIn(TypedDict):
     episode_id: str
     difficulty: Literal["easy", "mid", "hard"]
@@ -56,6 +71,8 @@ class _SummaryIn(TypedDict):
     tools: NotRequired[dict[str, bool] | None]
     config_hash: NotRequired[str | None]
     config: NotRequired[dict[str, Any] | None]
+    usage: NotRequired[list[_UsageIn]]
+    decision_traces: NotRequired[list[_TraceIn]]
 
 
 _SUMMARY = TypeAdapter(_SummaryIn)
@@ -69,6 +86,28 @@ class CandidateSummary:
     """Candidate centre to target centre (CErr)."""
     status: str | None = None
     """``pending``, ``arrived``, ``rejected``, ``confirmed`` or ``false_confirm`` (optional)."""
+
+
+@dataclass(frozen=True, slots=True)
+class UsageSummary:
+    """One model's tokens in an episode (``EpisodeRecord.usage``): what its cost is computed from."""
+
+    model: str
+    prompt_tokens: int
+    completion_tokens: int
+
+
+def _usage(d: _SummaryIn) -> tuple[UsageSummary, ...]:
+    """The episode's tokens per model: its ``usage``, else (records written before it existed, or
+    made without it) the totals of its decision traces."""
+    if d.get("usage"):
+        return tuple(UsageSummary(u["model"], u["prompt_tokens"], u["completion_tokens"]) for u in d["usage"])
+    totals: dict[str, list[int]] = {}
+    for t in d.get("decision_traces", ()):
+        tokens = totals.setdefault(t["model"], [0, 0])
+        tokens[0] += t.get("prompt_tokens") or 0
+        tokens[1] += t.get("completion_tokens") or 0
+    return tuple(UsageSummary(model, p, c) for model, (p, c) in totals.items())
 
 
 @dataclass(frozen=True, slots=True)
@@ -108,6 +147,10 @@ class EpisodeSummary:
     """Short hash of the episode configuration the episode ran with (None: not recorded)."""
     config: dict[str, Any] | None = None
     """That configuration (runtime/episode_config.py) as stored, to name what differs."""
+    usage: tuple[UsageSummary, ...] = ()
+    """Tokens per model of the episode's model calls (empty for scripted policies)."""
+    decision_latencies_s: tuple[float, ...] = ()
+    """Wall-clock latency of each traced decision (model-backed policies), re-asks and retries included."""
 
     @classmethod
     def from_valid(cls, d: _SummaryIn) -> EpisodeSummary:
@@ -120,7 +163,8 @@ class EpisodeSummary:
                   for c in d["candidates"]),
             d["decisions_uav"], d["decisions_ugv"], d.get("status", "finished"), d.get("termination"),
             d.get("town_id"), d.get("run_id"), d.get("link"), (d.get("tools") or {}).get("candidates", True),
-            d.get("config_hash"), d.get("config"))
+            d.get("config_hash"), d.get("config"), _usage(d),
+            tuple(t["latency_s"] for t in d.get("decision_traces", ())))
 
     @classmethod
     def model_validate(cls, data: dict[str, Any]) -> EpisodeSummary:

@@ -56,3 +56,14 @@ def comparison_table(comparison) -> Table:
         table.add_row(m.metric, f(m.a), f(m.b), f(m.diff) + (unit if m.diff is not None else ""), ci,
                       "n/a" if m.p_value is None else f"{m.p_value:.4f}")
     return table
+
+
+def rows_table(header: list[str], rows: list[list[str]], *, title: str = "", by_first: bool = False) -> Table:
+    """A table of text cells (the first column and a ``Difficulty`` column left, the others right);
+    with ``by_first``, a rule wherever the first column changes (one block per run)."""
+    table = Table(title=title or None)
+    for k, col in enumerate(header):
+        table.add_column(col, justify="left" if k == 0 or col == "Difficulty" else "right")
+    for k, row in enumerate(rows):
+        table.add_row(*row, end_section=by_first and k + 1 < len(rows) and rows[k + 1][0] != row[0])
+    return table

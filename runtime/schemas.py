@@ -460,6 +460,21 @@ class RoleTraceStats(Part, kw_only=True):
     mean_latency_s: float | None
 
 
+class ModelUsage(Part, kw_only=True):
+    """One model's calls in an episode, totalled from the decision traces answered with it: what the
+    episode's token count and cost are computed from (docs/METRICS.md, "Tokens, cost and latency")."""
+
+    model: str
+    decisions: int
+    """Decisions answered with this model (one trace each; fallbacks included)."""
+    http_attempts: int
+    """HTTP requests made for those decisions, re-asks and retries included."""
+    prompt_tokens: int
+    """Input tokens the endpoint reported, summed over the requests it answered (re-asks included)."""
+    completion_tokens: int
+    """Output tokens the endpoint reported, likewise."""
+
+
 class EpisodeRecord(Message, tag="episode_record", kw_only=True):
     """World -> evaluator: the episode summary (the episode-summary fields plus provenance)."""
 
@@ -505,6 +520,10 @@ class EpisodeRecord(Message, tag="episode_record", kw_only=True):
     """World-side tools the episode ran with (``candidates``, ``e2a``, ``rgpp``, ``oracle``)."""
     agent_stats: dict[str, RoleTraceStats] = {}
     """Per role, totals of its decision traces (empty for scripted policies)."""
+    usage: list[ModelUsage] = []
+    """Per model, in the order first used: the episode's decisions, requests and tokens (empty for
+    scripted policies, and in records written before it existed: readers then total
+    ``decision_traces``, which hold the same numbers per decision)."""
     decision_traces: list[StoredTrace] = []
     """Every decision of model-backed policies, in the order the world applied them."""
     step_log: list[LoggedStep] = []

@@ -196,7 +196,8 @@ def report_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     runs = [RunResults("Heuristic", synthetic(24, 0.4, seed=11)), RunResults("+Variant", synthetic(24, 0.6, seed=12))]
     written = write_report(runs, out)
     assert {p.name for p in written} == {"main.md", "main.csv", "main.tex", "ablation.md", "ablation.csv", "ablation.tex",
-                                         "outcomes.md", "outcomes.csv", "comms.md", "comms.csv", "stagewise.png"}
+                                         "outcomes.md", "outcomes.csv", "comms.md", "comms.csv", "cost.md", "cost.csv",
+                                         "stagewise.png"}  # no card.md: these runs have no run.json
     return out
 
 

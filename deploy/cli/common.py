@@ -65,6 +65,15 @@ def vlm_flags(p: argparse.ArgumentParser) -> None:
                    help="with --vlm-cache: record (default), replay (no endpoint: a call not recorded stops the run) or off")
 
 
+def price_flags(p: argparse.ArgumentParser) -> None:
+    """What a run's model calls cost (evaluator/cost.py): one price for every model, or a TOML table."""
+    p.add_argument("--price-in", type=float, metavar="USD", help="USD per million prompt (input) tokens, every model")
+    p.add_argument("--price-out", type=float, metavar="USD",
+                   help="USD per million completion (output) tokens, every model")
+    p.add_argument("--prices", type=Path, metavar="FILE.toml",
+                   help='prices per model: ["MODEL"] in_usd_per_mtok = 2.5, out_usd_per_mtok = 10 (docs/METRICS.md)')
+
+
 def _int_or_none(value: object) -> int | None:
     return value if isinstance(value, int) else None
 

@@ -16,7 +16,7 @@ from agos.runtime.episode_config import CameraConfig, ConfirmConfig
 from agos.runtime.geometry import distance_to_polygon
 from agos.runtime.provenance import provenance
 from agos.runtime.schemas import ActionName, CandidateOutcome, EpisodeRecord, LoggedStep, Role, VehicleSpec
-from agos.runtime.traces import trace_stats
+from agos.runtime.traces import trace_stats, trace_usage
 from agos.world.sim.evidence import nearest_verifying_anchor
 from agos.world.sim.scene import Scene
 from agos.world.sim.state import EpisodeState
@@ -56,7 +56,8 @@ def episode_record(st: EpisodeState, wall_time_s: float) -> EpisodeRecord:
         link=st.channel.stats(st.candidates), ledger=st.channel.ledger, confirm_rejection=st.confirm_failure,
         tools=cfg.tools.model_dump(),
         config=cfg.model_dump(mode="json"), config_hash=cfg.config_hash(),
-        agent_stats=trace_stats(st.traces), decision_traces=st.traces, step_log=st.step_log, provenance=provenance())
+        agent_stats=trace_stats(st.traces), usage=trace_usage(st.traces),
+        decision_traces=st.traces, step_log=st.step_log, provenance=provenance())
 
 
 def logged_step(st: EpisodeState, role: Role, decision_index: int, applied: ActionName, candidate_id: str | None,
