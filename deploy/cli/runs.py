@@ -180,6 +180,7 @@ def _add_sweep(sub: Any) -> None:
 def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+    from agos.agents.contract import FatalPolicyError
     from agos.deploy.run.configure import episode_config
     from agos.deploy.run.sweep import check_sweep_endpoint, run_sweep, with_param
     from agos.runtime.links import ProfileError
@@ -202,6 +203,9 @@ def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
     except (ProfileError, ValueError) as exc:
         print(f"sweep error: {exc}", file=sys.stderr)
         return 2
+    except FatalPolicyError as exc:  # a replay (--vlm-cache-mode replay) that lacks a recorded call
+        print(f"sweep error: {exc}", file=sys.stderr)
+        return exc.exit_code
     print((args.out / "sweep.md").read_text())
     print(f"{len(table)} points -> {args.out}/sweep.csv, sweep.md, sweep.png")
     return 0
