@@ -30,11 +30,11 @@ import platform
 import sys
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from dulwich import porcelain
-from dulwich.errors import NotGitRepository
-from dulwich.repo import Repo
+if TYPE_CHECKING:
+    from dulwich.repo import Repo
+
 
 PACKAGES = ("eclipse-zenoh", "pybullet", "numpy", "opencv-python-headless", "opencv-python",
             "opencv-contrib-python-headless", "opencv-contrib-python", "httpx", "openai")
@@ -73,6 +73,12 @@ def git_state(root: Path) -> tuple[str | None, bool | None]:
     """
     if not (root / ".git").exists():
         return None, None
+    # Imported here: dulwich costs ~0.4 s of CPU to import, and every agos process imports this module
+    # (records carry provenance) while only the processes that write a record or a plan call this.
+    from dulwich import porcelain
+    from dulwich.errors import NotGitRepository
+    from dulwich.repo import Repo
+
     try:
         repo = Repo(str(root))
     except (NotGitRepository, OSError):
