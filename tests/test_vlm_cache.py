@@ -324,3 +324,29 @@ def test_agos_eval_names_an_agent_that_stopped_on_a_miss_in_one_line(tmp_path) -
     halt = exited_children(Exited(), tmp_path)  # type: ignore[arg-type]
     assert halt is not None and halt.code != 0 and "\n" not in halt.line
     assert "agent-ugv (exit 4)" in halt.line and miss.replace("[", "\\[") in halt.line  # rich markup escaped
+
+
+def test_a_cache_that_breaks_mid_run_stops_the_run_rather_than_score_a_wait(tmp_path) -> None:
+    cache = ReplyCache(tmp_path, "record")
+    c = client(Endpoint(), cache)
+    ask(c, UAV0)
+    with sqlite3.connect(tmp_path / CACHE_FILE) as db:
+        db.execute("DROP TABLE replies")  # another hand replaced the file's contents
+    with pytest.raises(FatalPolicyError, match=r"VLM cache .*vlm-cache.sqlite: OperationalError: no such table: replies"):
+        ask(c, UAV0)
+
+
+@pytest.mark.parametrize(("flags", "said"), [
+    (["--vlm-cache-mode", "replay"], "--vlm-cache-mode replay replays a cache: give its directory with --vlm-cache DIR"),
+    (["--vlm-cache", "{tmp}/none", "--vlm-cache-mode", "replay"], "no vlm-cache.sqlite there to replay"),
+    (["--vlm-cache", "{tmp}/recorded", "--vlm-cache-mode", "replay"], "holds no call of model 'other' to replay "
+                                                                       "(it holds: m); give --model as recorded"),
+])
+def test_agos_eval_refuses_a_cache_it_cannot_replay_before_anything_starts(flags, said, tmp_path, agos) -> None:
+    ask(client(Endpoint(), ReplyCache(tmp_path / "recorded", "record")), UAV0)
+    args = [f.format(tmp=tmp_path) for f in flags]
+    result = agos("eval", "--split", tmp_path / "split.jsonl", "--policy", "agos-agent", "--model", "other", *args,
+                  cwd=tmp_path)
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert said in result.stderr and len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert not (tmp_path / "runs").exists()  # nothing made

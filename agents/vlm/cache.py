@@ -71,6 +71,11 @@ class CacheMiss(FatalPolicyError):
     """Replay found no recorded reply for a request: the run cannot go on without the endpoint."""
 
 
+class CacheBroken(FatalPolicyError):
+    """The cache file could not be read or written mid-run (a disk full, a file replaced): the
+    decision's reply cannot be trusted, so the run stops rather than score a WAIT."""
+
+
 @dataclass(frozen=True)
 class CallTag:
     """Which decision asks: its stream (``<episode>/<role>``) and, for messages, its index."""
@@ -174,6 +179,14 @@ class ReplyCache:
         endpoint (now, or when it was recorded) gave no answer."""
         request = canonical_request(body)
         stream = call.stream if call is not None else ""
+        try:
+            return await self._complete(request, body, call, stream, send)
+        except sqlite3.Error as exc:
+            raise CacheBroken(f"VLM cache {self.path}: {type(exc).__name__}: {exc} (model {request.model}, "
+                              f"request {request.key[:16]})") from None
+
+    async def _complete(self, request: CanonicalRequest, body: dict[str, Any], call: CallTag | None, stream: str,
+                        send: Send) -> Reply:
         with self._lock:
             asked = self._asked.setdefault(stream, {})
             occurrence = asked.get(request.key, 0)

@@ -100,6 +100,8 @@ def vlm_cache_plan(cfg: AgosConfig, model: str | None) -> dict[str, Any]:
 
     o = cfg.vlm
     if o.cache_dir is None:
+        if o.cache_mode == "replay":
+            raise RunDirError("--vlm-cache-mode replay replays a cache: give its directory with --vlm-cache DIR")
         return {}
     if o.cache_mode != "off":
         try:
