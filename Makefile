@@ -57,17 +57,25 @@ all-tests: $(STAMP)
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 # The layer contracts in pyproject.toml: runtime at the bottom; world, agents, evaluator beside each
-# other; deploy on top; no import cycles.
-contracts: $(STAMP)
-	$(BIN)/lint-imports
+# other; the library (agos/ itself) on them; deploy on top; no import cycles. Run in .typecheck/, where
+# the package is one folder as installed (import-linter cannot follow setuptools' package-dir mapping).
+contracts: $(STAMP) typecheck-links
+	cd .typecheck && ../$(BIN)/lint-imports --no-cache ../pyproject.toml
 
 # mypy sees the top-level folders under their agos.* names through a folder of links (and examples/ as
 # a user's code would import it).
-typecheck: $(STAMP)
+typecheck: $(STAMP) typecheck-links
+	cd .typecheck && ../$(BIN)/mypy --config-file ../pyproject.toml -p agos -p examples
+
+# .typecheck/agos: the package as installed, made of links: agos/*.py (the package's own modules) and
+# one link per subpackage folder; a link whose file is gone is removed.
+.PHONY: typecheck-links
+typecheck-links:
 	mkdir -p .typecheck/agos
 	for d in runtime world agents evaluator deploy; do ln -sfn ../../$$d .typecheck/agos/$$d; done
+	for f in agos/*.py; do ln -sfn ../../$$f .typecheck/$$f; done
+	find .typecheck/agos -maxdepth 1 -xtype l -delete
 	ln -sfn ../examples .typecheck/examples
-	cd .typecheck && ../$(BIN)/mypy --config-file ../pyproject.toml -p agos -p examples
 
 # The unit tests on every core; a module's tests stay on one worker, so its fixtures are built once.
 unit: $(STAMP)

@@ -1,4 +1,5 @@
-"""pyproject.toml maps the top-level folders to ``agos.*``: every package folder must be listed.
+"""pyproject.toml maps the top-level folders to ``agos.*`` (and agos/ to ``agos`` itself): every package
+folder must be listed.
 
 An editable install finds unlisted subpackages anyway (the parent folder is on the path), so a
 missing entry only shows in a wheel, where the subpackage is simply absent. A folder of data files
@@ -18,8 +19,12 @@ def test_every_package_folder_is_listed_in_pyproject() -> None:
     setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
     mapped = setuptools["package-dir"]
     assert sorted(mapped) == sorted(setuptools["packages"])
+    assert mapped["agos"] == "agos"  # the package itself: the library's modules (docs/LIBRARY.md)
+    assert not [p for p in (ROOT / "agos").iterdir() if p.is_dir() and p.name != "__pycache__"], \
+        "agos/ holds modules only: a subpackage is a top-level folder of its own"
     roots = {folder for name, folder in mapped.items() if name.count(".") == 1}
     on_disk = {str(init.parent.relative_to(ROOT)) for root in roots for init in (ROOT / root).rglob("__init__.py")}
+    on_disk.add("agos")
     data = setuptools.get("package-data", {})
     data_only = {folder for name, folder in mapped.items() if name in data and not (ROOT / folder / "__init__.py").exists()}
     assert on_disk == set(mapped.values()) - data_only, \
@@ -28,4 +33,4 @@ def test_every_package_folder_is_listed_in_pyproject() -> None:
         assert name in mapped and not [p for p in patterns if "/" in p], (name, patterns)
         assert any(any((ROOT / mapped[name]).glob(p)) for p in patterns), (name, patterns)
     for name, folder in mapped.items():
-        assert name == "agos." + folder.replace("/", "."), name
+        assert name == "agos" if folder == "agos" else name == "agos." + folder.replace("/", "."), name

@@ -12,7 +12,10 @@ fallback of a missing or refused action to a counted WAIT, the syncs and message
 decision sends through the link model, and everything reported to the :class:`EpisodeSink`.
 What an action may be and what it does is :mod:`agos.world.sim.rules`; what a role is shown is
 :mod:`agos.world.sim.observations`; the record and SPL's shortest path are
-:mod:`agos.world.sim.record`; the state they share is :mod:`agos.world.sim.state`.
+:mod:`agos.world.sim.record`; the state they share is :mod:`agos.world.sim.state`. The loop runs
+whole (:meth:`EpisodeRunner.run`, asking a :class:`DecisionSource`: world workers, sweeps) or one
+decision round at a time (:meth:`~EpisodeRunner.start`, :meth:`~EpisodeRunner.advance`,
+:meth:`~EpisodeRunner.finish`: ``agos.Env``); ``run`` is those three, so both give the same record.
 
 Choices where the paper is silent (also in docs/ARCHITECTURE.md):
 
@@ -30,7 +33,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Protocol
 
 import msgspec
@@ -116,6 +119,10 @@ class EpisodeRunner:
         self.state.searchable_area = [uav_waypoint(town, n) for n in sorted(self.state.active_uav)]
         self.sink = sink or NullSink()
         self._clock = clock
+        self._wall_start: float | None = None
+        self._round_time_s = 0.0
+        self.pending: dict[Role, Observation] = {}
+        """The observations of the decision round in play, awaiting :meth:`advance` (in role order)."""
 
     # ----- set-up ---------------------------------------------------------------------------
     def _setup(self) -> None:
@@ -146,43 +153,90 @@ class EpisodeRunner:
 
     # ----- main loop ------------------------------------------------------------------------
     def run(self, source: DecisionSource) -> EpisodeRecord:
-        wall_start = self._clock()
-        self._setup()
+        """Play the whole episode, asking ``source`` at every decision; the record."""
+        observations = self.start()
         try:
-            self._publish_coordination()
-            while self.state.termination is None:
-                self._step(source)
+            while observations:
+                observations = self.advance(source.decide(observations))
         finally:
             self.teardown()
-        return episode_record(self.state, self._clock() - wall_start)
+        return self.finish()
 
-    def _step(self, source: DecisionSource) -> None:
-        """Advance to the next event: a delivery, a beacon, a freeze timeout, or decisions."""
+    # ----- the same loop, one decision round at a time (agos.Env) ----------------------------
+    def start(self) -> dict[Role, Observation]:
+        """Set the episode up in the scene and play it to its first decision round: the observations
+        of the roles asked then (both at the start), or ``{}`` if the episode ended before any.
+        Then :meth:`advance` with their actions, until it returns ``{}``; then :meth:`finish`."""
+        if self._wall_start is not None:
+            raise RuntimeError(f"episode {self.state.spec.episode_id}: this runner has already started (build a new one)")
+        self._wall_start = self._clock()
+        try:
+            self._setup()
+            self._publish_coordination()
+            return self._next_round()
+        except BaseException:
+            self.teardown()
+            raise
+
+    def advance(self, actions: Mapping[Role, Action | None]) -> dict[Role, Observation]:
+        """Apply the actions answering :attr:`pending` (a role missing from ``actions``, or None, had no
+        action: a counted WAIT, as an illegal action is), then play on to the next decision round: its
+        observations, or ``{}`` when the episode has ended."""
+        if not self.pending:
+            raise RuntimeError(f"episode {self.state.spec.episode_id}: no decision is pending (call start() first; "
+                               "once start() or advance() returned no observations the episode is over)")
         st = self.state
-        remaining = st.spec.decision_budget - st.decisions_used
-        if remaining <= 0:
-            st.termination = "budget_exhausted"
-            return
-        ready = {"uav": math.inf if st.uav.frozen else st.uav.ready_at, "ugv": st.ugv.ready_at}
-        t_ready = min(ready.values())
-        t_arrival, t_beacon = st.channel.next_arrival_s(), st.channel.next_beacon_s()
-        t_unfreeze = st.uav.frozen_since + st.cfg.max_freeze_s if st.uav.frozen else math.inf
-        now = min(t_ready, t_arrival, t_beacon, t_unfreeze)
-        if now > st.cfg.sim_time_limit_s:
-            st.termination = "sim_time_limit"
-            return
-        st.sim_time_s = max(st.sim_time_s, now)
-        if t_arrival <= now:
-            self._deliver()
-        elif t_unfreeze <= now:
-            self._unfreeze()
-        elif t_beacon <= now:
-            for role in ROLE_ORDER:
-                if st.channel.next_beacon[role] <= now:
-                    st.channel.sync(role, now, st.pose(role), st.link_geometry(), kind="beacon")
-                    st.channel.next_beacon[role] += st.cfg.comm.beacon_s
-        else:
-            self._decide(source, [r for r in ROLE_ORDER if ready[r] <= now + 1e-9][:remaining])
+        observations, self.pending = self.pending, {}
+        now = self._round_time_s
+        for role in observations:
+            st.sim_time_s = now
+            self._apply(role, observations[role], actions.get(role))
+            if st.termination is not None:
+                break
+        st.sim_time_s = now
+        self._publish_coordination()
+        return self._next_round()
+
+    def finish(self) -> EpisodeRecord:
+        """Take the episode's vehicles out of the scene (again: harmless) and return its record; the
+        record of an episode that did not end says ``termination = "error"``."""
+        self.teardown()
+        return episode_record(self.state, self._clock() - (self._wall_start or self._clock()))
+
+    def _next_round(self) -> dict[Role, Observation]:
+        """Handle events (deliveries, beacons, the frozen UAV's timeout) until some roles are due to
+        decide: render their observations (they are now :attr:`pending`). ``{}`` when the episode ends
+        first (the budget spent, the sim-time limit passed, or a CONFIRM)."""
+        st = self.state
+        while st.termination is None:
+            remaining = st.spec.decision_budget - st.decisions_used
+            if remaining <= 0:
+                st.termination = "budget_exhausted"
+                break
+            ready = {"uav": math.inf if st.uav.frozen else st.uav.ready_at, "ugv": st.ugv.ready_at}
+            t_ready = min(ready.values())
+            t_arrival, t_beacon = st.channel.next_arrival_s(), st.channel.next_beacon_s()
+            t_unfreeze = st.uav.frozen_since + st.cfg.max_freeze_s if st.uav.frozen else math.inf
+            now = min(t_ready, t_arrival, t_beacon, t_unfreeze)
+            if now > st.cfg.sim_time_limit_s:
+                st.termination = "sim_time_limit"
+                break
+            st.sim_time_s = max(st.sim_time_s, now)
+            if t_arrival <= now:
+                self._deliver()
+            elif t_unfreeze <= now:
+                self._unfreeze()
+            elif t_beacon <= now:
+                for role in ROLE_ORDER:
+                    if st.channel.next_beacon[role] <= now:
+                        st.channel.sync(role, now, st.pose(role), st.link_geometry(), kind="beacon")
+                        st.channel.next_beacon[role] += st.cfg.comm.beacon_s
+            else:
+                due = [r for r in ROLE_ORDER if ready[r] <= now + 1e-9][:remaining]
+                self._round_time_s = st.sim_time_s
+                self.pending = {r: observe(st, r) for r in due}
+                return dict(self.pending)
+        return {}
 
     def _deliver(self) -> None:
         st = self.state
@@ -211,19 +265,6 @@ class EpisodeRunner:
         if agent.waiting and agent.ready_at > st.sim_time_s:
             agent.ready_at = st.sim_time_s
         agent.waiting = False
-
-    def _decide(self, source: DecisionSource, due: list[Role]) -> None:
-        st = self.state
-        now = st.sim_time_s
-        observations = {r: observe(st, r) for r in due}
-        actions = source.decide(observations)
-        for role in due:
-            st.sim_time_s = now
-            self._apply(role, observations[role], actions.get(role))
-            if st.termination is not None:
-                break
-        st.sim_time_s = now
-        self._publish_coordination()
 
     def _apply(self, role: Role, obs: Observation, action: Action | None) -> None:
         """One decision of ``role``: counted, applied by the rules or turned into a WAIT, then
