@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from agos.runtime.schemas import ModelUsage, RoleTraceStats, StoredTrace
+from agos.runtime.schemas import EpisodeRecord, ModelUsage, RoleTraceStats, StoredTrace
 
 
 def trace_stats(traces: list[StoredTrace]) -> dict[str, RoleTraceStats]:
@@ -38,3 +38,8 @@ def trace_usage(traces: list[StoredTrace]) -> list[ModelUsage]:
         u.prompt_tokens += t.prompt_tokens or 0
         u.completion_tokens += t.completion_tokens or 0
     return list(out.values())
+
+
+def record_usage(record: EpisodeRecord) -> list[ModelUsage]:
+    """A record's ``usage``, or for a record written before it existed, its traces' totals."""
+    return record.usage or trace_usage(record.decision_traces)

@@ -64,6 +64,10 @@ def image_part(data: bytes, encoding: str) -> dict[str, Any]:
     return {"type": "image_url", "image_url": {"url": f"data:{mime};base64,{base64.b64encode(data).decode()}"}}
 
 
+TEMPERATURE = 0.0
+"""The sampling temperature of every request (greedy: the same request asks for the same answer)."""
+
+
 class VlmClient:
     def __init__(self, base_url: str, model: str, *, api_key_env: str = "OPENAI_API_KEY", timeout_s: float = 60.0,
                  max_retries: int = 4, concurrency: int = 8, structured: bool = True, max_tokens: int = 512,
@@ -82,6 +86,8 @@ class VlmClient:
         self._secret = key or None
         headers = {"Authorization": f"Bearer {key}"} if key else {}
         self._http = httpx.AsyncClient(base_url=self.base_url, headers=headers, timeout=timeout_s, transport=transport)
+        self.listing: list[dict[str, Any]] | None = None
+        """The entries of the last ``/models`` answer :meth:`preflight` accepted (a run card keeps them)."""
 
     async def close(self) -> None:
         await self._http.aclose()
@@ -109,11 +115,12 @@ class VlmClient:
         models = [str(m.get("id")) for m in data if isinstance(m, dict)]
         if self.model not in models:
             raise VlmError(model_failure(self.base_url, self.model, models), kind="model", attempts=1)
+        self.listing = [m for m in data if isinstance(m, dict)]
         return models
 
     def _body(self, messages: list[dict[str, Any]], schema: dict[str, Any] | None) -> dict[str, Any]:
         body: dict[str, Any] = {"model": self.model, "messages": messages, "max_tokens": self.max_tokens,
-                                "temperature": 0.0}
+                                "temperature": TEMPERATURE}
         if schema is not None and self.structured:
             body["response_format"] = {"type": "json_schema", "json_schema": {"name": "action", "schema": schema}}
         return body

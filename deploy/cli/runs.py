@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from agos.deploy.cli.common import Command, by_subcommand, connection_flags, vlm_flags, with_settings
+from agos.deploy.cli.common import Command, by_subcommand, connection_flags, price_flags, vlm_flags, with_settings
 from agos.deploy.cli.recordings import add_record_flags, recording_of
 from agos.deploy.run.orchestrator import STUCK_AFTER_S
 from agos.runtime.settings import AgosConfig
@@ -36,6 +36,23 @@ def _workers(value: str) -> int | str:
         return int(value)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{value!r}: give a number of workers or auto") from None
+
+
+def _cap(kind: type) -> Any:
+    """``--max-cost-usd`` / ``--max-tokens``: a positive number, or ``none`` (a resume lifts the cap)."""
+
+    def parse(value: str) -> float | int | str:
+        if value == "none":
+            return value
+        try:
+            number = kind(value)
+        except ValueError:
+            number = None
+        if number is None or not number > 0 or number == float("inf"):
+            raise argparse.ArgumentTypeError(f"{value!r}: give a number above 0, or none")
+        return number
+
+    return parse
 
 
 def _add_demo(sub: Any) -> None:
@@ -114,6 +131,23 @@ def _add_eval(sub: Any) -> None:
     ev.add_argument("--vlm-standin", nargs="?", const="", metavar="FAULTS",
                     help="start the offline stand-in VLM server for this run (optionally with faults, "
                          "e.g. 429=0.1,500=0.05); VLM policies then use it")
+    ev.add_argument("--max-cost-usd", type=_cap(float), metavar="USD",
+                    help="stop before the next episode could take the run's model calls past USD (needs prices); "
+                         "with --resume a new cap, or none (deploy/run/budget.py)")
+    ev.add_argument("--max-tokens", type=_cap(int), metavar="N",
+                    help="stop before the next episode could take the run's prompt + completion tokens past N")
+    price_flags(ev)  # kept in run.json: agos metrics and report use them
+
+
+def _budget(args: argparse.Namespace) -> tuple[Any, Any]:
+    """The command's caps and price table (ValueError: one line)."""
+    from agos.deploy.run.budget import Caps
+    from agos.evaluator.cost import price_table
+
+    prices = price_table(prices_file=args.prices, price_in=args.price_in, price_out=args.price_out)
+    caps = Caps(None if args.max_cost_usd in (None, "none") else args.max_cost_usd,
+                None if args.max_tokens in (None, "none") else args.max_tokens)
+    return caps, prices
 
 
 def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
@@ -123,18 +157,21 @@ def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
 
     recording = recording_of(args)  # a bad flag fails before a run directory is made
     try:
+        caps, prices = _budget(args)
         if args.resume:
             plan = run_plan.resume_plan(args.resume)
             if not args.connect:  # its agents start here: their endpoint is checked first, as a new run's
                 plan.endpoint = run_plan.check_endpoint(cfg.vlm, plan.vlm)
             _locate_here(args, plan.policies.values())
+            run_plan.resume_with(plan, max_cost_usd=args.max_cost_usd, max_tokens=args.max_tokens, prices=prices)
         else:
             _locate_here(args, (cfg.run.policy_uav, cfg.run.policy_ugv))
             run_dir = args.run_dir
             if run_dir is None and args.connect and args.run_id:
                 run_dir = cfg.run.runs_dir / args.run_id
             plan = run_plan.new_plan(cfg, run_dir=run_dir, comm=args.comm, timing_mode=args.timing, stamp=True,
-                                     vlm_standin=args.vlm_standin, workers=args.workers, check_vlm=not args.connect)
+                                     vlm_standin=args.vlm_standin, workers=args.workers, check_vlm=not args.connect,
+                                     caps=caps, prices=prices)
     except (run_plan.RunDirError, ProfileError, ValueError) as exc:
         print(f"eval error: {exc}", file=sys.stderr)
         return 2

@@ -24,12 +24,14 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from agos.deploy.ops.certs import RunCredentials
+from agos.deploy.run.budget import EXIT_CAPPED, Budget
 from agos.deploy.run.human import CONSOLE_NAMES
 from agos.deploy.run.launcher import ROUTER_PORT, Launcher, free_port
 from agos.deploy.run.local import Recording, launch_all, start_attached_recorder
 from agos.deploy.run.orchestrator import STUCK_AFTER_S, Orchestrator
 from agos.deploy.run.plan import RunPlan, stored_episodes
 from agos.deploy.run.presence import LOST_IN_A_ROW, LossStreak, Stall, missing_lines, started_kinds, who_is_here
+from agos.evaluator.cost import cost_of, tokens_of
 from agos.evaluator.metrics import by_difficulty
 from agos.evaluator.store import ResultStore, results_path
 from agos.evaluator.table import results_table
@@ -37,6 +39,7 @@ from agos.runtime.bus import Bus, ZenohBus
 from agos.runtime.process import Interrupted, install_stop_handlers
 from agos.runtime.schemas import EpisodeRecord
 from agos.runtime.settings import AgosConfig, ZenohSettings
+from agos.runtime.traces import record_usage
 
 log = logging.getLogger("agos.eval")
 
@@ -157,6 +160,32 @@ class Absences:
                     f"`{self.resume}`", 3)
 
 
+class Capped:
+    """``--max-cost-usd`` and ``--max-tokens`` (deploy/run/budget.py): the orchestrator's gate, and the
+    stop once the gate holds the next episode back and every played episode is stored."""
+
+    def __init__(self, budget: Budget, orch: Orchestrator, resume: str) -> None:
+        self.budget, self.orch, self.resume = budget, orch, resume
+        orch.may_lease = self.may_lease
+
+    def may_lease(self, in_flight: int) -> bool:
+        self.budget.see(self.orch.records.values())
+        return self.budget.may_lease(in_flight)
+
+    def check(self) -> Halt | None:
+        orch = self.orch
+        if orch.finished or orch.leases or orch.gave_up:  # played episodes are stored before the run stops
+            return None
+        self.budget.see(orch.records.values())
+        refused = self.budget.refusal(0)
+        if refused is None:
+            return None
+        flag, why = refused
+        left = orch.total - len(orch.stored)
+        return Halt(f"[red]stopping: {escape(why)}; {left} of {orch.total} episodes not run; resume with a higher cap: "
+                    f"{escape(self.resume)} {flag} N (or none)", EXIT_CAPPED)
+
+
 LOG_RECORD = re.compile(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d")
 """How a child's log record starts (runtime/process.py's format: its time first); other lines continue one."""
 
@@ -273,11 +302,16 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
         if done_before:
             console.print(f"resuming {plan.run_dir}: {len(orch.stored)} of {orch.total} episodes already finished; "
                           "the others (infrastructure failures included) run now")
+        watches = []
+        if plan.caps:
+            before = _stored_records(plan)
+            watches.append(Capped(Budget(plan.caps, plan.prices, before), orch, resume or resume_command(plan)).check)
         with Progress(*Bar.COLUMNS, console=console, transient=False) as progress:
             absences = Absences(cfg, plan, bus, orch, own.connect, progress.console, None if attach else launcher,
                                 resume)
             halt = follow(orch, Bar(progress, orch), stop.is_set, Losses(),
-                          [absences.check, lambda: exited_children(launcher, plan.run_dir / "logs")], on_record)
+                          [absences.check, lambda: exited_children(launcher, plan.run_dir / "logs"), *watches],
+                          on_record)
             if halt is not None:
                 console.print(halt.line, highlight=False)
                 if halt.announce:
@@ -308,6 +342,29 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
     return 0
 
 
+def _stored_records(plan: RunPlan) -> list[EpisodeRecord]:
+    """The run's records stored before this invocation (what a resumed run already spent)."""
+    path = results_path(plan.run_dir.parent, plan.run_id)
+    if not path.exists():
+        return []
+    with ResultStore(path) as store:
+        return store.records(plan.run_id)
+
+
+def usage_line(records: list[EpisodeRecord], plan: RunPlan) -> str | None:
+    """The run's model calls in one line (tokens, traced decisions, cost at its prices); None without tokens."""
+    usage = [u for r in records for u in record_usage(r)]
+    if not tokens_of(usage):
+        return None
+    prompt, completion = sum(u.prompt_tokens for u in usage), sum(u.completion_tokens for u in usage)
+    decisions = sum(u.decisions for u in usage)
+    cost = cost_of(usage, plan.prices)
+    priced = (f", ${cost:.4f} at {plan.prices.describe()}" if cost is not None and plan.prices is not None
+              else "; cost: give --price-in/--price-out or --prices to agos metrics or report")
+    return (f"model calls: {prompt:,} prompt + {completion:,} completion tokens over {decisions:,} decisions "
+            f"({(prompt + completion) / decisions:,.0f} a decision){priced}")
+
+
 def _summary(console: Console, plan: RunPlan, orch: Orchestrator | None, attach: bool, processes: int,
              wall_s: float) -> None:
     path = results_path(plan.run_dir.parent, plan.run_id)
@@ -322,6 +379,9 @@ def _summary(console: Console, plan: RunPlan, orch: Orchestrator | None, attach:
         title = (f"{plan.run_id}: {len(records)} episodes, {plan.policies['uav']}/{plan.policies['ugv']} policies, "
                  f"comm {plan.config.comm.name}, {where}")
         console.print(results_table(by_difficulty(records), title=title))
+        line = usage_line(records, plan)
+        if line is not None:
+            console.print(line, highlight=False)
     if path.exists():
         console.print(f"results: {path}", highlight=False)
     elif records:

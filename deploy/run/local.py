@@ -19,6 +19,7 @@ from typing import Any
 from rich.console import Console
 
 from agos.deploy.ops.certs import RunCredentials
+from agos.deploy.run.card import models_answer, record_models_answer
 from agos.deploy.run.children import AGENT_CONCURRENCY, shared_settings, with_settings
 from agos.deploy.run.human import start_console
 from agos.deploy.run.launcher import ROUTER_START_S, SERVER_START_S, Launcher, free_port, wait_listening
@@ -160,5 +161,6 @@ def _start_vlm(cfg: AgosConfig, plan: RunPlan, launcher: Launcher, console: Cons
         return None
     url = f"http://127.0.0.1:{port}/v1"
     console.print(f"VLM stand-in: {url} (faults: {plan.vlm['standin'] or 'none'})", highlight=False)
+    record_models_answer(plan.run_dir, models_answer(url))  # the run card's /models answer
     return {"base_url": url, "model": STANDIN_MODEL, "timeout_s": STANDIN_ATTEMPT_TIMEOUT_S,
             "max_retries": STANDIN_MAX_RETRIES}

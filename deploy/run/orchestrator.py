@@ -26,6 +26,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Literal
@@ -108,6 +109,9 @@ class Orchestrator:
         self.gave_up: dict[str, EpisodeRecord] = {}
         """Infrastructure-failure records this orchestrator submitted, until acknowledged."""
         self.rejections = Rejections(log)
+        self.may_lease: Callable[[int], bool] | None = None
+        """A gate asked before each lease with the episodes in flight (leased, no record yet); False
+        holds the episode back (``agos eval``'s caps, deploy/run/budget.py). None: always lease."""
         self._repeat_at = clock() + LEASE_REPEAT_S
         self.created_utc = datetime.now(UTC).isoformat(timespec="seconds")
         self._queries = bus.serve(keys.jobs(run_id))
@@ -214,6 +218,10 @@ class Orchestrator:
         self._answer_queries()
         return newly
 
+    def in_flight(self) -> int:
+        """Episodes leased whose record has not come in yet."""
+        return sum(1 for e in self.leases if e not in self.records)
+
     def unacknowledged(self) -> list[str]:
         """Episodes whose record (from the lease holder) was seen but whose storage nobody acknowledged."""
         return sorted(e for e in self.records if e not in self.stored)
@@ -273,7 +281,7 @@ class Orchestrator:
             return
         while self.pending and self.pending[0][0].episode_id in self.stored:
             self.pending.popleft()  # never lease a stored episode again
-        if self.pending:
+        if self.pending and (self.may_lease is None or self.may_lease(self.in_flight())):
             spec, attempt = self.pending.popleft()
             now = self._clock()
             if self.first_lease_s is None:

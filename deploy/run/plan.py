@@ -3,9 +3,11 @@ read back for ``--resume``.
 
 A run directory holds ``run.json`` (policies, comm profile, timing mode, episode source, the whole
 episode configuration, and the provenance: agos commit, uv.lock hash and package versions, outside the
-configuration's hash: runtime/provenance.py), ``episodes.jsonl`` (the exact episodes),
-``results.sqlite`` (written by the evaluator) and ``logs/``. ``agos eval --resume DIR`` re-reads the first two and leases only the
-episodes not yet stored.
+configuration's hash: runtime/provenance.py; the run card, prices and caps: deploy/run/card.py,
+deploy/run/budget.py), ``episodes.jsonl`` (the exact episodes), ``prompts.txt`` (a VLM run's
+prompts), ``results.sqlite`` (written by the evaluator) and ``logs/``. ``agos eval --resume DIR``
+re-reads the first two and leases only the episodes not yet stored; caps and prices given to it
+replace the stored ones (run.json keeps each resume's).
 """
 
 from __future__ import annotations
@@ -18,7 +20,10 @@ from pathlib import Path
 from typing import Any
 
 from agos.agents.names import needs_vlm
+from agos.deploy.run.budget import Caps, check_prices
+from agos.deploy.run.card import run_card
 from agos.deploy.run.configure import episode_config
+from agos.evaluator.cost import PriceError, PriceTable, prices_from_json
 from agos.evaluator.store import ResultStore
 from agos.runtime.episode_config import EpisodeConfig, StoredConfigError, read_config
 from agos.runtime.provenance import provenance
@@ -59,6 +64,10 @@ class RunPlan:
     """A dataset build (deploy/dataset/build.py): the agents it starts write every decision there."""
     endpoint: str | None = None
     """What :func:`check_endpoint` found (a line for the console); None when it did not run."""
+    caps: Caps = field(default_factory=Caps)
+    """``--max-cost-usd`` and ``--max-tokens`` (deploy/run/budget.py)."""
+    prices: PriceTable | None = None
+    """What the run's tokens cost (evaluator/cost.py); None: not given."""
 
     @property
     def run_id(self) -> str:
@@ -129,6 +138,12 @@ def check_endpoint(options: VlmOptions, vlm: dict[str, Any]) -> str | None:
     A key variable is *needed* when the endpoint answers 401/403 without it: then an unset one is
     refused here. An unset variable is accepted, and said so, when the endpoint answers without a key
     (a local vLLM, SGLang or Ollama server usually asks for none, on loopback or not)."""
+    checked = _endpoint_check(options, vlm)
+    return None if checked is None else checked[0]
+
+
+def _endpoint_check(options: VlmOptions, vlm: dict[str, Any]) -> tuple[str, list[dict[str, Any]]] | None:
+    """:func:`check_endpoint`'s line and the ``/models`` answer's entries (for the run card)."""
     if "base_url" not in vlm or options.replaying:  # a replay (--vlm-cache-mode replay) asks no endpoint
         return None
     import asyncio
@@ -138,29 +153,32 @@ def check_endpoint(options: VlmOptions, vlm: dict[str, Any]) -> str | None:
     checked = options.model_copy(update={"base_url": vlm["base_url"], "model": vlm["model"]})
     timeout_s = min(checked.timeout_s, PREFLIGHT_TIMEOUT_S)
 
-    async def listing() -> list[str]:
+    async def listing() -> list[dict[str, Any]]:
         client = VlmClient(str(checked.base_url), str(checked.model), api_key_env=checked.api_key_env, timeout_s=timeout_s)
         try:
-            return await client.preflight()
+            await client.preflight()
+            return client.listing or []
         finally:
             await client.close()
 
     try:
-        asyncio.run(listing())
+        answer = asyncio.run(listing())
     except VlmError as exc:
         raise EndpointError(f"VLM endpoint {exc}") from None
     key = (f"API key from {checked.api_key_env}" if os.environ.get(checked.api_key_env)
            else f"no API key: {checked.api_key_env} is not set and the endpoint answered without one")
-    return f"VLM endpoint: {checked.base_url} serves {checked.model} ({key})"
+    return f"VLM endpoint: {checked.base_url} serves {checked.model} ({key})", answer
 
 
 def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: str, stamp: bool,
              vlm_standin: str | None = None, workers: int | str | None = None, dataset_out: Path | None = None,
-             check_vlm: bool = False) -> RunPlan:
-    """A new run directory with its run.json and episodes.jsonl. ``workers``: the command's
-    ``--workers`` (a count or ``auto``), stored for ``--resume``; ``dataset_out``: see :class:`RunPlan`.
-    ``check_vlm``: the run starts its agents here, so its model endpoint is checked
-    (:func:`check_endpoint`) before episodes are read or generated and anything is written."""
+             check_vlm: bool = False, caps: Caps | None = None, prices: PriceTable | None = None) -> RunPlan:
+    """A new run directory with its run.json (the run card among it: deploy/run/card.py),
+    episodes.jsonl and, for a VLM run, prompts.txt. ``workers``: the command's ``--workers`` (a count or
+    ``auto``), stored for ``--resume``; ``dataset_out``: see :class:`RunPlan`. ``check_vlm``: the run
+    starts its agents here, so its model endpoint is checked (:func:`check_endpoint`) before episodes
+    are read or generated and anything is written. ``caps`` and ``prices``: a cost cap needs a price
+    for the run's model (ValueError before anything is written)."""
     from agos.world.episodes.files import read_split, write_episodes
 
     # Everything that can be wrong with the command fails before episodes are generated.
@@ -172,7 +190,10 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
     policies = {"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv}
     config = episode_config(cfg, policies=policies, comm=comm, timing_mode=timing_mode)  # bad names fail here
     vlm = vlm_plan(cfg, policies, vlm_standin)
-    endpoint = check_endpoint(cfg.vlm, vlm) if check_vlm else None
+    caps = caps or Caps()
+    check_prices(caps, prices, vlm.get("model"))
+    checked = _endpoint_check(cfg.vlm, vlm) if check_vlm else None
+    endpoint, models_answer = checked if checked is not None else (None, None)
     if cfg.run.episodes_file:  # checked as a whole: ids, towns, waypoints, the run's look (world/episodes/files.py)
         episodes = read_split(cfg.run.episodes_file, look=config.look)
     else:
@@ -180,7 +201,8 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
     run_dir.mkdir(parents=True, exist_ok=True)
     write_episodes(run_dir / "episodes.jsonl", episodes)
     plan = RunPlan(run_dir, episodes, policies, config, vlm=vlm, workers=workers, dataset_out=dataset_out,
-                   endpoint=endpoint)
+                   endpoint=endpoint, caps=caps, prices=prices)
+    card = run_card(run_dir, vlm=vlm, options=cfg.vlm, models_answer=models_answer, split=cfg.run.episodes_file)
     (run_dir / RUN_FILE).write_text(json.dumps({
         "run_id": plan.run_id, "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
         "policies": plan.policies, "comm": config.comm.name, "timing_mode": config.timing_mode, "episodes": len(episodes),
@@ -190,6 +212,7 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
         "episode_source": str(cfg.run.episodes_file or f"generated: {cfg.run.town}, {cfg.run.per_difficulty}/difficulty, "
                                                          f"seed {cfg.run.episode_seed}"),
         "provenance": provenance(),  # what made this run's numbers; not part of config_hash
+        "card": card, "prices": prices.as_json() if prices is not None else None, "caps": caps.as_json(),
     }, indent=2) + "\n")
     return plan
 
@@ -209,9 +232,38 @@ def resume_plan(run_dir: Path) -> RunPlan:
         config = read_config(meta["episode_config"], where=str(path))
     except StoredConfigError as exc:
         raise RunDirError(str(exc)) from None
+    try:
+        prices = prices_from_json(meta["prices"], where=f"{path}: prices") if meta.get("prices") else None
+    except PriceError as exc:
+        raise RunDirError(str(exc)) from None
     return RunPlan(run_dir, read_split(run_dir / "episodes.jsonl", look=config.look), meta["policies"], config, resumed=True,
                    vlm=meta.get("vlm", {}), workers=meta.get("workers"),
-                   dataset_out=Path(meta["dataset_out"]) if meta.get("dataset_out") else None)
+                   dataset_out=Path(meta["dataset_out"]) if meta.get("dataset_out") else None,
+                   caps=Caps.from_json(meta.get("caps")), prices=prices)
+
+
+def resume_with(plan: RunPlan, *, max_cost_usd: float | str | None, max_tokens: int | str | None,
+                prices: PriceTable | None) -> None:
+    """A resumed plan with the caps and prices its command gives: a cap given replaces the stored one
+    (``"none"`` lifts it; None keeps it); given prices replace the stored ones. A cost cap still needs a
+    price (ValueError). run.json keeps the new values and, under ``resumes``, when and with which caps
+    and commit each resume ran."""
+    def pick(given: float | int | str | None, stored: float | int | None) -> Any:
+        return stored if given is None else None if given == "none" else given
+
+    plan.caps = Caps(pick(max_cost_usd, plan.caps.max_cost_usd), pick(max_tokens, plan.caps.max_tokens))
+    if prices is not None:
+        plan.prices = prices
+    check_prices(plan.caps, plan.prices, plan.vlm.get("model"))
+    path = plan.run_dir / RUN_FILE
+    meta = json.loads(path.read_text())
+    meta["caps"] = plan.caps.as_json()
+    meta["prices"] = plan.prices.as_json() if plan.prices is not None else None
+    meta.setdefault("resumes", []).append({"utc": datetime.now(UTC).isoformat(timespec="seconds"),
+                                           "caps": plan.caps.as_json(), "commit": provenance()["commit"]})
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(meta, indent=2) + "\n")
+    tmp.replace(path)
 
 
 def stored_episodes(run_dir: Path) -> set[str]:
