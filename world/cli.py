@@ -58,6 +58,12 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     split.add_argument("--seed", type=int, default=1)
     _add_look(split)
     split.add_argument("--workers", type=int, default=2)
+    subset = ep_sub.add_parser("subset", help="a stratified subset: N episodes of every town x difficulty cell, "
+                                             "drawn by seed, the split's lines unchanged (docs/DATASET.md)")
+    subset.add_argument("split", type=Path, help="the episode file to draw from (e.g. a split's val.jsonl)")
+    subset.add_argument("--per-cell", type=int, required=True, metavar="N", help="episodes per town x difficulty cell")
+    subset.add_argument("--seed", type=int, default=0, help="which episodes of each cell (default 0)")
+    subset.add_argument("--out", type=Path, required=True, help="the subset's JSONL file")
     check = ep_sub.add_parser("check", help="validate an episode file as every command that reads one does: each "
                                            "line, no episode id twice, each town as this agos builds it")
     check.add_argument("file", type=Path)
@@ -166,6 +172,11 @@ def _episodes(args: argparse.Namespace) -> int:
         towns = sorted({s.town.town_id for s in episodes})
         print(f"{args.file}: {len(episodes)} valid episodes on {', '.join(towns)}"
               + (f" ({args.look} look)" if args.look else ""))
+        return 0
+    if args.episodes_command == "subset":
+        from agos.world.episodes.subset import write_subset
+
+        print(write_subset(args.split, args.out, per_cell=args.per_cell, seed=args.seed).summary(args.per_cell, args.seed))
         return 0
     if args.episodes_command == "sample":
         return _sample(args)
