@@ -170,6 +170,7 @@ def test_an_unanswered_request_replays_as_the_same_error_and_record_asks_it_agai
     with pytest.raises(VlmError) as replayed:
         ask(client(Endpoint(), ReplyCache(tmp_path, "replay")), UAV0)
     assert str(replayed.value) == str(recorded.value) and replayed.value.attempts == recorded.value.attempts == 2
+    assert replayed.value.kind == recorded.value.kind
     up = Endpoint()
     reply = ask(client(up, ReplyCache(tmp_path, "record")), UAV0)
     assert up.requests == 1 and reply.text is not None

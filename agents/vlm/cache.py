@@ -57,7 +57,7 @@ CREATE TABLE IF NOT EXISTS requests (key TEXT PRIMARY KEY, model TEXT NOT NULL, 
 CREATE TABLE IF NOT EXISTS replies (
     key TEXT NOT NULL, stream TEXT NOT NULL, occurrence INTEGER NOT NULL,
     body TEXT, text TEXT, finish_reason TEXT, prompt_tokens INTEGER, completion_tokens INTEGER,
-    latency_s REAL NOT NULL, attempts INTEGER NOT NULL, error TEXT, recorded_utc TEXT NOT NULL,
+    latency_s REAL NOT NULL, attempts INTEGER NOT NULL, error TEXT, error_kind TEXT, recorded_utc TEXT NOT NULL,
     PRIMARY KEY (key, stream, occurrence));
 CREATE TABLE IF NOT EXISTS lookups (model TEXT PRIMARY KEY, hits INTEGER NOT NULL, misses INTEGER NOT NULL);
 """
@@ -192,8 +192,9 @@ class ReplyCache:
             occurrence = asked.get(request.key, 0)
             asked[request.key] = occurrence + 1
             row = self._db.execute(
-                "SELECT body, text, finish_reason, prompt_tokens, completion_tokens, latency_s, attempts, error "
-                "FROM replies WHERE key = ? AND stream = ? AND occurrence = ?", (request.key, stream, occurrence)).fetchone()
+                "SELECT body, text, finish_reason, prompt_tokens, completion_tokens, latency_s, attempts, error, "
+                "error_kind FROM replies WHERE key = ? AND stream = ? AND occurrence = ?",
+                (request.key, stream, occurrence)).fetchone()
             if row is not None and (row[7] is None or self.mode == "replay"):
                 self._count(request.model, hit=True)
                 return _served(row)
@@ -206,7 +207,7 @@ class ReplyCache:
         try:
             reply = await send(body)
         except VlmError as exc:
-            self._store(request, stream, occurrence, None, round(time.monotonic() - started, 4), exc.attempts, str(exc))
+            self._store(request, stream, occurrence, None, round(time.monotonic() - started, 4), exc.attempts, exc)
             raise
         self._store(request, stream, occurrence, reply, reply.latency_s, reply.attempts, None)
         return reply
@@ -221,7 +222,7 @@ class ReplyCache:
                          (model, int(hit), int(not hit)))
 
     def _store(self, request: CanonicalRequest, stream: str, occurrence: int, reply: Reply | None, latency_s: float,
-               attempts: int, error: str | None) -> None:
+               attempts: int, error: VlmError | None) -> None:
         fields = (None, None, None, None, None) if reply is None else (
             json.dumps(reply.raw, separators=(",", ":")), reply.text, reply.finish_reason, reply.prompt_tokens,
             reply.completion_tokens)
@@ -234,8 +235,9 @@ class ReplyCache:
                         db.execute("INSERT OR IGNORE INTO images (sha256, mime, data) VALUES (?, ?, ?)", (digest, mime, data))
                 db.execute("INSERT OR IGNORE INTO requests (key, model, body) VALUES (?, ?, ?)",
                            (request.key, request.model, request.body_json))
-                db.execute("INSERT OR REPLACE INTO replies VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                           (request.key, stream, occurrence, *fields, latency_s, attempts, error,
+                db.execute("INSERT OR REPLACE INTO replies VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                           (request.key, stream, occurrence, *fields, latency_s, attempts,
+                            None if error is None else str(error), None if error is None else error.kind,
                             datetime.now(UTC).isoformat(timespec="seconds")))
                 db.execute("COMMIT")
             except BaseException:
@@ -268,9 +270,9 @@ def _connect(path: Path) -> sqlite3.Connection:
 
 def _served(row: tuple) -> Reply:
     """A stored row as the client's answer: a Reply, or the stored VlmError raised again."""
-    body, text, finish_reason, prompt_tokens, completion_tokens, latency_s, attempts, error = row
+    body, text, finish_reason, prompt_tokens, completion_tokens, latency_s, attempts, error, error_kind = row
     if error is not None:
-        raise VlmError(error, attempts=attempts)
+        raise VlmError(error, attempts=attempts, kind=error_kind or "http")
     return Reply(text=text, finish_reason=finish_reason, prompt_tokens=prompt_tokens, completion_tokens=completion_tokens,
                  latency_s=latency_s, attempts=attempts, raw=json.loads(body) if body else {})
 
