@@ -32,7 +32,7 @@ AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 
 @pytest.fixture(scope="module")
 def episodes(sample_mid_episodes) -> Path:
-    return sample_mid_episodes(4, seed=2)
+    return sample_mid_episodes(3, seed=2)
 
 
 class Cluster:
@@ -171,7 +171,7 @@ def test_killed_world_worker_episode_completes_on_another_with_the_same_record(
         cluster.kill("w0")
         out = _finish(proc)
         records = cluster.records()
-        _one_finished_record_each(records, 4)
+        _one_finished_record_each(records, 3)
         assert next(r for r in records if r["episode_id"] == victim)["worker_id"] == "w1"
         assert "re-leased episodes: 1" in out
         assert _summaries(records)[victim] == clean_lossy[victim]
@@ -199,7 +199,7 @@ def test_killed_agent_service_episode_is_rerun_afresh_with_the_same_record(
         cluster.start_agent("uav")
         out = _finish(proc)
         records = cluster.records()
-        _one_finished_record_each(records, 4)
+        _one_finished_record_each(records, 3)
         assert "re-leased episodes: 1" in out, out
         assert "giving the attempt back to be run afresh" in (tmp_path / "w0.log").read_text()
         assert _summaries(records)[victim] == clean_lossy[victim]
@@ -219,7 +219,7 @@ def test_router_restart_clients_reconnect_and_run_completes(tmp_path: Path, epis
         time.sleep(2.0)
         cluster.start("router", "router", "--listen", cluster.endpoint)
         _finish(proc)
-        _one_finished_record_each(cluster.records(), 4)
+        _one_finished_record_each(cluster.records(), 3)
     finally:
         watcher.close()
         cluster.close()
@@ -272,76 +272,31 @@ class VizWatcher:
             session.close()
 
 
-def test_same_results_with_one_or_two_workers_and_with_slow_observers(tmp_path: Path, episodes: Path,
-                                                                     clean_lossy: dict[str, dict]) -> None:
-    results = {"one": clean_lossy}  # the module's undisturbed 1-worker run
-    viz = None
-    # the observed run has both observers at once: a slow one on the control keys, a stuck one on viz/**
-    for name, workers, observed in (("two", 2, False), ("observed", 1, True)):
-        run_dir = tmp_path / name
-        run_dir.mkdir()
-        cluster = Cluster(run_dir, f"det-{name}", workers=workers)
-        watcher = Watcher(cluster.endpoint, delay_s=0.02) if observed else None
-        viz = VizWatcher(cluster.endpoint) if observed else viz
-        try:
-            _finish(cluster.eval(episodes, "--comm", "lossy"))
-            results[name] = _summaries(cluster.records())
-            if observed:
-                # The run finished while the viz observer was still stuck in its first callback: the
-                # world never waited for it (its samples were dropped, not queued back to the world).
-                assert viz is not None and viz.frozen_samples >= 1 and not viz.release.is_set()
-        finally:
-            if watcher:
-                watcher.close()
-            if observed and viz is not None:
-                viz.close()
-            cluster.close()
-    assert len(results["one"]) == 4
-    assert results["one"] == results["two"] == results["observed"]
-    assert viz is not None and viz.samples > 0
+def test_same_results_with_slow_and_stuck_observers(tmp_path: Path, episodes: Path,
+                                                   clean_lossy: dict[str, dict]) -> None:
+    """A slow observer on the control keys and a stuck one on viz/** change no record: the observed
+    1-worker run equals the module's undisturbed one. (Two workers give the same records too: the
+    killed-worker test's 2-worker run is compared with the same clean run.)"""
+    cluster = Cluster(tmp_path, "det-observed", workers=1)
+    watcher = Watcher(cluster.endpoint, delay_s=0.02)
+    viz = VizWatcher(cluster.endpoint)
+    try:
+        _finish(cluster.eval(episodes, "--comm", "lossy"))
+        observed = _summaries(cluster.records())
+        # The run finished while the viz observer was still stuck in its first callback: the
+        # world never waited for it (its samples were dropped, not queued back to the world).
+        assert viz.frozen_samples >= 1 and not viz.release.is_set()
+    finally:
+        watcher.close()
+        viz.close()
+        cluster.close()
+    assert len(clean_lossy) == 3
+    assert observed == clean_lossy
+    assert viz.samples > 0
     assert {"episode_started", "step"} <= viz.kinds.get("events", set()), viz.kinds
     assert viz.kinds.get("coord") == {"coordination_state"}, viz.kinds
     assert viz.kinds.get("frame", {"viz_frame"}) == {"viz_frame"}, viz.kinds  # the slow one may miss them all
     assert viz.frames > 0
-
-
-def test_garbage_on_the_worlds_control_keys_is_ignored(tmp_path: Path, episodes: Path) -> None:
-    """A plain zenoh client floods the keys a world worker reads (acknowledgements, the manifest) with
-    random bytes, wrong-shaped msgpack and acks of other episodes, and answers job requests with garbage:
-    no world dies, every episode is stored once, the worker logs what it ignored."""
-    import random
-
-    cluster = Cluster(tmp_path, "garbage", workers=1)
-    ids = [json.loads(line)["episode_id"] for line in episodes.read_text().splitlines()]
-    stop = threading.Event()
-    rng = random.Random(0)
-    session = zenoh.open(zenoh_config(connect=[cluster.endpoint]))
-    bad = [b"", b"\xc1", bytes(rng.randrange(256) for _ in range(64)), msgpack.packb({"type": "result_ack", "v": 1}),
-           msgpack.packb({"type": "run_manifest", "v": 1, "status": 7}), msgpack.packb([1, 2, 3]),
-           msgpack.packb({"type": "result_ack", "v": 1, "run_id": "garbage", "episode_id": "elsewhere",
-                          "newly_stored": True})]
-    jobs = session.declare_queryable(keys.jobs("garbage"), lambda q: q.reply(q.key_expr, rng.choice(bad)))
-
-    def flood() -> None:
-        while not stop.is_set():
-            for ep in ids:
-                session.put(keys.result_ack("garbage", ep), rng.choice(bad))
-            session.put(keys.manifest("garbage"), rng.choice(bad))
-            time.sleep(0.02)
-
-    thread = threading.Thread(target=flood, daemon=True)
-    thread.start()
-    try:
-        _finish(cluster.eval(episodes))
-        _one_finished_record_each(cluster.records(), 4)
-        assert cluster.procs["w0"].poll() is None or cluster.procs["w0"].returncode == 0
-        assert "refused a message on agos/garbage/" in (tmp_path / "w0.log").read_text()
-    finally:
-        stop.set()
-        thread.join(timeout=5)
-        jobs.undeclare()
-        session.close()
-        cluster.close()
 
 
 def _forgeries(run: str, episode_ids: list[str], rng) -> list[tuple[str, bytes]]:
@@ -426,9 +381,10 @@ def _forgeries(run: str, episode_ids: list[str], rng) -> list[tuple[str, bytes]]
 
 
 def test_a_hostile_client_changes_no_record(tmp_path: Path, episodes: Path, clean_lossy: dict[str, dict]) -> None:
-    """Over 1,000 malformed and forged messages on every key the run's processes subscribe to, and
-    garbage job requests, during a real run: every process lives, the records equal a clean run's,
-    nothing is written outside the run directory, and every process counts what it refused.
+    """Over 1,000 malformed and forged messages on every key the run's processes subscribe to, garbage
+    job requests, and garbage answers to the world worker's own job requests, during a real run: every
+    process lives, the records equal a clean run's, nothing is written outside the run directory, and
+    every process counts what it refused.
 
     The flood also replays the run's genuine records and lease notices as it hears them (issue 30,
     item 2): a duplicate before the ack, a record of an episode already stored, the lease notice of a
@@ -458,6 +414,10 @@ def test_a_hostile_client_changes_no_record(tmp_path: Path, episodes: Path, clea
 
     listeners = [session.declare_subscriber(keys.result(run, "*"), hear),
                  session.declare_subscriber(keys.lease(run, "*"), hear)]
+    answers = random.Random(0)  # its own generator: the queryable's callback runs on zenoh's thread
+    junk = [b"", b"\xc1", bytes(answers.randrange(256) for _ in range(64)), msgpack.packb([1, 2, 3]),
+            msgpack.packb({"type": "run_manifest", "v": 1, "status": 7})]
+    jobs = session.declare_queryable(keys.jobs(run), lambda q: q.reply(q.key_expr, answers.choice(junk)))
 
     def flood() -> None:
         from agos.runtime.codec import encode
@@ -497,8 +457,10 @@ def test_a_hostile_client_changes_no_record(tmp_path: Path, episodes: Path, clea
         assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == [run]
         assert not any(tmp_path.glob("*-rf*")) and not any(tmp_path.parent.glob("..-*"))
         assert re.search(r"orchestrator rejected \d+ messages", out), out
+        assert f"refused a message on agos/{run}/" in (tmp_path / "w0.log").read_text()
     finally:
         stop.set()
+        jobs.undeclare()
         for listener in listeners:
             listener.undeclare()
         session.close()

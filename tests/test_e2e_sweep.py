@@ -21,7 +21,7 @@ def _sweep(split: Path, out: Path) -> list[str]:
 
 
 def test_interrupted_sweep_resumes_to_the_same_table(tmp_path, sample_mid_episodes) -> None:
-    split = sample_mid_episodes(3, 11)
+    split = sample_mid_episodes(2, 11)
     clean = subprocess.run(_sweep(split, tmp_path / "clean"), capture_output=True, text=True, timeout=300)
     assert clean.returncode == 0, clean.stderr
 
@@ -37,7 +37,7 @@ def test_interrupted_sweep_resumes_to_the_same_table(tmp_path, sample_mid_episod
     assert proc.returncode == 130 and time.monotonic() - stopped < 10
     assert "Traceback" not in proc.stderr.read()
     kept = sum(len(f.read_text().splitlines()) for f in (out / ".episodes").glob("*.jsonl"))
-    assert 1 <= kept < 6
+    assert 1 <= kept < 4
 
     again = subprocess.run(_sweep(split, out), capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr

@@ -42,9 +42,11 @@ class Scripted:
         return {role: self.choose(obs) for role, obs in observations.items()}
 
 
-def run(world, key: str, source, sink=None) -> EpisodeRecord:
+def run(world, key: str, source, sink=None, *, budget: int | None = None) -> EpisodeRecord:
+    """``source`` plays episode ``key``; ``budget`` shortens the decision budget (the paper's 80 by default)."""
     town, scene, episodes = world
-    return EpisodeRunner(scene, town, episodes[key], run_id="t", worker_id="w", sink=sink).run(source)
+    config = None if budget is None else EpisodeConfig(look="flat", decision_budget=budget)
+    return EpisodeRunner(scene, town, episodes[key], run_id="t", worker_id="w", sink=sink, config=config).run(source)
 
 
 def heuristic() -> InProcessAgents:
@@ -73,9 +75,9 @@ def test_same_episode_and_policy_give_identical_records(world) -> None:
 
 
 def test_budget_is_shared_and_ends_the_episode(world) -> None:
-    record = run(world, "easy001", Scripted(lambda obs: action_for(obs, "WAIT")))
+    record = run(world, "easy001", Scripted(lambda obs: action_for(obs, "WAIT")), budget=16)
     assert record.termination == "budget_exhausted" and not record.success
-    assert record.decisions_uav + record.decisions_ugv == 80
+    assert record.decisions_uav + record.decisions_ugv == 16
 
 
 def test_illegal_and_missing_actions_become_counted_waits(world) -> None:
@@ -85,8 +87,8 @@ def test_illegal_and_missing_actions_become_counted_waits(world) -> None:
         return None if obs.decision_index % 2 else action_for(obs, "MOVE_TO_ROAD_WAYPOINT", waypoint_id="R-1")
 
     sink = Recorder()
-    record = run(world, "easy001", Scripted(choose), sink)
-    assert record.fallbacks == 80 and record.decisions_uav + record.decisions_ugv == 80
+    record = run(world, "easy001", Scripted(choose), sink, budget=16)
+    assert record.fallbacks == 16 and record.decisions_uav + record.decisions_ugv == 16
     assert all(step.applied == "WAIT" and step.fallback_reason for step in sink.steps)
     reasons = {step.fallback_reason.split(" ")[0] for step in sink.steps}
     assert reasons == {"CONFIRM", "no", "waypoint"}  # illegal action, missing action, bad waypoint
@@ -113,7 +115,7 @@ def test_reject_unfreezes_the_uav_and_records_the_candidate(world) -> None:
         return action_for(obs, "WAIT")
 
     sink = Recorder()
-    record = run(world, "mid001", Scripted(choose), sink)
+    record = run(world, "mid001", Scripted(choose), sink, budget=24)
     assert [c.status for c in record.candidates] == ["rejected"]
     annotate = next(s for s in sink.steps if s.applied == "ANNOTATE_CANDIDATE")
     reject = next(s for s in sink.steps if s.applied == "REJECT")

@@ -408,7 +408,7 @@ def one_host(compose: list[str], prefix: str, work: Path, runs: Path) -> None:
 
 def three_hosts(compose: list[str], prefix: str, work: Path, runs: Path) -> None:
     data = work / "data-hosts"
-    episodes = sample_split(data / "split.jsonl", per_difficulty=2)
+    episodes = sample_split(data / "split.jsonl", per_difficulty=1)
     base = variables("dt-hosts", free_port(), runs, data)
     core = Project(compose, f"{prefix}core", [COMPOSE_FILE], base, work)
     agents = Project(compose, f"{prefix}agents", [COMPOSE_FILE], base, work)
