@@ -64,7 +64,7 @@ from agos.runtime.schemas import (
     StepEvent,
 )
 from agos.world.sim import rules
-from agos.world.sim.engine import ROLE_ORDER, EpisodeRunner, EpisodeSink
+from agos.world.sim.engine import ROLE_ORDER, EpisodeRunner, EpisodeSink, SetupMemo
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import Town, open_town, town_for
 
@@ -76,6 +76,8 @@ IllegalMode = Literal["raise", "wait"]
 DEFAULT_TOWN = "grid-s7"
 """The town :meth:`Env.generated` samples from unless told another (``agos demo``'s)."""
 MOVES = {"uav": "MOVE_TO_UAV_WAYPOINT", "ugv": "MOVE_TO_ROAD_WAYPOINT"}
+MEMO_EPISODES = 256
+"""Episodes whose setup renders an Env keeps (a few small images each)."""
 
 
 class EnvStateError(RuntimeError):
@@ -149,6 +151,16 @@ class _Collect:
         return out
 
 
+class _Memo(dict[bytes, SetupMemo]):
+    """The setup renders of the last :data:`MEMO_EPISODES` episodes played (EpisodeRunner's
+    ``setup_memo``): a reset of an episode played before renders only its first observations."""
+
+    def __setitem__(self, key: bytes, value: SetupMemo) -> None:
+        super().__setitem__(key, value)
+        while len(self) > MEMO_EPISODES:
+            del self[next(iter(self))]
+
+
 class Env:
     """The agos world for one episode at a time, in this process (module docstring).
 
@@ -186,6 +198,7 @@ class Env:
 
             expert.install()  # the expert's plan rides in observations (world/expert/)
         self._sink = _Collect(sink)
+        self._memo = _Memo()
         self._runner: EpisodeRunner | None = None
         self._record: EpisodeRecord | None = None
         self._closed = False
@@ -254,7 +267,7 @@ class Env:
             self.spec = episode
         self._record = None
         self._runner = EpisodeRunner(self._scene, self._town, self.spec, run_id=self.run_id, worker_id="env",
-                                     config=self.config, sink=self._sink)
+                                     config=self.config, sink=self._sink, setup_memo=self._memo)
         self._sink.take()
         observations = self._runner.start()
         if not observations:

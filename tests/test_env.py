@@ -67,6 +67,15 @@ def test_the_env_gives_the_record_of_the_process_path(policy: str, link: str, wo
     assert _summary(record) == _summary(over_bus)
 
 
+def test_an_episode_played_again_gives_the_same_record(world) -> None:
+    """The second play reuses the first one's setup renders (references, SPL's path): the same record."""
+    town, scene, spec = world
+    with Env(spec, episode_config(policies="oracle", look="flat", decision_budget=BUDGET, cameras=SMALL), scene=scene,
+             town=town) as env:
+        first, second = (_summary(env.play({r: make_policy("oracle", r) for r in ("uav", "ugv")})) for _ in range(2))
+    assert first == second and first["termination"] == "confirmed"
+
+
 def test_calls_out_of_order_say_which_call_comes_next(world) -> None:
     town, scene, spec = world
     env = Env(spec, episode_config(look="flat", decision_budget=2, cameras=SMALL), scene=scene, town=town)

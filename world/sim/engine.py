@@ -34,9 +34,11 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Protocol
 
 import msgspec
+import numpy as np
 
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.schemas import (
@@ -46,6 +48,7 @@ from agos.runtime.schemas import (
     CoordinationState,
     EpisodeRecord,
     EpisodeSpec,
+    ImageFrame,
     Observation,
     Role,
     StepEvent,
@@ -57,7 +60,7 @@ from agos.world.sim.episode_vehicles import add_episode_vehicles
 from agos.world.sim.observations import coordination, observe, uav_waypoint
 from agos.world.sim.record import episode_record, logged_step, shortest_confirmable_path
 from agos.world.sim.rules import IllegalAction
-from agos.world.sim.scene import Scene
+from agos.world.sim.scene import STUDIO_OFFSET_M, Scene
 from agos.world.sim.state import EpisodeState, UavState, UgvState
 from agos.world.sim.teammate import teammate_top_view
 from agos.world.towns.asset import Town
@@ -97,6 +100,15 @@ class NullSink:
         pass
 
 
+@dataclass(frozen=True)
+class SetupMemo:
+    """What setting up one episode in one configuration renders and never changes (``setup_memo``)."""
+
+    references: list[ImageFrame]
+    teammate: ImageFrame
+    shortest_path_m: float | None
+
+
 MOVES = frozenset({"MOVE_TO_UAV_WAYPOINT", "MOVE_TO_ROAD_WAYPOINT", "GO_TO_CANDIDATE"})
 """The actions that carry a platform somewhere (the views along them are captured in dataset builds)."""
 
@@ -108,7 +120,11 @@ class EpisodeRunner:
 
     def __init__(self, scene: Scene, town: Town, spec: EpisodeSpec, *, run_id: str, worker_id: str,
                  config: EpisodeConfig | None = None, sink: EpisodeSink | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, setup_memo: dict[bytes, SetupMemo] | None = None) -> None:
+        """``setup_memo``: where to keep, across runners of one scene, what setting an episode up renders
+        that depends only on the episode and the configuration (the target's reference views, the
+        teammate's top view, SPL's shortest path); an episode played again skips those renders and
+        gives the same record. None: render them every time."""
         config = config or EpisodeConfig(look=scene.look)
         if config.look != scene.look:
             raise ValueError(f"episode {spec.episode_id}: the configuration's look is {config.look!r} but the scene "
@@ -119,6 +135,7 @@ class EpisodeRunner:
         self.state.searchable_area = [uav_waypoint(town, n) for n in sorted(self.state.active_uav)]
         self.sink = sink or NullSink()
         self._clock = clock
+        self._memo = setup_memo
         self._wall_start: float | None = None
         self._round_time_s = 0.0
         self.pending: dict[Role, Observation] = {}
@@ -133,16 +150,26 @@ class EpisodeRunner:
         st.target_xy = (spec.target.position_world_m[0], spec.target.position_world_m[1])
         st.region_map = RegionMap(st.town.layout, spec.region_world_m, size_px=cfg.cameras.map_px) \
             if cfg.cameras.map_px else None
-        st.references = sensors.reference_views(
-            scene, st.target_uid, spec.target.position_world_m, spec.target.yaw_rad, cfg.cameras)
-        st.teammate_reference = teammate_top_view(scene, cfg.cameras)
         start_uav = st.town.uav_grid.nodes[spec.uav_start_waypoint]
         st.uav = UavState(start_uav.node_id, start_uav.position_world_m)
         start = RoadGraphs.parse_anchor_id(spec.ugv_start_waypoint)
         st.ugv = UgvState(start, st.roads.heading_at(start), route=[start])
         st.start_node = start
-        st.shortest_path_m = shortest_confirmable_path(scene, st.town, start, spec.target, st.target_uid,
-                                                       cfg.confirm_at_view_size(), cfg.cameras)
+        key = msgspec.json.encode((spec, cfg.config_hash(), st.town.sha256))
+        memo = None if self._memo is None else self._memo.get(key)
+        if memo is not None:  # the reference views' trip to the studio and back, whose rounding moves the target
+            scene.move(st.target_uid, np.asarray(STUDIO_OFFSET_M))  # by a few ulp: the same as when rendered
+            scene.move(st.target_uid, -np.asarray(STUDIO_OFFSET_M))
+        else:
+            memo = SetupMemo(
+                sensors.reference_views(scene, st.target_uid, spec.target.position_world_m, spec.target.yaw_rad,
+                                        cfg.cameras),
+                teammate_top_view(scene, cfg.cameras),
+                shortest_confirmable_path(scene, st.town, start, spec.target, st.target_uid, cfg.confirm_at_view_size(),
+                                          cfg.cameras))
+            if self._memo is not None:
+                self._memo[key] = memo
+        st.references, st.teammate_reference, st.shortest_path_m = memo.references, memo.teammate, memo.shortest_path_m
         st.channel = Channel(cfg.comm, spec.seed + 7919 * cfg.link_seed, {"uav": st.uav_pose(), "ugv": st.ugv_pose()})
         st.info_age = {"uav": None, "ugv": None}
 
