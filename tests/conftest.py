@@ -19,15 +19,19 @@ AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 @pytest.fixture(scope="session")
 def sample_mid_episodes(tmp_path_factory) -> Callable[[int, int], Path]:
     """``sample(n, seed)``: a JSONL file of ``n`` mid-difficulty grid-s7 episodes, as ``agos episodes sample``
-    writes it (the command run in this process)."""
+    writes it (the command run in this process, once per ``(n, seed)``; the file is shared, never write it)."""
     from agos.deploy.cli import main
 
+    made: dict[tuple[int, int], Path] = {}  # one file per (n, seed) in a test process: tests only read it
+
     def sample(n: int, seed: int) -> Path:
-        path = tmp_path_factory.mktemp("episodes") / "eps.jsonl"
-        code = main(["episodes", "sample", "--town", "grid-s7", "--difficulty", "mid", "-n", str(n),
-                     "--seed", str(seed), "--out", str(path)])
-        assert code == 0, f"agos episodes sample exited {code}"
-        return path
+        if (n, seed) not in made:
+            path = tmp_path_factory.mktemp("episodes") / "eps.jsonl"
+            code = main(["episodes", "sample", "--town", "grid-s7", "--difficulty", "mid", "-n", str(n),
+                         "--seed", str(seed), "--out", str(path)])
+            assert code == 0, f"agos episodes sample exited {code}"
+            made[n, seed] = path
+        return made[n, seed]
 
     return sample
 
