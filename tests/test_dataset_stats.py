@@ -15,15 +15,13 @@ from pathlib import Path
 import pytest
 from rich.console import Console
 
+from agos import Env
 from agos.agents.dataset.writer import DatasetWriter
-from agos.agents.inprocess import InProcessAgents
 from agos.deploy.cli import main
 from agos.deploy.dataset.build import Assembler
 from agos.deploy.dataset.stats import _bins, _nice_step, read_dataset
 from agos.runtime.episode_config import EpisodeConfig, ToolConfig
-from agos.world import expert
 from agos.world.episodes.sampling import sample_episode
-from agos.world.sim.engine import EpisodeRunner
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import open_town
 
@@ -33,7 +31,6 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("dataset")
-    expert.install()
     town = open_town("grid-s7")
     with Scene(town.layout, look="flat") as scene:
         # seed 4: both UGVs drive (one that starts where it can confirm passes nothing on the way)
@@ -41,8 +38,8 @@ def dataset(tmp_path_factory) -> Path:
         assembler = Assembler(root, {s.episode_id: s for s in specs}, Console(quiet=True))
         config = EpisodeConfig(look="flat", tools=ToolConfig(expert=True), capture_every_m=10.0)
         for spec in specs:
-            agents = InProcessAgents({r: DatasetWriter(r, root) for r in ("uav", "ugv")})
-            record = EpisodeRunner(scene, town, spec, run_id="t", worker_id="t", config=config).run(agents)
+            with Env(spec, config, run_id="t", scene=scene, town=town) as env:
+                record = env.play({r: DatasetWriter(r, root) for r in ("uav", "ugv")})
             assert assembler.assemble(record) is None, spec.episode_id
     with (root / "export.jsonl").open("w") as out:
         for role_export in sorted(root.glob("episodes/*/*/export.jsonl")):
@@ -115,3 +112,20 @@ def test_bins_are_round_and_cover_every_value() -> None:
     assert edges[0] <= min(values) and edges[-1] >= max(values) and edges[1] - edges[0] == 50.0
     counts = _bins([4.0, 54.0], integer=True)
     assert counts[0] == 3.5 and all(float(e).is_integer() is False for e in counts)  # whole numbers sit mid-bin
+
+
+def test_the_behaviour_cloning_example_learns_from_the_datasets_files(dataset: Path, monkeypatch) -> None:
+    """examples/bc_data_loop.py (docs/LIBRARY.md): one example per decision the files hold, each labelled
+    with the expert's action and drawn from the image its decision names; the numpy fit runs."""
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1]))
+    from examples import bc_data_loop
+
+    for role in ("uav", "ugv"):
+        lines = [json.loads(line) for f in sorted(dataset.glob(f"episodes/*/{role}/decisions.jsonl"))
+                 for line in f.read_text().splitlines()]
+        items = list(bc_data_loop.examples(dataset, role, size_px=16))
+        assert [bc_data_loop.ACTIONS[role][e.label] for e in items] == [line["action"]["action"] for line in lines]
+        assert all(e.image.shape == (16, 16, 3) and e.image.max() > 0 and e.legal[e.label] == 1 for e in items)
+        accuracy, n = bc_data_loop.fit(dataset, role, epochs=5)
+        assert n == len(lines) and 0.0 < accuracy <= 1.0
+        assert 0 < len(list(bc_data_loop.decisions(dataset, role, episodes=1))) < len(lines)  # the first episode's
