@@ -30,7 +30,7 @@ from agos.agents.vlm.standin.server import StandinServer
 from agos.deploy.run.launcher import free_port, wait_listening
 from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.runtime.settings import VlmOptions
-from agos.world.episodes.sampling import read_episodes
+from agos.world.episodes.sampling import read_episodes, write_episodes
 from agos.world.sim.engine import EpisodeRunner
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import open_town
@@ -159,11 +159,14 @@ def _not_wall_clock(metrics: dict[str, dict]) -> dict[str, dict]:
     return {group: {k: v for k, v in values.items() if not k.startswith("latency_")} for group, values in metrics.items()}
 
 
-def test_a_cost_cap_stops_the_run_and_resume_completes_it(sample_mid_episodes, tmp_path, agos) -> None:
+def test_a_cost_cap_stops_the_run_and_resume_completes_it(episode_file, tmp_path, agos) -> None:
     """Issue 31 (c): a cost cap the first episode already reaches stops the run once that episode is stored
     (one console line, exit 5), ``--resume`` with the cap lifted plays the other, and ``agos report`` shows
-    the run card, tokens, cost, cost per success, latency and SR intervals. Episodes of 3 decisions."""
-    split = sample_mid_episodes(2, seed=3)
+    the run card, tokens, cost, cost per success, latency and SR intervals. Two episodes of 3 decisions:
+    the module's episode and a copy of it under another id."""
+    [spec] = read_episodes(episode_file)
+    split = tmp_path / "two.jsonl"
+    write_episodes(split, [spec, msgspec.structs.replace(spec, episode_id=spec.episode_id + "-copy")])
     run_dir = tmp_path / "run"
     env = {**os.environ, "AGOS_WORLD__DECISION_BUDGET": "3"}
     port = str(free_port(22400 + os.getpid() % 400))
