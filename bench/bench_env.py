@@ -1,0 +1,153 @@
+"""agos as a library (issue 32): what stepping the world from Python costs.
+
+* ``env``: decisions per second of ``agos.Env`` (a fresh Env per play, its ``step`` loop) against the
+  engine driven directly (``EpisodeRunner.run`` with in-process agents), the same episodes and
+  heuristic policies, interleaved, images at their default sizes. Goal: >= 0.95x.
+* ``process``: the same episodes through ``agos eval`` (processes on a bus): the world's decisions per
+  second of episode wall time (from the records) and of the whole command, against ``agos.Env``.
+  Reported, no goal (the bus, the agent processes and the run's start-up are what it measures).
+* ``vector``: steps per second of ``agos.vector.make_vector_env(2)`` against ``make_vector_env(1)``
+  (environments in subprocesses, the UGV learning beside the heuristic UAV, random masked actions,
+  images on), each counted as environment steps over the same wall time. Goal: >= 1.7x on 2 cores.
+
+    .venv/bin/python bench/bench_env.py [--quick] [--only env --only vector] [--json]
+
+``--quick`` (``make bench``): 2 episodes, 2 rounds, 20 s per vector size, no ``process``. ``--json``:
+also one machine-readable line per figure (bench/figures.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sqlite3
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from figures import Figures
+
+from agos import Env, episode_config
+from agos.agents.inprocess import InProcessAgents
+from agos.agents.registry import make_policy
+from agos.runtime.episode_config import EpisodeConfig
+from agos.runtime.schemas import EpisodeSpec
+from agos.world.episodes.files import write_episodes
+from agos.world.episodes.sampling import sample_episode
+from agos.world.sim.engine import EpisodeRunner
+from agos.world.sim.scene import Scene
+from agos.world.towns.asset import Town, open_town
+
+ROLES = ("uav", "ugv")
+
+
+def episodes(town: Town, scene: Scene, n: int) -> list[EpisodeSpec]:
+    return [sample_episode(town, scene, ("easy", "mid", "hard")[k % 3], k // 3, seed=7, stream=k % 3) for k in range(n)]
+
+
+def env_vs_engine(town: Town, scene: Scene, specs: list[EpisodeSpec], config: EpisodeConfig, rounds: int,
+                  figures: Figures) -> float:
+    """Decisions per second of each way, median over rounds of the total over ``specs``."""
+    rates: dict[str, list[float]] = {"engine": [], "env": []}
+    for _ in range(rounds):
+        for way in ("engine", "env") if _ % 2 == 0 else ("env", "engine"):
+            decisions, seconds = 0, 0.0
+            for spec in specs:
+                policies = {r: make_policy("heuristic", r) for r in ROLES}
+                started = time.perf_counter()
+                if way == "engine":
+                    record = EpisodeRunner(scene, town, spec, run_id="bench", worker_id="bench",
+                                           config=config).run(InProcessAgents(policies))
+                else:
+                    with Env(spec, config, scene=scene, town=town) as env:
+                        record = env.play(policies)
+                seconds += time.perf_counter() - started
+                decisions += record.decisions_uav + record.decisions_ugv
+            rates[way].append(decisions / seconds)
+    engine, env = statistics.median(rates["engine"]), statistics.median(rates["env"])
+    ratio = env / engine
+    print(f"env: agos.Env {env:.1f} decisions/s, EpisodeRunner.run {engine:.1f} decisions/s: {ratio:.3f}x "
+          f"(goal >= 0.95x; rounds {[round(r, 1) for r in rates['env']]} vs {[round(r, 1) for r in rates['engine']]})")
+    figures.add("agos.Env vs the engine driven directly (decisions/s)", ratio, f"{ratio:.3f}x", ">= 0.95x", ratio >= 0.95)
+    return env
+
+
+def process_path(specs: list[EpisodeSpec], env_rate: float, figures: Figures) -> None:
+    with tempfile.TemporaryDirectory(prefix="bench-env-") as tmp:
+        split = Path(tmp) / "split.jsonl"
+        write_episodes(split, specs)
+        started = time.perf_counter()
+        out = subprocess.run([sys.executable, "-m", "agos.deploy.cli", "eval", "--split", str(split), "--policy",
+                              "heuristic", "--run-dir", str(Path(tmp) / "run")], cwd=tmp, capture_output=True,
+                             text=True, env={**os.environ, "AGOS_WORLD__LOOK": "flat"}, timeout=900)
+        command_s = time.perf_counter() - started
+        if out.returncode != 0:
+            print(out.stdout[-2000:] + out.stderr[-2000:])
+            raise SystemExit(f"agos eval exited {out.returncode}")
+        with sqlite3.connect(Path(tmp) / "run" / "results.sqlite") as db:
+            records = [json.loads(r) for (r,) in db.execute("SELECT record_json FROM episodes")]
+    decisions = sum(r["decisions_uav"] + r["decisions_ugv"] for r in records)
+    world = decisions / sum(r["wall_time_s"] for r in records)
+    whole = decisions / command_s
+    print(f"process: agos eval {world:.1f} decisions/s of episode wall time, {whole:.1f} of the whole command "
+          f"({command_s:.1f} s); agos.Env / process: {env_rate / world:.2f}x, {env_rate / whole:.2f}x")
+    figures.add("agos.Env vs agos eval (decisions/s of episode wall time)", env_rate / world, f"{env_rate / world:.2f}x")
+    figures.add("agos.Env vs agos eval (decisions/s of the whole command)", env_rate / whole, f"{env_rate / whole:.2f}x")
+
+
+def vector(specs: list[EpisodeSpec], config: EpisodeConfig, seconds: float, figures: Figures) -> None:
+    from agos.vector import make_vector_env
+
+    rates = {}
+    for n in (1, 2):
+        envs = make_vector_env(n, role="ugv", partner="heuristic", episodes=specs, config=config, text=False)
+        obs, _ = envs.reset(seed=0)
+        space = envs.single_action_space
+        space.seed(0)
+        for _ in range(3):  # warm-up: first renders, first resets
+            obs, *_ = envs.step(np.array([space.sample(mask=obs["action_mask"][i]) for i in range(n)]))
+        steps, started = 0, time.perf_counter()
+        while time.perf_counter() - started < seconds:
+            actions = np.array([space.sample(mask=obs["action_mask"][i]) for i in range(n)])
+            obs, *_ = envs.step(actions)
+            steps += n
+        rates[n] = steps / (time.perf_counter() - started)
+        envs.close()
+    ratio = rates[2] / rates[1]
+    print(f"vector: 1 subprocess env {rates[1]:.1f} steps/s, 2 {rates[2]:.1f} steps/s: {ratio:.2f}x "
+          f"(goal >= 1.7x on 2 cores; {os.cpu_count()} cores here)")
+    figures.add("2 subprocess envs vs 1 (steps/s, images on)", ratio, f"{ratio:.2f}x", ">= 1.7x", ratio >= 1.7)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--only", action="append", choices=["env", "process", "vector"])
+    ap.add_argument("--episodes", type=int, help="episodes (default 6; quick 2)")
+    ap.add_argument("--rounds", type=int, help="rounds of env vs engine (default 4; quick 2)")
+    ap.add_argument("--vector-seconds", type=float, help="seconds per vector size (default 60; quick 20)")
+    ap.add_argument("--json", action="store_true", help="also print each figure as a BENCH-FIGURE line")
+    args = ap.parse_args(argv)
+    parts = args.only or (["env", "vector"] if args.quick else ["env", "process", "vector"])
+    figures = Figures(args.json)
+    config = episode_config(look="flat")  # images at their default sizes: 512 px nadir, 256 px ground, 384 px map
+    town = open_town("grid-s7")
+    with Scene(town.layout, look="flat") as scene:
+        specs = episodes(town, scene, args.episodes or (2 if args.quick else 6))
+        print(f"{len(specs)} grid-s7 episodes (flat look, default images), heuristic agents; {os.cpu_count()} cores")
+        env_rate = env_vs_engine(town, scene, specs, config, args.rounds or (2 if args.quick else 4), figures) \
+            if "env" in parts or "process" in parts else 0.0
+    if "process" in parts:
+        process_path(specs, env_rate, figures)
+    if "vector" in parts:
+        vector(specs, config, args.vector_seconds or (20.0 if args.quick else 60.0), figures)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
