@@ -33,10 +33,10 @@ from agos.runtime.viz import full_frames
 
 def observations() -> list[Observation]:
     """Every observation of one heuristic mid episode on grid-s7."""
-    from agos.agents.inprocess import InProcessAgents
+    from agos import Env
     from agos.agents.registry import make_policy
+    from agos.runtime.episode_config import EpisodeConfig
     from agos.world.episodes.sampling import sample_episode
-    from agos.world.sim.engine import EpisodeRunner
     from agos.world.sim.scene import Scene
     from agos.world.towns.asset import open_town
 
@@ -44,14 +44,12 @@ def observations() -> list[Observation]:
     with Scene(town.layout, look="flat") as scene:
         spec = sample_episode(town, scene, "mid", 0, seed=1)
         seen: list[Observation] = []
-        inner = InProcessAgents({r: make_policy("heuristic", r) for r in ("uav", "ugv")})
-
-        class Spy:
-            def decide(self, obs):
-                seen.extend(obs.values())
-                return inner.decide(obs)
-
-        EpisodeRunner(scene, town, spec, run_id="bench", worker_id="bench").run(Spy())
+        policies = {r: make_policy("heuristic", r) for r in ("uav", "ugv")}
+        with Env(spec, EpisodeConfig(look="flat"), run_id="bench", scene=scene, town=town) as env:
+            observations = env.reset()
+            while observations:
+                seen.extend(observations.values())
+                observations = env.step({r: policies[r].act(o) for r, o in observations.items()}).observations
     return seen
 
 

@@ -85,12 +85,11 @@ def _sample(job: tuple[str, str, int, int, str, str]) -> tuple[str, str, list[st
 
 def _play(job: tuple[str, str]) -> str:
     """Worker: one episode with the oracle in-process; returns its record as JSON."""
-    from agos.agents.inprocess import InProcessAgents
+    from agos import Env
     from agos.agents.registry import make_policy
     from agos.runtime.codec import from_json, to_json
     from agos.runtime.episode_config import EpisodeConfig
     from agos.runtime.schemas import EpisodeSpec
-    from agos.world.sim.engine import EpisodeRunner
     from agos.world.towns.asset import town_for
 
     config_json, episode_json = job
@@ -99,8 +98,8 @@ def _play(job: tuple[str, str]) -> str:
     town, scene = _scene(("sha", spec.asset_sha256, config.look),
                          lambda: town_for(spec.town.generator, spec.town.seed, spec.asset_sha256,
                                           town_id=spec.town.town_id), config.look)
-    agents = InProcessAgents({r: make_policy(POLICIES[r], r) for r in ("uav", "ugv")})
-    record = EpisodeRunner(scene, town, spec, run_id="oracle-sweep", worker_id="sweep", config=config).run(agents)
+    with Env(spec, config, run_id="oracle-sweep", scene=scene, town=town) as env:
+        record = env.play({r: make_policy(POLICIES[r], r) for r in ("uav", "ugv")})
     return to_json(record).decode()
 
 

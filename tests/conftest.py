@@ -72,25 +72,23 @@ class CliResult:
 @pytest.fixture(scope="session")
 def observations() -> list:
     """Every observation of one heuristic episode on grid-s7 (search, handoff, six views)."""
-    from agos.agents.inprocess import InProcessAgents
+    from agos import Env
     from agos.agents.registry import make_policy
+    from agos.runtime.episode_config import EpisodeConfig
     from agos.world.episodes.sampling import generate_episodes
-    from agos.world.sim.engine import EpisodeRunner
     from agos.world.sim.scene import Scene
     from agos.world.towns.asset import open_town
 
     town = open_town("grid-s7")
     seen: list = []
-    inner = InProcessAgents({r: make_policy("heuristic", r) for r in ("uav", "ugv")})
-
-    class Spy:
-        def decide(self, obs):
-            seen.extend(obs.values())
-            return inner.decide(obs)
-
+    policies = {r: make_policy("heuristic", r) for r in ("uav", "ugv")}
     with Scene(town.layout, look="flat") as scene:
         spec = generate_episodes(town, scene, per_difficulty=1, seed=1)[0]
-        EpisodeRunner(scene, town, spec, run_id="t", worker_id="w").run(Spy())
+        with Env(spec, EpisodeConfig(look="flat"), run_id="t", scene=scene, town=town) as env:
+            observations = env.reset()
+            while observations:
+                seen.extend(observations.values())
+                observations = env.step({r: policies[r].act(o) for r, o in observations.items()}).observations
     return seen
 
 

@@ -24,10 +24,10 @@ ROAD_RGB = (70, 70, 72)  # world/towns/topdown.py, "road" (BGR there)
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory) -> tuple[dict[str, Path], str, list[EpisodeRecord]]:
-    from agos.agents.inprocess import InProcessAgents
+    from agos import Env
     from agos.agents.registry import make_policy
+    from agos.runtime.episode_config import EpisodeConfig
     from agos.world.episodes.sampling import sample_episode, write_episodes
-    from agos.world.sim.engine import EpisodeRunner
     from agos.world.sim.scene import Scene
     from agos.world.towns.asset import open_town
 
@@ -37,8 +37,8 @@ def runs(tmp_path_factory) -> tuple[dict[str, Path], str, list[EpisodeRecord]]:
     with Scene(town.layout, look="flat") as scene:
         spec = sample_episode(town, scene, "mid", 0, seed=3)
         for policy in ("heuristic", "random"):
-            agents = InProcessAgents({r: make_policy(policy, r) for r in ("uav", "ugv")})
-            record = EpisodeRunner(scene, town, spec, run_id=policy, worker_id="w").run(agents)
+            with Env(spec, EpisodeConfig(look="flat"), run_id=policy, scene=scene, town=town) as env:
+                record = env.play({r: make_policy(policy, r) for r in ("uav", "ugv")})
             run_dir = root / policy
             write_episodes(run_dir / "episodes.jsonl", [spec])
             with ResultStore(run_dir / "results.sqlite") as store:

@@ -8,7 +8,7 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from agos.agents.inprocess import InProcessAgents
+from agos import Env
 from agos.agents.names import split_name, tools_for
 from agos.agents.registry import make_policy
 from agos.evaluator.metrics import acg
@@ -17,7 +17,6 @@ from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.runtime.geometry import distance_to_polygon
 from agos.world.episodes.sampling import generate_episodes
 from agos.world.sim import sensors
-from agos.world.sim.engine import EpisodeRunner
 from agos.world.sim.options import shortest_path
 from agos.world.sim.projection import candidate_region
 from agos.world.sim.scene import Scene
@@ -131,8 +130,8 @@ def _run(world, policy: str, spec, sink=None):
     town, scene, _ = world
     tools = tools_for({"uav": policy, "ugv": policy})
     config = EpisodeConfig(look="flat", tools=ToolConfig(e2a=tools["e2a"], rgpp=tools["rgpp"], oracle=tools["oracle"]))
-    agents = InProcessAgents({r: make_policy(policy, r) for r in ("uav", "ugv")})
-    return EpisodeRunner(scene, town, spec, run_id="t", worker_id="w", config=config, sink=sink).run(agents)
+    with Env(spec, config, run_id="t", scene=scene, town=town, sink=sink) as env:
+        return env.play({r: make_policy(policy, r) for r in ("uav", "ugv")})
 
 
 def test_oracle_solves_every_episode_and_random_is_legal(world) -> None:
@@ -144,19 +143,15 @@ def test_oracle_solves_every_episode_and_random_is_legal(world) -> None:
 
 def test_no_rgpp_removes_go_to_candidate_and_gives_distance_hints(world) -> None:
     seen = []
-
-    class Spy:
-        def __init__(self, inner):
-            self.inner = inner
-
-        def decide(self, observations):
-            seen.extend(observations.values())
-            return self.inner.decide(observations)
-
     town, scene, episodes = world
     config = EpisodeConfig(look="flat", tools=ToolConfig(rgpp=False))
-    agents = Spy(InProcessAgents({r: make_policy("heuristic:no_rgpp", r) for r in ("uav", "ugv")}))
-    record = EpisodeRunner(scene, town, episodes[0], run_id="t", worker_id="w", config=config).run(agents)
+    policies = {r: make_policy("heuristic:no_rgpp", r) for r in ("uav", "ugv")}
+    with Env(episodes[0], config, run_id="t", scene=scene, town=town) as env:
+        observations = env.reset()
+        while observations:
+            seen.extend(observations.values())
+            observations = env.step({r: policies[r].act(o) for r, o in observations.items()}).observations
+        record = env.record
     ugv = [o for o in seen if o.role == "ugv"]
     assert all("GO_TO_CANDIDATE" not in o.legal_actions for o in ugv)
     with_candidate = [o for o in ugv if any(c.status == "pending" for c in o.coordination.candidates)]
