@@ -22,8 +22,8 @@ wall = the records' ``wall_time_s``, the episode loop alone):
   <= 2 ms; the wall median and p95 beside it, which another process's load moves), and the record
   mode's store per call beside it (no goal: the model's latency hides it).
 
-Checks, not timings: the replayed records equal the recorded ones (but for ``run_id`` and
-``wall_time_s``) and the stand-in got no request during the replays; a failed check exits 1.
+Checks, not timings: the replayed records equal the recorded ones (but for ``run_id``,
+``wall_time_s`` and ``provenance``) and the stand-in got no request during the replays; a failed check exits 1.
 
     .venv/bin/python bench/bench_vlm_cache.py [--episodes 2] [--repeats 2] [--quick] [--json]
 
@@ -57,7 +57,9 @@ HERE = Path(__file__).resolve().parent
 SCRIPT_ENV = "BENCH_VLM_CACHE_SCRIPT"
 """The JSON file of recorded replies ScriptedReplay answers with (an environment variable: agos eval
 passes its own environment to the agent processes)."""
-WALL_CLOCK = ("run_id", "wall_time_s")
+WALL_CLOCK = ("run_id", "wall_time_s", "provenance")
+"""What a replayed record may differ in: the run's name, the episode's wall time, and the agos commit
+that wrote it (others may commit between this bench's runs)."""
 
 
 class ScriptedReplay(Policy):
