@@ -12,8 +12,10 @@ the others run ``act`` in one of ``concurrency`` worker threads (the contract's 
 thread that received the observation. Policies receive the decoded ``Observation`` struct and
 answer an ``Action`` struct, which is encoded and read back as the world will read it before it
 is sent. A policy that raises (or answers what the world would refuse) is logged and answered
-with a legal WAIT, so an agent bug costs a decision, never the episode. A restarted service
-simply answers what the world re-requests.
+with a legal WAIT, so an agent bug costs a decision, never the episode. A policy whose model
+endpoint gave no answer (:class:`~agos.agents.contract.EndpointOutage`) is answered with
+``Action.outage`` instead: no decision, the world pauses the episode. A restarted service simply
+answers what the world re-requests.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from agos.agents.contract import FatalPolicyError, Policy, action_for
+from agos.agents.contract import EndpointOutage, FatalPolicyError, Policy, action_for
 from agos.agents.names import needs_vlm
 from agos.agents.registry import make_policy
 from agos.runtime import keys
@@ -173,9 +175,12 @@ class _EpisodeSubscriptions:
 
 
 def decide(policy: Policy, obs: Observation) -> Action:
-    """``policy.act``; a policy error is logged and answered with a legal WAIT."""
+    """``policy.act``; a policy error is logged and answered with a legal WAIT, an endpoint outage
+    with :func:`outage_answer`."""
     try:
         return policy.act(obs)
+    except EndpointOutage as exc:
+        return outage_answer(obs, exc)
     except Exception:
         return _policy_failed(obs)
 
@@ -187,8 +192,18 @@ async def answer(policy: Policy, obs: Observation) -> Action:
         return await policy.act_async(obs)
     except FatalPolicyError:  # the service stops (serve_async)
         raise
+    except EndpointOutage as exc:
+        return outage_answer(obs, exc)
     except Exception:
         return _policy_failed(obs)
+
+
+def outage_answer(obs: Observation, outage: EndpointOutage) -> Action:
+    """The answer to ``obs`` when the policy's endpoint gave no answer: ``Action.outage`` holds the line,
+    and the world applies nothing (it pauses the episode and gives it back: world/sim/worker.py)."""
+    log.warning("%s %s #%d: no decision, the model endpoint gave no answer: %s", obs.episode_id, obs.role,
+                obs.decision_index, outage)
+    return action_for(obs, "WAIT", outage=str(outage)[:500] or type(outage).__name__)
 
 
 def _policy_failed(obs: Observation) -> Action:

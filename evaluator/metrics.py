@@ -170,10 +170,13 @@ class Summary:
     """Mean centre error over all candidates of the episodes (candidate-level pooling)."""
     excluded: int = 0
     """Episodes not scored (status other than ``finished``)."""
+    infra_errors: int = 0
+    """Of those, episodes whose model endpoint gave no answer in every attempt (status ``infra_error``):
+    neither successes nor failures of the model, counted so a table shows the outage."""
 
     def as_dict(self) -> dict[str, Any]:
         out = {k: getattr(self, k) for k in METRIC_KEYS}
-        out["n"], out["not_scored"] = self.n, self.excluded
+        out["n"], out["not_scored"], out["infra_error"] = self.n, self.excluded, self.infra_errors
         return out
 
 
@@ -184,12 +187,13 @@ def _mean(values: Iterable[float | None]) -> float | None:
 
 def summarize(episodes: Sequence[Episode]) -> Summary:
     """All metrics of a set of episodes in one pass (each episode-level function called once)."""
-    n = excluded = support = verified = 0
+    n = excluded = infra = support = verified = 0
     sr = osr = spl_sum = ase_sum = acg_sum = ds_uav = ds_ugv = ne_sum = fd_sum = err_sum = 0.0
     ne_n = fd_n = err_n = acg_n = 0
     for e in episodes:
         if e.status != "finished":
             excluded += 1
+            infra += e.status == "infra_error"
             continue
         n += 1
         sr += success(e)
@@ -215,22 +219,22 @@ def summarize(episodes: Sequence[Episode]) -> Summary:
         err_sum += sum(errors)
         err_n += len(errors)
     if n == 0:
-        return Summary(0, None, None, None, None, None, None, None, None, 0, None, None, None, None, excluded)
+        return Summary(0, None, None, None, None, None, None, None, None, 0, None, None, None, None, excluded, infra)
     return Summary(
         n=n, SR=sr / n, OSR=osr / n, SPL=spl_sum / n, NE=ne_sum / ne_n if ne_n else None,
         FD=fd_sum / fd_n if fd_n else None, ASE=ase_sum / n,
         ACG=acg_sum / acg_n if acg_n else None, GVA=verified / support if support else None, GVA_support=support,
         DS=(ds_uav + ds_ugv) / n, DS_UAV=ds_uav / n, DS_UGV=ds_ugv / n, CErr=err_sum / err_n if err_n else None,
-        excluded=excluded)
+        excluded=excluded, infra_errors=infra)
 
 
 def macro(groups: Sequence[Summary]) -> Summary:
     """The paper's overall figures ("macro-averaged" SR and DS, stage metrics "macro-averaged across
     difficulty levels"): the unweighted mean over groups of each metric (groups where it is undefined
-    are left out); GVA_support, n and excluded are summed."""
+    are left out); GVA_support, n, excluded and infra_errors are summed."""
     values = {k: _mean(getattr(g, k) for g in groups if g.n) for k in METRIC_KEYS if k != "GVA_support"}
     return Summary(n=sum(g.n for g in groups), GVA_support=sum(g.GVA_support for g in groups),
-                   excluded=sum(g.excluded for g in groups), **values)
+                   excluded=sum(g.excluded for g in groups), infra_errors=sum(g.infra_errors for g in groups), **values)
 
 
 POOLED_IN_TOTAL = ("GVA", "NE", "FD", "CErr")

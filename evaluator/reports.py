@@ -124,16 +124,18 @@ def main_rows(runs: Sequence[RunResults], *, ci: str = "cell") -> tuple[list[str
 
 def sr_rows(runs: Sequence[RunResults]) -> tuple[list[str], list[list[str]]]:
     """The console's success-rate table: per run, each difficulty's SR with its Wilson interval, the
-    overall (macro) SR and the episodes scored (and not scored)."""
+    overall (macro) SR and the episodes scored, not scored, and of those the infra errors (no answer
+    from the model endpoint in any attempt)."""
     header = ["Method", *(f"{d.capitalize()} SR % [95% CI]" for d in DIFFICULTY_ORDER), "Overall SR %", "scored",
-              "not scored"]
+              "not scored", "infra err"]
     rows = []
     for run in runs:
         s, intervals = run.summaries(), run.sr_intervals()
         cells = [f"{fmt('SR', s[d].SR)} {fmt_interval(intervals[d])}" if d in s and s[d].n else "-"
                  for d in DIFFICULTY_ORDER]
         overall = s["overall"]
-        rows.append([run.label, *cells, fmt("SR", overall.SR), str(overall.n), str(overall.excluded)])
+        rows.append([run.label, *cells, fmt("SR", overall.SR), str(overall.n), str(overall.excluded),
+                     str(overall.infra_errors)])
     return header, rows
 
 

@@ -20,11 +20,11 @@ def _num(v: float | None) -> str:
 
 def results_table(summaries: dict[str, Summary], *, title: str = "") -> Table:
     table = Table(title=title or None)
-    for col in ("difficulty", "episodes", "SR %", "OSR %", "SPL %", "NE m", "FD m", "DS", "not scored"):
+    for col in ("difficulty", "episodes", "SR %", "OSR %", "SPL %", "NE m", "FD m", "DS", "not scored", "infra err"):
         table.add_column(col, justify="left" if col == "difficulty" else "right")
     for level, s in summaries.items():
         table.add_row(level, str(s.n), _pct(s.SR), _pct(s.OSR), _pct(s.SPL), _num(s.NE), _num(s.FD), _num(s.DS),
-                      str(s.excluded), end_section=level == "hard")
+                      str(s.excluded), str(s.infra_errors), end_section=level == "hard")
     return table
 
 
@@ -32,12 +32,13 @@ def metrics_table(summaries: dict[str, Summary], *, title: str = "", group: str 
     """Every metric per group: rates in %, NE, FD and CErr in metres, DS in decisions."""
     table = Table(title=title or None)
     for col in (group, "n", "SR", "OSR", "SPL", "NE", "FD", "ASE", "ACG", "GVA (support)", "DS", "DS UAV", "DS UGV", "CErr",
-                "not scored"):
+                "not scored", "infra err"):
         table.add_column(col, justify="left" if col == group else "right")
     for name, s in summaries.items():
         table.add_row(name, str(s.n), _pct(s.SR), _pct(s.OSR), _pct(s.SPL), _num(s.NE), _num(s.FD), _pct(s.ASE), _pct(s.ACG),
                       f"{_pct(s.GVA)} ({s.GVA_support})", _num(s.DS), _num(s.DS_UAV), _num(s.DS_UGV), _num(s.CErr),
-                      str(s.excluded), end_section=name == list(summaries)[-2] if len(summaries) > 1 else False)
+                      str(s.excluded), str(s.infra_errors),
+                      end_section=name == list(summaries)[-2] if len(summaries) > 1 else False)
     return table
 
 

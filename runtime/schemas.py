@@ -46,8 +46,9 @@ ActionName = Literal[
     "REJECT",
     "WAIT",
 ]
-EpisodeStatus = Literal["finished", "agent_crashed", "world_crashed", "timeout", "invalid"]
-"""Closed status vocabulary: only ``finished`` episodes say anything about the agents."""
+EpisodeStatus = Literal["finished", "agent_crashed", "world_crashed", "timeout", "invalid", "infra_error"]
+"""Closed status vocabulary: only ``finished`` episodes say anything about the agents. ``infra_error``:
+the model endpoint gave no answer in every attempt the run allowed (``[run] max_infra_attempts``)."""
 
 Termination = Literal["confirmed", "false_confirm", "budget_exhausted", "sim_time_limit", "error"]
 
@@ -315,6 +316,10 @@ class Action(Message, tag="action", kw_only=True):
     agent_wall_latency_s: float | None = None
     trace: DecisionTrace | None = None
     """Model-backed policies: how the decision was reached (stored with the episode)."""
+    outage: str | None = None
+    """Set when the policy could not decide because its model endpoint gave no answer after its retries
+    (agents/contract.py::EndpointOutage): one line naming the endpoint and what failed. Not a decision:
+    the world applies nothing, abandons the attempt and gives the episode back (docs/AGENTS.md)."""
 
 
 class AgentMessage(Message, tag="agent_message", kw_only=True):
@@ -617,6 +622,10 @@ class JobRequest(Message, tag="job_request", kw_only=True):
     """An episode of this worker's lease it could not finish (its agents vanished mid-episode): the
     orchestrator leases it again as the next attempt."""
     why: str = ""
+    outage: bool = False
+    """The episode was given back because an agent's model endpoint gave no answer (``why`` is the
+    agent's line): the orchestrator pauses it, and leases nothing, for ``[run] infra_wait_s``, then
+    leases it again; after ``[run] max_infra_attempts`` such attempts it stores ``infra_error``."""
 
 
 class JobGrant(Message, tag="job_grant", kw_only=True):

@@ -76,6 +76,11 @@ class RunSettings(_Section):
     says so; after three such checks in a row with no world worker, or with records no evaluator
     stored, it stops (exit 3)."""
     workers: int = Field(1, ge=1)
+    max_infra_attempts: int = Field(3, ge=1)
+    """Attempts an episode may lose to its model endpoint giving no answer (after the client's retries)
+    before ``agos eval`` stores it as ``infra_error`` (not scored; ``--resume`` plays it again)."""
+    infra_wait_s: float = Field(60.0, ge=0)
+    """After such an outage, how long ``agos eval`` leases nothing before the paused episodes go again."""
 
 
 class VlmOptions(_Section):

@@ -143,17 +143,18 @@ def test_payload_is_the_plain_map_of_the_fields(make) -> None:
 def test_payloads_keep_their_size_and_content() -> None:
     """The same bytes as the pydantic models wrote before the structs (msgpack-python's packing of
     ``model_dump``), but for the order of ``v`` and ``type``: lengths taken from that version."""
-    # + the attempt field (key and value); the observation also + decision_timeout_s (20), expert (8) and
-    # teammate_reference (20), keys and nil, and its coordination state's confirmations_used (20) and
-    # max_confirmations (19), keys and values
-    for make, size in ((_action, 202 + 9), (_observation, 1767 + 9 + 20 + 8 + 20 + 20 + 19)):
+    # + the attempt field (key and value); the action also + outage (8, key and nil) and 2 for its 16th field (a
+    # map16 header, no longer a fixmap); the observation also +
+    # decision_timeout_s (20), expert (8) and teammate_reference (20), keys and nil, and its coordination
+    # state's confirmations_used (20) and max_confirmations (19), keys and values
+    for make, size in ((_action, 202 + 9 + 8 + 2), (_observation, 1767 + 9 + 20 + 8 + 20 + 20 + 19)):
         plain = msgpack.unpackb(encode(make()), raw=False)
         old_order = {"v": plain.pop("v"), "type": plain.pop("type"), **plain}
         assert len(encode(make())) == len(msgpack.packb(old_order, use_bin_type=True)) == size
     assert msgpack.unpackb(encode(_action()), raw=False) == {
         "type": "action", "v": 1, "run_id": "r1", "episode_id": "e1", "role": "ugv", "decision_index": 3, "attempt": 1,
         "action": "GO_TO_CANDIDATE", "waypoint_id": None, "cell": None, "candidate_id": "C002",
-        "message": "heading there", "rationale": "closest", "agent_wall_latency_s": 0.25, "trace": None}
+        "message": "heading there", "rationale": "closest", "agent_wall_latency_s": 0.25, "trace": None, "outage": None}
 
 
 def test_numpy_values_are_written_as_numbers_and_lists() -> None:

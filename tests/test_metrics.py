@@ -317,8 +317,26 @@ def test_as_json_keys() -> None:
     data = as_json(aggregate(_three_levels()))
     assert set(data) == {"easy", "mid", "hard", "overall"}
     expected = {"SR", "OSR", "SPL", "NE", "FD", "ASE", "ACG", "GVA", "GVA_support", "DS", "DS_UAV", "DS_UGV", "CErr",
-                "n", "not_scored"}
+                "n", "not_scored", "infra_error"}
     for row in data.values():
         assert set(row) == expected
     assert data["hard"]["GVA"] is None and data["hard"]["not_scored"] == 1
     assert data["overall"]["n"] == 5 and data["overall"]["not_scored"] == 1
+    assert data["overall"]["infra_error"] == 0  # h1 crashed its world: not scored, no infra error
+
+
+def test_infra_errors_are_counted_and_never_scored() -> None:
+    """An episode whose model endpoint never answered (status infra_error) changes no metric: the same
+    summaries as without it, one more not scored, and counted as an infra error in its level and overall."""
+    scored = _three_levels()
+    lost = [ep(episode_id="h3", difficulty="hard", status="infra_error"),
+            ep(episode_id="m2", difficulty="mid", status="infra_error", decisions_uav=3)]
+    with_lost, without = aggregate(scored + lost), aggregate(scored)
+    for level in ("mid", "hard", "overall"):
+        metrics = {k: getattr(with_lost[level], k) for k in METRIC_KEYS}
+        assert metrics == {k: getattr(without[level], k) for k in METRIC_KEYS}, level
+        assert with_lost[level].n == without[level].n
+    assert (with_lost["mid"].excluded, with_lost["mid"].infra_errors) == (1, 1)
+    assert (with_lost["hard"].excluded, with_lost["hard"].infra_errors) == (2, 1)   # h1 world_crashed, h3
+    assert (with_lost["overall"].excluded, with_lost["overall"].infra_errors) == (3, 2)
+    assert as_json(with_lost)["overall"]["infra_error"] == 2

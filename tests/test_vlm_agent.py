@@ -84,20 +84,26 @@ def test_a_malformed_reply_is_re_asked_and_counted_apart_from_the_decision(obser
 
 def test_unusable_replies_become_a_logged_legal_fallback(observations, caplog) -> None:
     uav = next(o for o in observations if o.role == "uav")
-    with StandinServer(script=("empty", "length", "garbage", "malformed")) as server, caplog.at_level(logging.WARNING):
+    with StandinServer(script=("empty", "length", "malformed")) as server, caplog.at_level(logging.WARNING):
         action = _agent(server.url, reasks=2, max_retries=0).act(uav)
     assert action.action == "WAIT" and "WAIT" in uav.legal_actions
-    assert action.trace.fallback and action.trace.fallback_reason
+    assert action.trace.fallback and action.trace.fallback_reason and action.trace.reasks == 2
     assert any("fallback WAIT" in r.getMessage() for r in caplog.records)
 
 
-def test_an_unreachable_endpoint_is_a_fallback_not_a_crash(observations, caplog) -> None:
+def test_an_unreachable_endpoint_is_an_outage_not_a_decision(observations) -> None:
+    """No answer after the retries is no decision of the model: EndpointOutage, which the agent service
+    turns into Action.outage (the world pauses the episode), never a fallback WAIT."""
+    from agos.agents.contract import EndpointOutage
+
     ugv = next(o for o in observations if o.role == "ugv")
     agent = _agent("http://127.0.0.1:9/v1", "ugv", max_retries=1, timeout_s=2)
-    with caplog.at_level(logging.WARNING):
-        action = agent.act(ugv)
-    assert action.action == "WAIT" and action.trace.fallback and action.trace.error
-    assert action.trace.http_attempts == 2
+    with pytest.raises(EndpointOutage, match=r"127\.0\.0\.1:9/v1: no answer after 2 attempts \(ConnectError\)"):
+        agent.act(ugv)
+    with StandinServer(faults={"500": 1.0}) as server:  # a 5xx past the retry budget, likewise
+        with pytest.raises(EndpointOutage, match=r"no answer after 2 attempts \(HTTP 500\)"):
+            _agent(server.url, "ugv", max_retries=1).act(ugv)
+        assert server.stats()["chat_completions"] == 2
 
 
 def test_the_api_key_never_reaches_traces_or_logs(observations, caplog, monkeypatch, tmp_path) -> None:
@@ -150,21 +156,26 @@ def test_a_re_sent_observation_is_answered_once(observations) -> None:
     assert list(agent._memory[uav.episode_id].recent) == [f"step 1: {first.action} {first.waypoint_id or ''}".rstrip()]
 
 
-@pytest.mark.parametrize("body", [
-    [1, 2],
-    {"choices": [None]},
-    {"choices": []},
-    {"choices": [{"message": {"content": 7}}], "usage": {"prompt_tokens": "many"}},
+@pytest.mark.parametrize(("body", "outage"), [
+    ([1, 2], True),  # not a chat completion, after the retries: the endpoint gave no answer
+    ({"choices": [None]}, True),
+    ({"choices": []}, True),
+    ({"choices": [{"message": {"content": 7}}], "usage": {"prompt_tokens": "many"}}, False),  # an unusable answer
 ])
-def test_odd_reply_shapes_become_traced_fallbacks(observations, body) -> None:
+def test_odd_reply_shapes_become_outages_or_traced_fallbacks(observations, body, outage) -> None:
     import httpx
 
+    from agos.agents.contract import EndpointOutage
     from agos.agents.vlm.client import VlmClient
 
     uav = next(o for o in observations if o.role == "uav")
     agent = _agent("http://stand.in/v1", reasks=0)
     agent._client = VlmClient("http://stand.in/v1", "agos-standin", max_retries=1, backoff_base_s=0.0,
                               transport=httpx.MockTransport(lambda request: httpx.Response(200, json=body)))
+    if outage:
+        with pytest.raises(EndpointOutage, match="invalid reply body"):
+            asyncio.run(agent.act_async(uav))
+        return
     action = asyncio.run(agent.act_async(uav))
     assert action.action == "WAIT" and action.trace.fallback and action.trace.fallback_reason
 
@@ -195,6 +206,9 @@ def test_an_echoed_key_is_redacted_from_errors(observations, monkeypatch) -> Non
     echo = httpx.MockTransport(lambda request: httpx.Response(401, text=f"bad key {request.headers['authorization']}"))
     agent = _agent("http://stand.in/v1", api_key_env="AGOS_TEST_KEY")
     agent._client = VlmClient("http://stand.in/v1", "agos-standin", api_key_env="AGOS_TEST_KEY", transport=echo)
-    action = asyncio.run(agent.act_async(uav))
-    assert action.trace.fallback and "401" in action.trace.error and secret not in to_json(action).decode()
+    from agos.agents.contract import EndpointOutage
+
+    with pytest.raises(EndpointOutage) as refused:  # a refused key is no decision of the model either
+        asyncio.run(agent.act_async(uav))
+    assert "401" in str(refused.value) and "AGOS_TEST_KEY" in str(refused.value) and secret not in str(refused.value)
 

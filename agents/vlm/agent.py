@@ -3,10 +3,13 @@
 One decision: build the role's prompt (stage-conditioned for AGOS-Agent), ask the model with the
 legal actions as a JSON schema, parse and validate the reply into a legal action. A reply that
 cannot be used is re-asked up to ``reasks`` times, telling the model what was wrong; after that, or
-when the endpoint gives no answer at all, the decision becomes the fallback WAIT, logged with its
-reason. Every decision carries a :class:`~agos.runtime.schemas.DecisionTrace` (prompt hash, image
-sizes, raw reply, parsed action, fallback flag, latency, tokens, HTTP attempts and re-asks), which
-the world stores with the episode. Retries and re-asks never add decisions.
+when the endpoint refuses the request, the decision becomes the fallback WAIT, logged with its
+reason. An endpoint that gives no answer after its retries (or refuses the key) is no decision of
+the model: :class:`~agos.agents.contract.EndpointOutage` is raised instead, and the agent service
+tells the world, which pauses the episode (docs/AGENTS.md, "Endpoint outages"). Every decision
+carries a :class:`~agos.runtime.schemas.DecisionTrace` (prompt hash, image sizes, raw reply, parsed
+action, fallback flag, latency, tokens, HTTP attempts and re-asks), which the world stores with the
+episode. Retries and re-asks never add decisions.
 
 The ablation variants (``agos-agent:no_e2a`` ...) use the same prompts; what changes is the tools
 the world offers (the prompt follows from the legal actions and the options' hints).
@@ -25,7 +28,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-from agos.agents.contract import FatalPolicyError, Policy
+from agos.agents.contract import EndpointOutage, FatalPolicyError, Policy
 from agos.agents.names import split_name
 from agos.agents.vlm import agos_prompts, baseline_prompts
 from agos.agents.vlm.cache import CallTag, ReplyCache
@@ -161,8 +164,8 @@ class VlmAgent(Policy):
     async def _decide_safely(self, obs: Observation) -> Action:
         try:
             return await self._decide(obs)
-        except FatalPolicyError:  # a replay without the recorded reply: the service stops
-            raise
+        except (FatalPolicyError, EndpointOutage):  # a replay without the recorded reply: the service stops;
+            raise  # an endpoint that gave no answer: the world pauses the episode
         except Exception as exc:  # a bug or an unforeseen reply shape costs a decision, never the episode
             log.exception("%s %s #%d: decision failed; fallback WAIT", obs.episode_id, self.role, obs.decision_index)
             action = to_action(None, obs).action
@@ -199,6 +202,8 @@ class VlmAgent(Policy):
             try:
                 reply = await self.client().complete(messages, schema=schema, call=call)
             except VlmError as exc:
+                if exc.outage:  # not the model's decision: nothing is answered, the episode pauses
+                    raise EndpointOutage(str(exc)) from None
                 error = str(exc)
                 attempts += exc.attempts
                 break

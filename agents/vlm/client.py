@@ -35,6 +35,8 @@ if TYPE_CHECKING:
     from agos.agents.vlm.cache import CallTag, ReplyCache
 
 RETRY_STATUS = {408, 409, 429, 500, 502, 503, 504}
+OUTAGE_KINDS = ("outage", "auth")
+"""``VlmError`` kinds that are outages of the endpoint, not answers to the request (:attr:`VlmError.outage`)."""
 
 
 class VlmError(RuntimeError):
@@ -45,7 +47,16 @@ class VlmError(RuntimeError):
         self.attempts = attempts
         """HTTP requests made before giving up."""
         self.kind = kind
-        """What failed (agents/vlm/endpoint.py's ``KINDS``): refused, unreachable, timeout, auth, model, http."""
+        """What failed (agents/vlm/endpoint.py's ``KINDS``): refused, unreachable, timeout, auth, model, http,
+        or ``outage``: no answer after the retry budget (connection errors, timeouts, 408/409/429/5xx,
+        unusable bodies)."""
+
+    @property
+    def outage(self) -> bool:
+        """The endpoint gave no answer (``outage``) or refused the key (``auth``): an infrastructure
+        failure, never the model's decision (agents/contract.py::EndpointOutage). Other kinds (a 400,
+        a 404: the request itself was refused) cost the decision a fallback WAIT."""
+        return self.kind in OUTAGE_KINDS
 
 
 @dataclass
@@ -178,7 +189,7 @@ class VlmClient:
                 if attempt < self.max_retries:
                     await asyncio.sleep(self._delay(attempt, response))
         raise VlmError(f"{self.base_url}: no answer after {self.max_retries + 1} attempts ({last_error})",
-                       attempts=self.max_retries + 1)
+                       attempts=self.max_retries + 1, kind="outage")
 
     def _redact(self, text: str) -> str:
         """Error text with the API key removed (a server may echo the request's headers)."""

@@ -11,6 +11,8 @@ of :data:`KINDS`) from its preflight, and for 401/403 answers to any request; ``
 * ``auth``: 401/403, naming the API-key variable and whether it is set;
 * ``model``: the endpoint answers but does not list the model (the line lists what it serves);
 * ``http``: any other answer that is not a model list (a 404 names the usual ``/v1`` suffix).
+* ``outage``: a chat request got no answer after the client's retries (connection errors, timeouts,
+  408/409/429/5xx): the episode pauses instead of scoring a WAIT (agents/contract.py::EndpointOutage).
 
 No line ever holds the API key: callers redact the server's text before it is quoted here.
 """
@@ -24,7 +26,7 @@ from urllib.parse import urlsplit
 
 import httpx
 
-KINDS = ("refused", "unreachable", "timeout", "auth", "model", "http")
+KINDS = ("refused", "unreachable", "timeout", "auth", "model", "http", "outage")
 QUOTED_CHARS = 160
 """At most this much of a server's own error message is quoted in a line."""
 

@@ -217,7 +217,7 @@ def _add_sweep(sub: Any) -> None:
 def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from agos.agents.contract import FatalPolicyError
+    from agos.agents.contract import EndpointOutage, FatalPolicyError
     from agos.deploy.run.configure import episode_config
     from agos.deploy.run.sweep import check_sweep_endpoint, run_sweep, with_param
     from agos.runtime.links import ProfileError
@@ -243,6 +243,10 @@ def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
     except FatalPolicyError as exc:  # a replay (--vlm-cache-mode replay) that lacks a recorded call
         print(f"sweep error: {exc}", file=sys.stderr)
         return exc.exit_code
+    except EndpointOutage as exc:  # never scored as the model's WAIT: the sweep stops
+        print(f"sweep error: the model endpoint gave no answer: {exc}; finished episodes are kept, the same sweep "
+              "plays the rest once it answers", file=sys.stderr)
+        return 6
     print((args.out / "sweep.md").read_text())
     print(f"{len(table)} points -> {args.out}/sweep.csv, sweep.md, sweep.png")
     return 0

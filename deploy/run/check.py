@@ -114,7 +114,7 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policies: dict[st
     from agos.world.episodes.sampling import generate_episodes
     from agos.world.sim.engine import EpisodeRunner
     from agos.world.sim.scene import Scene
-    from agos.world.sim.worker import BusDecisionSource, BusSink, MissingAgent
+    from agos.world.sim.worker import BusDecisionSource, BusSink, MissingAgent, ModelOutage
     from agos.world.towns.asset import open_town
 
     console = console or Console(soft_wrap=True)  # paths and commands it prints are never cut at the width
@@ -144,6 +144,9 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policies: dict[st
             console.print(f"[red]{exc}", highlight=False)  # whole: the table cell is cut to its width
             if line := elsewhere_line(who_is_here(bus, run_id), run_id):
                 console.print(f"[yellow]{line}", highlight=False)
+        except ModelOutage as exc:  # the agents are there, their model endpoint is not
+            v.check("finished", False, f"the model endpoint gave no answer: {exc}")
+            console.print(f"[red]the model endpoint gave no answer: {exc}", highlight=False)
         finally:
             source.close()
         if record is not None:

@@ -95,15 +95,46 @@ class Bar:
 class Losses:
     """Stops the run once ``LOST_IN_A_ROW`` episodes in a row were lost to the same cause."""
 
-    def __init__(self) -> None:
+    def __init__(self, resume: str | None = None) -> None:
         self.streak = LossStreak(LOST_IN_A_ROW)
+        self.resume = resume
 
     def check(self, record: EpisodeRecord) -> Halt | None:
         cause = self.streak.add(record)
         if cause is None:
             return None
-        return Halt(f"[red]stopping: {LOST_IN_A_ROW} episodes in a row lost to the same cause ({record.status}): {cause}",
-                    3)
+        then = f"; resume with `{self.resume}` once it answers" if record.status == "infra_error" and self.resume else ""
+        return Halt(f"[red]stopping: {LOST_IN_A_ROW} episodes in a row lost to the same cause ({record.status}): "
+                    f"{escape(cause)}{escape(then)}", 3)
+
+
+EXIT_INFRA = 6
+"""``agos eval``'s exit status when the run ended with episodes stored as ``infra_error`` (their model
+endpoint gave no answer in every attempt): not scored, and ``--resume`` plays them again."""
+
+
+class Outages:
+    """Prints the orchestrator's lines about model endpoint outages (an episode paused, stored as
+    ``infra_error``, the endpoint answering again) as they come, one console line each."""
+
+    def __init__(self, orch: Orchestrator, console: Console) -> None:
+        self.orch, self.console = orch, console
+
+    def check(self) -> Halt | None:
+        for line in self.orch.notices:
+            self.console.print(f"[yellow]{escape(line)}", highlight=False)
+        self.orch.notices.clear()
+        return None
+
+
+def infra_error_line(records: list[EpisodeRecord], resume: str) -> str | None:
+    """One line for a run that ended with ``infra_error`` episodes, naming how many, the last cause and
+    the resume command; None without any."""
+    lost = [r for r in records if r.status == "infra_error"]
+    if not lost:
+        return None
+    return (f"{len(lost)} episode{'' if len(lost) == 1 else 's'} stored as infra_error (not scored; "
+            f"{lost[-1].error}); play {'it' if len(lost) == 1 else 'them'} again once the endpoint answers: {resume}")
 
 
 def resume_command(plan: RunPlan) -> str:
@@ -297,7 +328,8 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
             return 1
         bus = ZenohBus.from_settings(own)
         orch = Orchestrator(bus, plan.run_id, plan.episodes, policies=plan.policies, config=plan.config,
-                            already_stored=done_before, resumed=plan.resumed, stuck_after_s=stuck_after_s)
+                            already_stored=done_before, resumed=plan.resumed, stuck_after_s=stuck_after_s,
+                            max_infra_attempts=cfg.run.max_infra_attempts, infra_wait_s=cfg.run.infra_wait_s)
         orch.publish_manifest("running")
         if done_before:
             console.print(f"resuming {plan.run_dir}: {len(orch.stored)} of {orch.total} episodes already finished; "
@@ -309,8 +341,9 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
         with Progress(*Bar.COLUMNS, console=console, transient=False) as progress:
             absences = Absences(cfg, plan, bus, orch, own.connect, progress.console, None if attach else launcher,
                                 resume)
-            halt = follow(orch, Bar(progress, orch), stop.is_set, Losses(),
-                          [absences.check, lambda: exited_children(launcher, plan.run_dir / "logs"), *watches],
+            halt = follow(orch, Bar(progress, orch), stop.is_set, Losses(resume or resume_command(plan)),
+                          [Outages(orch, progress.console).check, absences.check,
+                           lambda: exited_children(launcher, plan.run_dir / "logs"), *watches],
                           on_record)
             if halt is not None:
                 console.print(halt.line, highlight=False)
@@ -332,13 +365,17 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
             bus.close()
         if creds is not None:
             creds.close()
-    _summary(console, plan, orch, attach, len(launcher.children) + 1, time.monotonic() - started)
+    records = _summary(console, plan, orch, attach, len(launcher.children) + 1, time.monotonic() - started)
     if recording is not None:
         _recording_summary(console, recording)
     if interrupted:
         console.print(f"[yellow]interrupted: every process stopped; resume with: {resume or resume_command(plan)}",
                       highlight=False)
         return 130  # as a shell reports a command stopped by Ctrl-C: scripts must not take it for a finished run
+    line = infra_error_line(records, resume or resume_command(plan))
+    if line is not None:
+        console.print(f"[red]{escape(line)}", highlight=False)
+        return EXIT_INFRA
     return 0
 
 
@@ -366,7 +403,8 @@ def usage_line(records: list[EpisodeRecord], plan: RunPlan) -> str | None:
 
 
 def _summary(console: Console, plan: RunPlan, orch: Orchestrator | None, attach: bool, processes: int,
-             wall_s: float) -> None:
+             wall_s: float) -> list[EpisodeRecord]:
+    """Print the run's results and figures; the records it showed (every stored one of the run)."""
     path = results_path(plan.run_dir.parent, plan.run_id)
     records = []
     if path.exists():
@@ -401,6 +439,7 @@ def _summary(console: Console, plan: RunPlan, orch: Orchestrator | None, attach:
         if rate is not None:
             console.print(f"throughput: {rate:.1f} episodes/min (first lease to last stored episode)", highlight=False)
     console.print(f"wall time: {wall_s:.1f} s", highlight=False)
+    return records
 
 
 def _recording_summary(console: Console, recording: Recording) -> None:

@@ -14,6 +14,12 @@ tracks which episodes are stored.
   holder's record is in is never taken back: the episode is played, and only its storage is awaited
   (the record is published again every ``LEASE_REPEAT_S``; ``agos eval`` stops a run whose records
   stay unstored, deploy/run/evaluate.py).
+* An episode given back because an agent's model endpoint gave no answer (``JobRequest.outage``)
+  pauses: it and every other episode wait ``infra_wait_s`` before anything is leased again (the
+  endpoint is down for all of them), then it is leased again, first, as a fresh attempt. After
+  ``max_infra_attempts`` such attempts the orchestrator submits an ``infra_error`` record, which no
+  metric scores. These attempts do not count towards ``max_attempts``. :attr:`Orchestrator.notices`
+  holds one console line per pause, infra error and recovery (``agos eval`` prints them).
 * An episode is done when the evaluator's ack for it is seen, and is then never leased again;
   whatever arrives about it later (its record again, a late duplicate from a worker thought dead,
   another ack, its old lease notice) changes nothing here, and the evaluator stores nothing twice.
@@ -60,6 +66,11 @@ STUCK_AFTER_S = 180.0
 (``agos eval --stuck-after``), unless its decision timeout and ``STUCK_MARGIN_S`` are longer."""
 STUCK_MARGIN_S = 60.0
 """An episode counts as stuck only after its decision timeout and this much more without progress."""
+INFRA_WAIT_S = 60.0
+"""How long leasing pauses after a model endpoint outage (``[run] infra_wait_s``)."""
+MAX_INFRA_ATTEMPTS = 3
+"""Attempts an episode may lose to model endpoint outages before it is stored as ``infra_error``
+(``[run] max_infra_attempts``)."""
 
 
 @dataclass
@@ -78,7 +89,8 @@ class Orchestrator:
     def __init__(self, bus: Bus, run_id: str, episodes: list[EpisodeSpec], *, policies: dict[str, str],
                  config: EpisodeConfig | None = None,
                  stuck_after_s: float = STUCK_AFTER_S, max_attempts: int = 3, already_stored: set[str] | None = None,
-                 resumed: bool = False, clock=time.monotonic) -> None:
+                 resumed: bool = False, max_infra_attempts: int = MAX_INFRA_ATTEMPTS, infra_wait_s: float = INFRA_WAIT_S,
+                 clock=time.monotonic) -> None:
         self.bus, self.run_id = bus, run_id
         self.policies = policies
         self.config = config or EpisodeConfig()
@@ -87,6 +99,7 @@ class Orchestrator:
         # be given hours: docs/HUMAN.md), so it is stuck only after that and a margin.
         stuck_after_s = max(stuck_after_s, self.config.decision_timeout_s + STUCK_MARGIN_S)
         self.stuck_after_s, self.max_attempts, self.resumed = stuck_after_s, max_attempts, resumed
+        self.max_infra_attempts, self.infra_wait_s = max_infra_attempts, infra_wait_s
         self._clock = clock
         done = already_stored or set()
         self.total = len(episodes)
@@ -108,6 +121,16 @@ class Orchestrator:
         """World workers whose liveliness token is up: the only ones that get episodes."""
         self.gave_up: dict[str, EpisodeRecord] = {}
         """Infrastructure-failure records this orchestrator submitted, until acknowledged."""
+        self.outages: Counter[str] = Counter()
+        """Episode -> attempts it lost to a model endpoint outage."""
+        self.paused: dict[str, tuple[EpisodeSpec, int]] = {}
+        """Episodes given back for an outage, waiting to be leased again: spec and next attempt, in order."""
+        self.hold_until = 0.0
+        """Nothing is leased before this (clock time): the wait after the latest outage."""
+        self.outage_line: str | None = None
+        """The latest outage's line while it lasts (None once an episode decided again after it)."""
+        self.notices: list[str] = []
+        """Console lines about outages, taken and printed by ``agos eval`` (deploy/run/evaluate.py)."""
         self.rejections = Rejections(log)
         self.may_lease: Callable[[int], bool] | None = None
         """A gate asked before each lease with the episodes in flight (leased, no record yet); False
@@ -163,6 +186,9 @@ class Orchestrator:
                 if lease is not None:
                     lease.last_progress = now
                 self.decisions += isinstance(event, StepEvent)
+                if isinstance(event, StepEvent) and self.outage_line is not None and lease is not None \
+                        and lease.leased_at >= self.hold_until:
+                    self._recovered(event.episode_id, lease.attempt)
                 continue
             try:
                 message = decode(s.payload)
@@ -244,7 +270,7 @@ class Orchestrator:
     def _release(self, episode_id: str, why: str, status: Literal["world_crashed", "agent_crashed"] = "world_crashed") -> None:
         lease = self.leases.pop(episode_id)
         self.releases += 1
-        if lease.attempt >= self.max_attempts:
+        if lease.attempt - self.outages[episode_id] >= self.max_attempts:  # outages are counted apart
             log.error("%s failed %d times (%s); recording an infrastructure failure", episode_id, lease.attempt, why)
             # Under the last holder's name: the evaluator stores a result only from the lease holder.
             record = self.gave_up[episode_id] = failure_record(
@@ -254,6 +280,50 @@ class Orchestrator:
             return
         log.warning("re-leasing %s (attempt %d): %s", episode_id, lease.attempt + 1, why)
         self.pending.appendleft((lease.spec, lease.attempt + 1))
+
+    def _pause(self, episode_id: str, why: str) -> None:
+        """The lease holder gave ``episode_id`` back because a model endpoint gave no answer (``why``:
+        the agent's line): pause leasing for ``infra_wait_s`` and lease the episode again first after it,
+        or, after ``max_infra_attempts`` such attempts, submit its ``infra_error`` record."""
+        lease = self.leases.pop(episode_id)
+        self.releases += 1
+        self.outages[episode_id] += 1
+        lost = self.outages[episode_id]
+        self.outage_line = why
+        self.hold_until = max(self.hold_until, self._clock() + self.infra_wait_s)  # down for every episode
+        if lost >= self.max_infra_attempts:
+            log.error("%s: the model endpoint gave no answer in %d attempts (%s); recording infra_error", episode_id,
+                      lost, why)
+            record = self.gave_up[episode_id] = failure_record(
+                self.run_id, lease.spec, status="infra_error", worker_id=lease.worker,
+                error=f"the model endpoint gave no answer in {lost} attempts: {why}", config=self.config)
+            self.bus.publish(keys.result(self.run_id, episode_id), record)
+            self.notices.append(f"{episode_id}: stored as infra_error after {lost} attempts without an answer from the "
+                                f"model endpoint (not scored; --resume plays it again); {self._waiting_text()}")
+            return
+        self.paused[episode_id] = (lease.spec, lease.attempt + 1)
+        log.warning("%s paused (attempt %d lost to a model endpoint outage: %s); leasing again in %.0f s", episode_id,
+                    lease.attempt, why, self.infra_wait_s)
+        self.notices.append(f"model endpoint outage: {why} (episode {episode_id}, attempt {lease.attempt}); "
+                            f"{self._waiting_text()}, leased again in {self.infra_wait_s:g} s as a fresh attempt "
+                            f"({lost} of {self.max_infra_attempts} attempts lost)")
+
+    def _waiting_text(self) -> str:
+        n = len(self.paused)
+        return f"{n} episode{'' if n == 1 else 's'} wait{'s' if n == 1 else ''}"
+
+    def _recovered(self, episode_id: str, attempt: int) -> None:
+        """An episode leased after the latest outage's wait made a decision: the endpoint answers again."""
+        self.outage_line = None
+        self.notices.append(f"model endpoint answers again: {episode_id} (attempt {attempt}) decided; "
+                            f"{self._waiting_text()} for a lease")
+
+    def _unpause(self) -> None:
+        """Once the wait after the latest outage is over, paused episodes go first in the queue."""
+        if self.paused and self._clock() >= self.hold_until:
+            for spec, attempt in reversed(list(self.paused.values())):
+                self.pending.appendleft((spec, attempt))
+            self.paused.clear()
 
     def _answer_queries(self) -> None:
         for query in self._queries.drain():
@@ -271,7 +341,9 @@ class Orchestrator:
             return
         worker = request.worker_id
         given_back = self.leases.get(request.give_back or "")
-        if given_back is not None and given_back.worker == worker:
+        if given_back is not None and given_back.worker == worker and request.outage:
+            self._pause(given_back.spec.episode_id, request.why)
+        elif given_back is not None and given_back.worker == worker:
             self._release(given_back.spec.episode_id, f"{worker} gave it back: {request.why}", status="agent_crashed")
         if worker not in self.live_workers:
             # No world worker of this run, or one whose token is still on its way (it asks again in a
@@ -279,9 +351,11 @@ class Orchestrator:
             log.debug("no job for %s: no liveliness token of that world worker", worker)
             query.reply(encode(JobGrant(worker_id=worker, episode=None, run_finished=self.finished)))
             return
+        self._unpause()
         while self.pending and self.pending[0][0].episode_id in self.stored:
             self.pending.popleft()  # never lease a stored episode again
-        if self.pending and (self.may_lease is None or self.may_lease(self.in_flight())):
+        if self.pending and self._clock() >= self.hold_until and (self.may_lease is None
+                                                                  or self.may_lease(self.in_flight())):
             spec, attempt = self.pending.popleft()
             now = self._clock()
             if self.first_lease_s is None:

@@ -101,6 +101,16 @@ class AgentVanished(RuntimeError):
         self.roles = roles
 
 
+class ModelOutage(RuntimeError):
+    """An agent answered a decision with ``Action.outage``: its model endpoint gave no answer after its
+    retries. Nothing is applied or counted; the attempt is abandoned and given back (the orchestrator
+    pauses the episode, then leases it afresh: deploy/run/orchestrator.py)."""
+
+    def __init__(self, role: Role, line: str) -> None:
+        super().__init__(f"{role.upper()} agent: {line}")
+        self.role, self.line = role, line
+
+
 class BusDecisionSource:
     """Asks the agent services for decisions over zenoh (lockstep: the sim clock waits)."""
 
@@ -182,7 +192,8 @@ class BusDecisionSource:
 
     def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
         """The ``Action`` structs the agents answered (type-checked while read, applied as they are),
-        ``None`` for a role that did not answer in time."""
+        ``None`` for a role that did not answer in time. Raises :class:`ModelOutage` at the first answer
+        that says its model endpoint gave none (``Action.outage``)."""
         self._check_agents(observations)
         self._watch_agents()
         for role, obs in observations.items():
@@ -219,6 +230,8 @@ class BusDecisionSource:
             if reason := self._refusal(sample.key, action, pending):
                 self.rejections.reject(sample.key, reason, f"{action.role} decision {action.decision_index}, "
                                                            f"attempt {action.attempt}")
+            elif action.outage is not None:  # no decision: the attempt ends here, nothing applied
+                raise ModelOutage(action.role, action.outage)
             else:
                 actions[action.role] = action
                 del pending[action.role]
@@ -248,7 +261,8 @@ class WorldWorker:
         self._scenes: dict[tuple[str, str, str], tuple[Town, Scene]] = {}
         """(asset sha256, renderer, look) -> town and scene: the asset hash names a town (imported towns all share
         one generator and seed)."""
-        self._give_back: tuple[str | None, str] = (None, "")  # an episode this worker could not finish, and why
+        self._give_back: tuple[str | None, str, bool] = (None, "", False)
+        """An episode this worker could not finish, why, and whether a model endpoint's outage was why."""
         self.frames = FrameStream(bus)
         self.rejections = Rejections(log)
 
@@ -269,7 +283,8 @@ class WorldWorker:
                                                                   timeout_s=1.0):
                 log.info("run %s is over; worker exits", self.run_id)
                 break
-            request = JobRequest(worker_id=self.worker_id, give_back=self._give_back[0], why=self._give_back[1])
+            episode, why, outage = self._give_back
+            request = JobRequest(worker_id=self.worker_id, give_back=episode, why=why, outage=outage)
             replies = self.bus.request(keys.jobs(self.run_id), request, timeout_s=5.0)
             if not replies:
                 self.stop.wait(1.0)  # no orchestrator yet
@@ -278,7 +293,7 @@ class WorldWorker:
             if grant is None:
                 self.stop.wait(1.0)  # no grant for this worker (something else answers ctl/jobs): ask again
                 continue
-            self._give_back = (None, "")  # the orchestrator has heard it
+            self._give_back = (None, "", False)  # the orchestrator has heard it
             served = True
             if grant.run_finished:
                 log.info("run %s finished; worker exits", self.run_id)
@@ -376,7 +391,12 @@ class WorldWorker:
             record = self._failed(spec, "agent_crashed", str(exc), started, config)
         except AgentVanished as exc:
             log.warning("episode %s: %s; giving the attempt back to be run afresh", spec.episode_id, exc)
-            self._give_back = (spec.episode_id, str(exc))
+            self._give_back = (spec.episode_id, str(exc), False)
+            return
+        except ModelOutage as exc:  # not the model's decision: paused, then run afresh (never a WAIT)
+            log.warning("episode %s paused, its attempt given back: the model endpoint gave no answer (%s)",
+                        spec.episode_id, exc)
+            self._give_back = (spec.episode_id, str(exc), True)
             return
         except Exception as exc:
             log.error("episode %s crashed:\n%s", spec.episode_id, traceback.format_exc())
