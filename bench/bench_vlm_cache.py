@@ -114,8 +114,8 @@ def lookup_costs(cache_dir: Path) -> tuple[list[tuple[float, float]], list[tuple
     """(wall ms, CPU ms) of each replay lookup and each record store, for every call stored in ``cache_dir``: each
     request rebuilt as the client sends it (images as base64 data URLs) and asked of a replay
     handle, then recorded into a fresh cache with an endpoint that answers at once."""
-    from agos.agents.vlm.cache import CACHE_FILE, CallTag, ReplyCache
-    from agos.agents.vlm.client import Reply
+    from agos.agents.vlm.cache import CACHE_FILE, ReplyCache
+    from agos.agents.vlm.client import CallTag, Reply
 
     with sqlite3.connect(cache_dir / CACHE_FILE) as db:
         images = {d: f"data:{m};base64,{base64.b64encode(b).decode()}" for d, m, b in

@@ -31,8 +31,8 @@ import numpy as np
 from agos.agents.contract import EndpointOutage, FatalPolicyError, Policy
 from agos.agents.names import split_name
 from agos.agents.vlm import agos_prompts, baseline_prompts
-from agos.agents.vlm.cache import CallTag, ReplyCache
-from agos.agents.vlm.client import VlmClient, VlmError, image_part
+from agos.agents.vlm.cache import ReplyCache
+from agos.agents.vlm.client import CallTag, VlmClient, VlmError, image_part
 from agos.agents.vlm.parse import Parsed, to_action
 from agos.agents.vlm.protocol import action_schema
 from agos.agents.vlm.request import Memory, Prompt, uncovered

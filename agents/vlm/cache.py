@@ -40,7 +40,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from agos.agents.contract import FatalPolicyError
-from agos.agents.vlm.client import Reply, VlmError
+from agos.agents.vlm.client import CallTag, Reply, VlmError
 
 CACHE_FILE = "vlm-cache.sqlite"
 FORMAT_NAME = "agos-vlm-cache"
@@ -74,19 +74,6 @@ class CacheMiss(FatalPolicyError):
 class CacheBroken(FatalPolicyError):
     """The cache file could not be read or written mid-run (a disk full, a file replaced): the
     decision's reply cannot be trusted, so the run stops rather than score a WAIT."""
-
-
-@dataclass(frozen=True)
-class CallTag:
-    """Which decision asks: its stream (``<episode>/<role>``) and, for messages, its index."""
-
-    episode_id: str
-    role: str
-    decision_index: int
-
-    @property
-    def stream(self) -> str:
-        return f"{self.episode_id}/{self.role}"
 
 
 @dataclass(frozen=True)

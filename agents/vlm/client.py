@@ -24,15 +24,35 @@ import base64
 import os
 import random
 import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import httpx
 
 from agos.agents.vlm.endpoint import key_failure, listing_failure, model_failure, server_message, transport_failure
 
-if TYPE_CHECKING:
-    from agos.agents.vlm.cache import CallTag, ReplyCache
+
+@dataclass(frozen=True)
+class CallTag:
+    """Which decision asks: its stream (``<episode>/<role>``) and, for messages, its index."""
+
+    episode_id: str
+    role: str
+    decision_index: int
+
+    @property
+    def stream(self) -> str:
+        return f"{self.episode_id}/{self.role}"
+
+
+class ReplyCache(Protocol):
+    """What the client asks of a record/replay cache (agents/vlm/cache.py's ``ReplyCache``; a protocol
+    here so that the client does not import the cache, which imports the client's replies)."""
+
+    async def complete(self, body: dict[str, Any], call: CallTag | None,
+                       send: Callable[[dict[str, Any]], Awaitable[Reply]]) -> Reply: ...
+
 
 RETRY_STATUS = {408, 409, 429, 500, 502, 503, 504}
 OUTAGE_KINDS = ("outage", "auth")
