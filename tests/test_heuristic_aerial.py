@@ -14,6 +14,7 @@ import pytest
 from agos.agents.heuristic.aerial import detect_vehicles_from_above, surface_heights
 from agos.agents.heuristic.paint import shade_score
 from agos.agents.heuristic.perception import TargetProfile
+from agos.agents.heuristic.uav import ANNOTATE_SCORE
 from agos.runtime.camera import intrinsics_for
 
 ALTITUDE_M = 80.0
@@ -159,3 +160,19 @@ def test_a_sunlit_navy_car_ranks_below_a_sunlit_blue_target() -> None:
     street.car(10.0, 0.0, BLUE)
     found = detect(street, profile(BLUE))
     assert found and found[0].u_px > SIZE_PX / 2
+
+
+def test_the_side_references_top_ranks_a_body_of_another_height_below_the_annotation_score() -> None:
+    """Against the side reference's outline top (``top_m``) the height counts in metres: an SUV
+    (1.8 m) for a van (2.1 m) of the same paint and length scores below what the heuristic UAV
+    annotates during its first sweep, the van itself well above; without it both rank alike."""
+    street = Street()
+    street.car(-10.0, 0.0, BLUE, length_m=5.2, width_m=2.0, height_m=2.1)  # the van
+    street.car(10.0, 0.0, BLUE, length_m=5.2, width_m=2.0, height_m=1.8)  # an SUV-high body
+    van = profile(BLUE, length_m=5.2, width_m=2.0, height_m=2.1)
+    rgb, depth = street.view()
+    strict = detect_vehicles_from_above(rgb, depth, van, intrinsics=INTR, world_from_camera=POSE, top_m=2.1)
+    by_side = {d.u_px < SIZE_PX / 2: d.score for d in strict}
+    assert by_side[True] >= ANNOTATE_SCORE > by_side.get(False, 0.0)
+    loose = {d.u_px < SIZE_PX / 2: d.score for d in detect(street, van)}
+    assert loose[False] >= ANNOTATE_SCORE  # the relative height alone let the lower body through

@@ -1,19 +1,35 @@
-"""The heuristic UGV's check of its six views on synthetic ground views: paint in its light,
-body height and length, not colour alone.
+"""The heuristic UGV's checks of its six views on synthetic ground views: paint in its light,
+body height and length, not colour alone (:func:`find_target`, the paint-only policy's and the
+stand-in's), and the heuristic's own judge against the side references (:func:`judge_views`:
+outline and paint tops, paint bands, leads).
 
 A synthetic view is a camera 1.7 m over a flat street looking along +x (a UGV's view), with a
-vehicle seen broadside: a painted face, and a roof when the vehicle is lower than the camera.
-Depth is metric (z along the optical axis); every image goes through JPEG as agents get it.
+vehicle seen broadside: a painted face, and a roof when the vehicle is lower than the camera; or
+box-built vehicles ray-cast with their reference views (tests/support/boxcars.py). Depth is metric
+(z along the optical axis); every image goes through JPEG as agents get it.
 """
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
+import pytest
 
-from agos.agents.heuristic.ground import GroundView, find_target
-from agos.agents.heuristic.perception import TargetProfile
+from agos.agents.heuristic.ground import (
+    CONFIRM_RANGE_M,
+    GroundJudgement,
+    GroundView,
+    SideReference,
+    find_target,
+    judge_views,
+    side_reference,
+)
+from agos.agents.heuristic.perception import TargetProfile, profile_from_references
 from agos.runtime.camera import intrinsics_for
+
+from support import boxcars
 
 EYE_M = 1.7
 SIZE_PX = 256
@@ -104,3 +120,79 @@ def test_markings_and_shadows_on_the_street_are_not_objects() -> None:
     rgb[200:210, :] = (40, 160, 60)  # a green painted band across the street (flat)
     flat = GroundView("front", rgb, view.depth_m, INTR, POSE)
     assert find_target([flat], profile(GREEN, **HATCHBACK)) == []
+
+
+# ----- the heuristic UGV's judge (judge_views) against box-built vehicles and their references -----
+
+RED = (200, 30, 25)
+ROOF_BOX_SEDAN = boxcars.car(RED, length_m=4.6, width_m=1.8, height_m=1.4, roof_box=True)
+SEDAN = boxcars.car(RED, length_m=4.6, width_m=1.8, height_m=1.4)
+SUV = boxcars.car(RED, length_m=4.9, width_m=2.0, height_m=1.8)
+VAN = boxcars.car(RED, length_m=5.2, width_m=2.0, height_m=2.1)
+
+
+@functools.cache
+def reference(name: str) -> tuple[TargetProfile, SideReference]:
+    """The profile and side reference of one of the vehicles above, from its rendered references."""
+    parts = {"roof box sedan": ROOF_BOX_SEDAN, "sedan": SEDAN, "bus": boxcars.bus(RED),
+             "box truck": boxcars.box_truck(RED)}[name]
+    frames = boxcars.references(parts)
+    target = profile_from_references(frames)
+    return target, side_reference(frames, target)
+
+
+def judged(vehicle: list[boxcars.Part], target: str, *, x_m: float = 9.0, y_m: float = 3.5,
+           yaw_deg: float = 20.0) -> GroundJudgement:
+    view = boxcars.ground_view([boxcars.placed(vehicle, x_m, y_m)], yaw_deg=yaw_deg)
+    return judge_views([view], *reference(target), min_pixels=40)
+
+
+def test_the_side_reference_measures_the_outline_the_paint_and_its_bands() -> None:
+    _, side = reference("roof box sedan")
+    assert side.top_m == pytest.approx(1.85, abs=0.05)  # the roof box's top
+    assert side.paint_top_m == pytest.approx(1.4, abs=0.05)  # the painted roof under it
+    assert side.top_low_m <= side.top_m
+    broadside = np.asarray(side.bands[1])  # ref_side
+    lower, glass = broadside[1], broadside[3]  # 0.6-0.9 m (painted door), 1.2-1.5 m (side windows)
+    assert lower > 0.9 and glass < 0.6
+    _, bus_side = reference("bus")
+    _, truck_side = reference("box truck")
+    middle = slice(4, 7)  # 1.5-2.4 m: a bus's windows, a box truck's painted box
+    assert np.nanmax(np.asarray(bus_side.bands[1])[middle]) < 0.2
+    assert np.nanmin(np.asarray(truck_side.bands[1])[middle]) > 0.8
+
+
+def test_a_roof_box_target_is_confirmed_and_taller_bodies_of_its_paint_are_not() -> None:
+    found = judged(ROOF_BOX_SEDAN, "roof box sedan")
+    assert len(found.matches) == 1 and found.matches[0].top_m == pytest.approx(1.85, abs=0.1)
+    assert found.matches[0].distance_m == pytest.approx(9.5, abs=1.5)
+    # an SUV's and a van's tops are near the roof box's, but their paint goes all the way up
+    suv = judged(SUV, "roof box sedan")
+    assert suv.matches == [] and suv.leads == []
+    assert find_target([boxcars.ground_view([boxcars.placed(SUV, 9.0, 3.5)], yaw_deg=20.0)],
+                       reference("roof box sedan")[0]), "the old check took the SUV"
+    assert judged(VAN, "roof box sedan").matches == []
+
+
+def test_a_plain_twin_is_not_a_roof_box_target_nor_the_other_way_round() -> None:
+    assert judged(SEDAN, "roof box sedan").matches == []
+    assert judged(ROOF_BOX_SEDAN, "sedan").matches == []
+    assert len(judged(SEDAN, "sedan").matches) == 1
+
+
+def test_the_paint_bands_tell_a_box_truck_from_a_bus() -> None:
+    truck, bus = boxcars.box_truck(RED), boxcars.bus(RED)
+    assert len(judged(bus, "bus", x_m=14.0, y_m=6.0).matches) == 1
+    assert len(judged(truck, "box truck", x_m=14.0, y_m=6.0).matches) == 1
+    assert judged(truck, "bus", x_m=14.0, y_m=6.0).matches == []  # as tall, painted where a bus has windows
+    assert judged(bus, "box truck", x_m=14.0, y_m=6.0).matches == []
+
+
+def test_the_target_seen_end_on_is_confirmed() -> None:
+    assert len(judged(ROOF_BOX_SEDAN, "roof box sedan", x_m=9.0, y_m=0.0, yaw_deg=0.0).matches) == 1
+
+
+def test_a_far_target_is_a_lead_to_look_at_again_not_a_match() -> None:
+    far = judged(ROOF_BOX_SEDAN, "roof box sedan", x_m=30.0, y_m=3.5, yaw_deg=7.0)
+    assert far.matches == [] and len(far.leads) == 1
+    assert far.leads[0].distance_m > CONFIRM_RANGE_M

@@ -160,10 +160,19 @@ def _measure(region: np.ndarray, paint: np.ndarray, heights: SurfaceHeights, hsv
         paint_px=n_paint, hue_error=mean_hue_error(px[near_hue(px, profile), 0], profile))
 
 
-def _size_error(s: Silhouette, profile: TargetProfile, *, cut: bool = False) -> float:
+HEIGHT_FREE_M = 0.10
+"""How far a silhouette's top may be from the side reference's outline top without penalty (the
+UAV's depth measures a vehicle's top to a few centimetres)."""
+HEIGHT_PENALTY_PER_M = 3.0
+"""Score lost per metre of top beyond ``HEIGHT_FREE_M``: an SUV for a van (0.28 m lower), a van for
+an SUV carrying a roof box (0.3 m) lose most of theirs."""
+
+
+def _size_error(s: Silhouette, profile: TargetProfile, *, cut: bool = False, top_m: float | None = None) -> float:
     """Relative disagreement of length, width and (half weight) height with the reference. A
     silhouette cut by the image's edge may be shorter or narrower than the target, not longer;
-    one measured against a cut reference may be longer, not shorter."""
+    one measured against a cut reference may be longer, not shorter. With ``top_m`` (the side
+    reference's outline top) the height counts in metres instead (``HEIGHT_PENALTY_PER_M``)."""
     length = profile.body_length_m or profile.length_m
     width = profile.body_width_m or profile.width_m
     if cut:
@@ -172,7 +181,9 @@ def _size_error(s: Silhouette, profile: TargetProfile, *, cut: bool = False) -> 
         err = max(0.0, length - s.length_m) / length + abs(s.width_m - width) / width
     else:
         err = abs(s.length_m - length) / length + abs(s.width_m - width) / width
-    if profile.body_height_m > 0:
+    if top_m is not None:
+        err += HEIGHT_PENALTY_PER_M * max(0.0, abs(s.height_m - top_m) - HEIGHT_FREE_M)
+    elif profile.body_height_m > 0:
         err += 0.5 * abs(s.height_m - profile.body_height_m) / profile.body_height_m
     return err
 
@@ -183,7 +194,7 @@ PAINT_ONLY_MAX_LENGTH_M = 12.5
 
 def detect_vehicles_from_above(rgb: np.ndarray, depth_m: np.ndarray, profile: TargetProfile, *,
                                intrinsics: CameraIntrinsics, world_from_camera: np.ndarray,
-                               paint_only: bool = False) -> list[AerialDetection]:
+                               paint_only: bool = False, top_m: float | None = None) -> list[AerialDetection]:
     """Standing objects of a nadir view with the target's paint, size and height, best first.
 
     A candidate is a group of paint pixels standing 0.35 m or more above their ground, joined
@@ -224,7 +235,7 @@ def detect_vehicles_from_above(rgb: np.ndarray, depth_m: np.ndarray, profile: Ta
             continue
         vs, us = np.nonzero(region)
         cut = bool(us.min() <= 0 or vs.min() <= 0 or us.max() >= region.shape[1] - 1 or vs.max() >= region.shape[0] - 1)
-        err = CUT_PENALTY * cut if paint_only else _size_error(s, profile, cut=cut)
+        err = CUT_PENALTY * cut if paint_only else _size_error(s, profile, cut=cut, top_m=top_m)
         if s.relative_value < SHADE_RELATIVE_VALUE:
             err += SHADE_PENALTY * (1.0 - shade_score(region, rgb, heights.height_m, heights.xyz_m))
         score = max(0.0, 1.0 - err)

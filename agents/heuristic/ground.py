@@ -26,7 +26,8 @@ import numpy as np
 from agos.agents.heuristic.paint import MEAN_HUE_TOLERANCE, PAINT_ONLY_TOP_M, hue_match, mean_hue_error, near_hue, shade_score
 from agos.agents.heuristic.perception import TargetProfile
 from agos.runtime.camera import depth_to_world
-from agos.runtime.schemas import CameraIntrinsics
+from agos.runtime.codec import decode_image
+from agos.runtime.schemas import CameraIntrinsics, ImageFrame
 
 MIN_HEIGHT_M = 0.25
 """Above kerbs, markings and drawn shadows."""
@@ -77,6 +78,10 @@ class _Part:
     """(N, 2) positions of its pixels."""
     top_m: np.ndarray
     """(N,) heights of its pixels above the street."""
+    is_paint: np.ndarray
+    """(N,) whether each pixel shows the paint's hue (any brightness)."""
+    column_top_m: np.ndarray
+    """Height of the highest pixel of each image column the object spans (its upper outline)."""
     paint_value: np.ndarray
     """(M,) HSV values of its paint-hued pixels."""
     hues: np.ndarray
@@ -169,8 +174,11 @@ def _parts(view: GroundView, profile: TargetProfile, min_pixels: int, paint_only
         obj = labels == k
         oy, ox = np.nonzero(obj)
         dist = float(np.median(distance[oy, ox]))
+        column_top = np.full(w, -np.inf, np.float32)
+        np.maximum.at(column_top, ox, height[oy, ox])
         parts.append(_Part(
-            [view.name], xyz[oy, ox, :2], height[oy, ox], hsv[:, :, 2][obj & paint].astype(np.float32),
+            [view.name], xyz[oy, ox, :2], height[oy, ox], paint[oy, ox], column_top[np.isfinite(column_top)],
+            hsv[:, :, 2][obj & paint].astype(np.float32),
             hsv[:, :, 0][obj & wide], shade_score(obj, view.rgb, height, xyz), dist, dist / view.intrinsics.fy_px,
             cut=bool(ox.min() == 0 or ox.max() == w - 1) and len(ox) < CUT_MEASURED_SHARE * h * w,
             top_cut=bool(oy.min() == 0)))
@@ -200,6 +208,8 @@ def _join_parts(parts: list[_Part]) -> list[_Part]:
                 q.views = sorted(set(q.views) | set(p.views))
                 q.xy_m = np.concatenate([q.xy_m, p.xy_m])
                 q.top_m = np.concatenate([q.top_m, p.top_m])
+                q.is_paint = np.concatenate([q.is_paint, p.is_paint])
+                q.column_top_m = np.concatenate([q.column_top_m, p.column_top_m])
                 q.paint_value = np.concatenate([q.paint_value, p.paint_value])
                 q.hues = np.concatenate([q.hues, p.hues])
                 q.shade = max(q.shade, p.shade)
@@ -211,9 +221,9 @@ def _join_parts(parts: list[_Part]) -> list[_Part]:
     return out
 
 
-def _judge(p: _Part, profile: TargetProfile, min_pixels: int, paint_only: bool) -> GroundObject | None:
-    """The object as a target match, or None when its paint, top or length disagree (``paint_only``:
-    when its paint disagrees)."""
+def _paint_agrees(p: _Part, profile: TargetProfile, min_pixels: int) -> tuple[int, float] | None:
+    """(paint pixels in the expected brightness, median paint value) when the object's mean hue and
+    brightness are the paint's, else None."""
     # Near paints differ in hue by 6 (blue, navy) to 12 (yellow, orange) units: the mean over
     # many pixels tells them apart where single pixels (JPEG) do not. Shade keeps the hue.
     if mean_hue_error(p.hues, profile) > MEAN_HUE_TOLERANCE:
@@ -225,6 +235,21 @@ def _judge(p: _Part, profile: TargetProfile, min_pixels: int, paint_only: bool) 
     n_paint = int(((p.paint_value >= lo) & (p.paint_value <= hi)).sum())
     if not lo <= value <= hi or n_paint < min_pixels:
         return None
+    return n_paint, value
+
+
+def _length_m(p: _Part) -> float:
+    (_, _), (a, b), _ = cv2.minAreaRect(p.xy_m.astype(np.float32))
+    return float(max(a, b))
+
+
+def _judge(p: _Part, profile: TargetProfile, min_pixels: int, paint_only: bool) -> GroundObject | None:
+    """The object as a target match, or None when its paint, top or length disagree (``paint_only``:
+    when its paint disagrees)."""
+    paint = _paint_agrees(p, profile, min_pixels)
+    if paint is None:
+        return None
+    n_paint, value = paint
     body = profile.body_height_m or profile.paint_top_m
     top = float(np.percentile(p.top_m, 98))
     x, y = np.median(p.xy_m, axis=0)
@@ -232,8 +257,7 @@ def _judge(p: _Part, profile: TargetProfile, min_pixels: int, paint_only: bool) 
         return GroundObject(tuple(p.views), n_paint, p.distance_m, top, 0.0, float(x), float(y), value, p.shade, 1.0)
     if top - body > TOP_TOLERANCE_M + p.px_m or (body - top > TOP_TOLERANCE_M + p.px_m and not p.top_cut):
         return None
-    (_, _), (a, b), _ = cv2.minAreaRect(p.xy_m.astype(np.float32))
-    length = float(max(a, b))
+    length = _length_m(p)
     if not profile.body_cut and length > (profile.body_length_m or profile.length_m) + LENGTH_TOLERANCE_M:
         return None
     score = max(0.05, 1.0 - abs(top - body) / max(body, 0.5))
@@ -257,3 +281,190 @@ def find_target(views: list[GroundView], profile: TargetProfile, *, min_pixels: 
         if match is not None:
             found.append(match)
     return sorted(found, key=lambda d: -d.score)
+
+
+# ----- the heuristic UGV's judge: the target's outline and paint from the side references --------
+
+BAND_EDGES_M = tuple(round(0.3 + 0.3 * k, 2) for k in range(14))
+"""Height bands (metres above the road, 0.3-4.2 m) in which the paint's share of a vehicle's
+outline is compared with the side references: a bus shows glass from 1.3 to 2.7 m all round, a box
+truck paint; a two-tone roof or a stripe takes the paint out of its bands."""
+BAND_MIN_PX = 8
+"""Pixels of an object in a band for its share to count."""
+REFERENCE_BAND_MIN_PX = 5
+OUTLINE_PERCENTILE = 90
+"""An outline's top: this percentile of the heights of the highest pixel of each image column it
+spans. A roof box or a bus's roof unit spans a large share of the columns from any side, a lamp
+post or a branch touching the outline a few."""
+PAINT_TOP_PERCENTILE = 98
+SIDE_TOLERANCE_M = 0.10
+"""How far an object's top (and its paint's top) may be from the side reference's at zero distance;
+half a pixel's height at the object's distance is added (the sampling of its upper edge). Body
+types and roof boxes differ by 0.17 m (sedan, hatchback) to 0.6 m."""
+BAND_TOLERANCE = 0.35
+"""Largest mean difference of the paint's share per band from the closest side reference (the
+target scores 0.02-0.17 from any side, a box truck against a bus 0.55)."""
+CONFIRM_RANGE_M = 22.0
+"""An object further than this is a lead, never a match: a pixel there is 0.12 m high, as much as
+a roof box's rails or the step from a sedan to a hatchback."""
+LEAD_FACTOR = 2.0
+"""A lead may miss the tolerances by this factor (seen from far or cut, it is to be looked at
+again from closer, not taken)."""
+BOX_HEIGHT_M = 10.0
+"""Height of the box that rays of a side reference are met with (above any vehicle)."""
+
+
+@dataclass(frozen=True)
+class SideReference:
+    """What the target's ground-level references show, measured as :func:`judge_views` measures an
+    object of a UGV's views: its outline's top, its paint's top and the paint's share per band."""
+
+    top_m: float
+    """Top of the outline in the broadside reference (``OUTLINE_PERCENTILE`` of its columns' tops)."""
+    top_low_m: float
+    """The lowest top a ground camera may see: what stands set back on a roof (a bus's roof unit)
+    hides behind the roof's edge from close by, so the top of the side reference's pixels (most of
+    them below the roof unit) counts too."""
+    paint_top_m: float
+    bands: tuple[tuple[float, ...], ...]
+    """Per ground-level reference view, the paint's share of the silhouette in each band of
+    ``BAND_EDGES_M`` (NaN where the view shows fewer than ``REFERENCE_BAND_MIN_PX`` pixels)."""
+
+
+def band_shares(heights_m: np.ndarray, paint: np.ndarray, min_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """(share of paint, pixel count) per band of ``BAND_EDGES_M``; NaN share below ``min_px`` pixels."""
+    edges = np.asarray(BAND_EDGES_M)
+    idx = np.digitize(heights_m, edges) - 1
+    inside = (idx >= 0) & (idx < len(edges) - 1)
+    n = np.bincount(idx[inside], minlength=len(edges) - 1).astype(np.float64)
+    k = np.bincount(idx[inside & paint], minlength=len(edges) - 1).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n >= min_px, k / n, np.nan), n
+
+
+def outline_top_m(columns: np.ndarray, heights_m: np.ndarray) -> float:
+    """``OUTLINE_PERCENTILE`` of the highest ``heights_m`` per value of ``columns`` (0 for none)."""
+    if len(columns) == 0:
+        return 0.0
+    order = np.argsort(columns, kind="stable")
+    cols, h = columns[order], heights_m[order]
+    starts = np.flatnonzero(np.r_[True, cols[1:] != cols[:-1]])
+    return float(np.percentile(np.maximum.reduceat(h, starts), OUTLINE_PERCENTILE))
+
+
+def _box_entry_heights(us: np.ndarray, vs: np.ndarray, intrinsics: CameraIntrinsics, vehicle_from_camera: np.ndarray,
+                       length_m: float, width_m: float) -> np.ndarray:
+    """Heights where the rays through pixels of a reference view (a camera posed in the vehicle's
+    frame) enter the vehicle's box: the surface the pixel shows, to within the body's own slopes."""
+    pose = np.asarray(vehicle_from_camera, dtype=np.float64).reshape(4, 4)
+    d = pose[:3, :3] @ np.stack([(us - intrinsics.cx_px) / intrinsics.fx_px,
+                                 (vs - intrinsics.cy_px) / intrinsics.fy_px, np.ones(len(us))])
+    eye = pose[:3, 3:4]
+    lo = np.array([[-length_m / 2], [-width_m / 2], [0.0]])
+    hi = np.array([[length_m / 2], [width_m / 2], [BOX_HEIGHT_M]])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - eye) / d, (hi - eye) / d
+    t = np.nanmax(np.minimum(t1, t2), axis=0)
+    return eye[2, 0] + t * d[2]
+
+
+def side_reference(references: list[ImageFrame], profile: TargetProfile) -> SideReference:
+    """The :class:`SideReference` of the target from its reference views (the top view's body
+    length and width place the side views' pixels on the body)."""
+    length = profile.body_length_m or profile.length_m
+    width = profile.body_width_m or profile.width_m
+    dark = 0.75 * min(profile.value_side[0], profile.value_top)
+    bands: list[tuple[float, ...]] = []
+    top, paint_top = 0.0, profile.paint_top_m
+    for frame in references:
+        if frame.name == "ref_top" or frame.intrinsics is None or frame.world_from_camera is None:
+            continue
+        rgba = decode_image(frame.data)
+        vs, us = np.nonzero(rgba[:, :, 3] > 0)
+        if len(us) == 0:
+            continue
+        heights = _box_entry_heights(us, vs, frame.intrinsics, np.asarray(frame.world_from_camera), length, width)
+        hsv = cv2.cvtColor(np.ascontiguousarray(rgba[:, :, :3]), cv2.COLOR_RGB2HSV)
+        paint = hue_match(hsv, profile, dark_below=dark)[vs, us]
+        bands.append(tuple(float(v) for v in band_shares(heights, paint, REFERENCE_BAND_MIN_PX)[0]))
+        if frame.name == "ref_side":
+            top = outline_top_m(us, heights)
+    top = top or profile.body_height_m or profile.paint_top_m
+    return SideReference(top, min(top, profile.body_height_m or top), paint_top, tuple(bands))
+
+
+def band_distance(p_shares: np.ndarray, p_counts: np.ndarray, side: SideReference) -> float | None:
+    """Smallest mean difference (weighted by the object's pixels, at most 300 a band) between the
+    object's paint shares and those of one side reference, over the bands both show; None when no
+    reference shares two bands with it."""
+    best: float | None = None
+    for ref in side.bands:
+        r = np.asarray(ref)
+        both = np.isfinite(p_shares) & np.isfinite(r)
+        if both.sum() < 2:
+            continue
+        w = np.minimum(p_counts[both], 300.0)
+        d = float((w * np.abs(p_shares[both] - r[both])).sum() / w.sum())
+        best = d if best is None else min(best, d)
+    return best
+
+
+@dataclass(frozen=True)
+class GroundJudgement:
+    """The six views judged against the target: objects that are it (CONFIRM on the first) and
+    objects that may be it, seen from too far or only in part (look again from closer)."""
+
+    matches: list[GroundObject]
+    leads: list[GroundObject]
+
+
+def _verify(p: _Part, profile: TargetProfile, side: SideReference, min_pixels: int) -> tuple[str, GroundObject] | None:
+    """("match" | "lead", the object) or None when the object is not the target."""
+    paint = _paint_agrees(p, profile, min_pixels)
+    if paint is None:
+        return None
+    n_paint, value = paint
+    # A pixel's centre lies half a pixel below the upper edge it samples.
+    top = outline_top_m(np.arange(len(p.column_top_m)), p.column_top_m) + 0.5 * p.px_m
+    paint_top = (float(np.percentile(p.top_m[p.is_paint], PAINT_TOP_PERCENTILE)) + 0.5 * p.px_m
+                 if p.is_paint.any() else 0.0)
+    length = _length_m(p)
+    shares, counts = band_shares(p.top_m, p.is_paint, BAND_MIN_PX)
+    bands = band_distance(shares, counts, side)
+    tol = SIDE_TOLERANCE_M + 0.5 * p.px_m
+    top_err = max(0.0, top - side.top_m) - max(0.0, side.top_low_m - top)
+    paint_err = paint_top - side.paint_top_m
+    if p.top_cut:  # only lower bounds of the tops are measured: a short one may be looked at again
+        top_err, paint_err = max(top_err, -tol), max(paint_err, -tol)
+    too_long = not profile.body_cut and length > (profile.body_length_m or profile.length_m) + LENGTH_TOLERANCE_M
+    if (too_long or abs(top_err) > LEAD_FACTOR * tol or abs(paint_err) > LEAD_FACTOR * tol
+            or (bands is not None and bands > BAND_TOLERANCE)):
+        return None
+    x, y = np.median(p.xy_m, axis=0)
+    score = max(0.05, 1.0 - (abs(top_err) + abs(paint_err)) / (4 * tol) - (bands or 0.0))
+    obj = GroundObject(tuple(p.views), n_paint, p.distance_m, top, length, float(x), float(y), value, p.shade, score)
+    sure = (abs(top_err) <= tol and abs(paint_err) <= tol and bands is not None
+            and p.distance_m <= CONFIRM_RANGE_M)
+    return ("match" if sure else "lead"), obj
+
+
+def judge_views(views: list[GroundView], profile: TargetProfile, side: SideReference, *,
+                min_pixels: int = 40) -> GroundJudgement:
+    """The heuristic UGV's judgement of its six views, stricter than :func:`find_target`.
+
+    Objects are gathered as :func:`find_target` gathers them and checked for the paint's hue and
+    brightness; then against the side references: the top of the object's outline and of its
+    paint (a roof box raises the first only, a taller body both), each within ``SIDE_TOLERANCE_M``
+    and half a pixel; the paint's share per height band (``BAND_TOLERANCE``); and no more than the
+    target's length. A match is seen whole within ``CONFIRM_RANGE_M``; a lead misses no check by
+    more than ``LEAD_FACTOR`` and is worth a closer look. Best first."""
+    parts = [p for v in views for p in _parts(v, profile, min_pixels, False)]
+    matches: list[GroundObject] = []
+    leads: list[GroundObject] = []
+    for p in _join_parts(parts):
+        if p.cut:
+            continue
+        verdict = _verify(p, profile, side, min_pixels)
+        if verdict is not None:
+            (matches if verdict[0] == "match" else leads).append(verdict[1])
+    return GroundJudgement(sorted(matches, key=lambda d: -d.score), sorted(leads, key=lambda d: -d.score))
