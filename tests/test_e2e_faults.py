@@ -156,6 +156,27 @@ def _running_on(w: Watcher, worker: str) -> str | None:
     return mine[-1] if mine and mine[-1] not in w.results else None
 
 
+def test_agos_env_gives_the_record_of_the_process_path(episodes: Path, clean_lossy: dict[str, dict]) -> None:
+    """The shortest of the clean run's episodes, played in this process by agos.Env with the configuration
+    the run stored and the same policy: the record the processes stored, field for field but for what
+    made it (provenance: the commit may have moved on meanwhile) (docs/LIBRARY.md; tests/test_env.py
+    holds every scripted policy to this over the in-memory bus)."""
+    import msgspec
+
+    from agos import Env
+    from agos.agents.registry import make_policy
+    from agos.runtime.episode_config import EpisodeConfig
+    from agos.world.episodes.files import read_episodes
+
+    stored = min(clean_lossy.values(), key=lambda r: r["decisions_uav"] + r["decisions_ugv"])
+    spec = next(s for s in read_episodes(episodes) if s.episode_id == stored["episode_id"])
+    with Env(spec, EpisodeConfig.model_validate(stored["config"])) as env:
+        record = env.play({role: make_policy("heuristic", role) for role in ("uav", "ugv")})
+    assert record.comm_profile == "lossy"
+    played = _summaries([json.loads(msgspec.json.encode(record))])[spec.episode_id]  # as the store keeps it
+    assert {k: v for k, v in played.items() if k != "provenance"} == {k: v for k, v in stored.items() if k != "provenance"}
+
+
 def test_killed_world_worker_episode_completes_on_another_with_the_same_record(
         tmp_path: Path, episodes: Path, clean_lossy: dict[str, dict]) -> None:
     """A world killed mid-episode, after its agents have built up memory of it: the episode is

@@ -29,8 +29,9 @@ from support.bus_path import BusPath
 
 SMALL = {"nadir_px": 64, "ground_px": 64, "reference_px": 32, "map_px": 64}
 BUDGET = 10
-VOLATILE = ("run_id", "worker_id", "wall_time_s")
-"""What differs between two plays of one episode anywhere (docs/LIBRARY.md)."""
+VOLATILE = ("run_id", "worker_id", "wall_time_s", "provenance")
+"""What differs between two plays of one episode anywhere (docs/LIBRARY.md), and what made the record (the
+commit may move on between two plays on a working checkout)."""
 
 
 @pytest.fixture(scope="module")
