@@ -39,10 +39,15 @@ from typing import Any, ClassVar, Literal
 
 import msgspec
 import numpy as np
-from gymnasium import spaces
-from pettingzoo import ParallelEnv
 
-from agos import spaces as arrays
+from agos import spaces as arrays  # first: it says which extra to install when gymnasium is missing
+
+try:
+    from gymnasium import spaces
+    from pettingzoo import ParallelEnv
+except ModuleNotFoundError as missing:
+    raise ModuleNotFoundError(f"agos.pettingzoo needs {missing.name}: pip install 'agos[learn]' (docs/LIBRARY.md)",
+                              name=missing.name) from None
 from agos.env import DEFAULT_TOWN, Env, EnvStateError
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.schemas import Action, Difficulty, EpisodeRecord, EpisodeSpec, Observation, Role, StepEvent

@@ -31,7 +31,12 @@ import math
 
 import cv2
 import numpy as np
-from gymnasium import spaces
+
+try:
+    from gymnasium import spaces
+except ModuleNotFoundError as missing:  # the learning interfaces' extra is not installed
+    raise ModuleNotFoundError(f"agos's learning interfaces need {missing.name}: pip install 'agos[learn]' "
+                              "(gymnasium, pettingzoo; docs/LIBRARY.md)", name=missing.name) from None
 
 from agos.agents.contract import action_for
 from agos.runtime.camera import GRID_COLS, GRID_ROWS

@@ -7,6 +7,8 @@ role not asked. Flat look, 64-pixel images and short budgets keep it to seconds.
 
 from __future__ import annotations
 
+import importlib
+import sys
 import warnings
 
 import numpy as np
@@ -154,3 +156,10 @@ def test_observations_hold_the_images_the_world_rendered(episodes, scene) -> Non
     for role in ("uav", "ugv"):
         assert obs[role] in env.observation_space(role)
     env.close()
+
+
+def test_without_the_learn_extra_the_import_says_what_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "gymnasium", None)  # None: as if not installed
+    monkeypatch.delitem(sys.modules, "agos.spaces")  # imported afresh (put back after the test)
+    with pytest.raises(ModuleNotFoundError, match=r"need gymnasium: pip install 'agos\[learn\]'"):
+        importlib.import_module("agos.spaces")
