@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import signal
 import sqlite3
 import subprocess
@@ -203,6 +204,61 @@ def test_a_cost_cap_stops_the_run_and_resume_completes_it(episode_file, tmp_path
     assert total["episodes"] == "2" and total["prompt tok"] == f"{tokens:,}"
     assert float(total["cost USD"]) > 0 and float(total["p95 latency s"]) > 0
     assert total["USD/success"] == "--"  # 3 decisions find nothing: undefined, never 0 (tests/test_cost.py pins the math)
+
+
+def test_an_outage_window_pauses_episodes_and_resume_finishes_them(episode_file, tmp_path, agos) -> None:
+    """Issue 31 (a): the endpoint fails every chat request for a window (12 HTTP 500s after the agents'
+    two preflight probes; one retry per call), then answers again. Episode a loses both its attempts
+    (4 requests each: both roles at decision 1) and is stored as infra_error; b loses its first and
+    finishes on its second, fresh attempt. No episode is scored as a failure, the console says what
+    happened, eval exits 6, and --resume plays a, whose record equals b's (a re-leased attempt is an
+    undisturbed run). The calls are recorded (--vlm-cache): the failed ones are asked again, none stays."""
+    [spec] = read_episodes(episode_file)
+    split = tmp_path / "two.jsonl"
+    write_episodes(split, [spec, msgspec.structs.replace(spec, episode_id=spec.episode_id + "-copy")])
+    a, b = spec.episode_id, spec.episode_id + "-copy"
+    run_dir, cache = tmp_path / "run", tmp_path / "cache"
+    env = {**os.environ, "AGOS_WORLD__DECISION_BUDGET": "3", "AGOS_VLM__MAX_RETRIES": "1",
+           "AGOS_RUN__MAX_INFRA_ATTEMPTS": "2", "AGOS_RUN__INFRA_WAIT_S": "1"}
+    port = str(free_port(22800 + os.getpid() % 400))
+    with StandinServer(script=("ok", "ok", *("500",) * 12)) as server:
+        first = subprocess.run([*AGOS, "eval", "--split", str(split), "--policy", "agos-agent", "--vlm-base-url",
+                                server.url, "--model", "agos-standin", "--vlm-cache", str(cache), "--run-dir",
+                                str(run_dir), "--port", port], cwd=tmp_path, env=env, capture_output=True, text=True,
+                               timeout=300)
+        assert first.returncode == 6, first.stdout[-3000:] + first.stderr[-3000:]
+        out = " ".join(first.stdout.split())  # the console wraps long lines at its width
+        assert re.search(rf"model endpoint outage: U[AG]V agent: {re.escape(server.url)}: no answer after 2 attempts "
+                         rf"\(HTTP 500\) \(episode {re.escape(a)}, attempt 1\); 1 episode waits, leased again in 1 s as a "
+                         rf"fresh attempt \(1 of 2 attempts lost\)", out), out
+        assert f"{a}: stored as infra_error after 2 attempts without an answer from the model endpoint" in out
+        assert f"model endpoint answers again: {b} (attempt 2) decided" in out
+        assert ("1 episode stored as infra_error (not scored; the model endpoint gave no answer in 2 attempts" in out
+                and f"play it again once the endpoint answers: agos eval --resume {run_dir}" in out)
+        records = {r["episode_id"]: r for r in _records(run_dir)}
+        assert (records[a]["status"], records[b]["status"]) == ("infra_error", "finished")
+        metrics = agos("metrics", run_dir, "--json")
+        assert metrics.returncode == 0, metrics.stderr
+        overall = json.loads(metrics.stdout)["overall"]
+        assert (overall["n"], overall["not_scored"], overall["infra_error"]) == (1, 1, 1)  # a is nobody's failure
+        assert server.stats()["outcomes"]["500"] == 12
+        done = subprocess.run([*AGOS, "eval", "--resume", str(run_dir), "--vlm-cache", str(cache), "--port", port],
+                              cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    records = {r["episode_id"]: r for r in _records(run_dir)}
+    assert [records[e]["status"] for e in (a, b)] == ["finished", "finished"]
+    assert _played(records[a]) == _played(records[b])
+    assert sum(m.errors for m in cache_stats(cache).models) == 0  # every unanswered call was asked again
+
+
+def _played(record: dict) -> dict:
+    """What a played episode's record says about the play: outcome, counts, trajectories, each decision's
+    action and tokens (not its HTTP attempts or wall-clock latency)."""
+    keep = ("status", "termination", "success", "decisions_uav", "decisions_ugv", "fallbacks", "step_log", "candidates",
+            "sim_time_s")
+    traces = [(t["role"], t["decision_index"], t["parsed_action"], t["prompt_tokens"], t["completion_tokens"])
+              for t in record["decision_traces"]]
+    return {**{k: record[k] for k in keep}, "traces": traces}
 
 
 def _start(tmp: Path, name: str, *args: str) -> subprocess.Popen:

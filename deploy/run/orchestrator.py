@@ -291,32 +291,35 @@ class Orchestrator:
         lost = self.outages[episode_id]
         self.outage_line = why
         self.hold_until = max(self.hold_until, self._clock() + self.infra_wait_s)  # down for every episode
-        if lost >= self.max_infra_attempts:
-            log.error("%s: the model endpoint gave no answer in %d attempts (%s); recording infra_error", episode_id,
-                      lost, why)
+        if lost >= self.max_infra_attempts:  # logged at INFO: agos eval prints the notice (a warning would double it)
+            log.info("%s: the model endpoint gave no answer in %d attempts (%s); recording infra_error", episode_id,
+                     lost, why)
             record = self.gave_up[episode_id] = failure_record(
                 self.run_id, lease.spec, status="infra_error", worker_id=lease.worker,
                 error=f"the model endpoint gave no answer in {lost} attempts: {why}", config=self.config)
             self.bus.publish(keys.result(self.run_id, episode_id), record)
             self.notices.append(f"{episode_id}: stored as infra_error after {lost} attempts without an answer from the "
-                                f"model endpoint (not scored; --resume plays it again); {self._waiting_text()}")
+                                f"model endpoint (not scored; --resume plays it again){self._waiting_text('; ')}")
             return
         self.paused[episode_id] = (lease.spec, lease.attempt + 1)
-        log.warning("%s paused (attempt %d lost to a model endpoint outage: %s); leasing again in %.0f s", episode_id,
-                    lease.attempt, why, self.infra_wait_s)
+        log.info("%s paused (attempt %d lost to a model endpoint outage: %s); leasing again in %g s", episode_id,
+                 lease.attempt, why, self.infra_wait_s)
         self.notices.append(f"model endpoint outage: {why} (episode {episode_id}, attempt {lease.attempt}); "
                             f"{self._waiting_text()}, leased again in {self.infra_wait_s:g} s as a fresh attempt "
                             f"({lost} of {self.max_infra_attempts} attempts lost)")
 
-    def _waiting_text(self) -> str:
+    def _waiting_text(self, before: str = "") -> str:
+        """How many episodes are paused, after ``before``; '' when none is and ``before`` is given."""
         n = len(self.paused)
-        return f"{n} episode{'' if n == 1 else 's'} wait{'s' if n == 1 else ''}"
+        if before and not n:
+            return ""
+        return f"{before}{n} episode{'' if n == 1 else 's'} wait{'s' if n == 1 else ''}"
 
     def _recovered(self, episode_id: str, attempt: int) -> None:
         """An episode leased after the latest outage's wait made a decision: the endpoint answers again."""
         self.outage_line = None
-        self.notices.append(f"model endpoint answers again: {episode_id} (attempt {attempt}) decided; "
-                            f"{self._waiting_text()} for a lease")
+        self.notices.append(f"model endpoint answers again: {episode_id} (attempt {attempt}) decided"
+                            f"{self._waiting_text('; ')}")
 
     def _unpause(self) -> None:
         """Once the wait after the latest outage is over, paused episodes go first in the queue."""
