@@ -106,8 +106,9 @@ class FatalPolicyError(Exception):
 
 class EndpointOutage(Exception):
     """The policy could not decide because what it asks (a model endpoint) gave no answer after its
-    retries: connection errors, timeouts, 408/409/429/5xx beyond the retry budget, or a 401/403. Not a
-    decision of the model: the agent service answers the world with :attr:`Action.outage
-    <agos.runtime.schemas.Action.outage>` (this message) instead of a WAIT, and the world pauses the
-    episode and gives it back (docs/AGENTS.md, "Endpoint outages"). In-process runners (``agos sweep``,
-    :class:`agos.Env`) let it propagate. The message names the endpoint and what failed."""
+    retries or before the world's decision timeout: connection errors, timeouts, 408/409/429/5xx
+    beyond the retry budget, or a 401/403. Not a decision of the model: the agent service answers the
+    world with :attr:`Action.outage <agos.runtime.schemas.Action.outage>` (this message) instead of a
+    WAIT, and the world pauses the episode and gives it back (docs/AGENTS.md, "Outages are not the
+    model's failures"). In-process runners (``agos sweep``, :class:`agos.Env`) let it propagate. The
+    message names the endpoint and what failed."""

@@ -4,9 +4,10 @@ One decision: build the role's prompt (stage-conditioned for AGOS-Agent), ask th
 legal actions as a JSON schema, parse and validate the reply into a legal action. A reply that
 cannot be used is re-asked up to ``reasks`` times, telling the model what was wrong; after that, or
 when the endpoint refuses the request, the decision becomes the fallback WAIT, logged with its
-reason. An endpoint that gives no answer after its retries (or refuses the key) is no decision of
-the model: :class:`~agos.agents.contract.EndpointOutage` is raised instead, and the agent service
-tells the world, which pauses the episode (docs/AGENTS.md, "Endpoint outages"). Every decision
+reason. An endpoint that gives no answer after its retries or before the world's decision timeout
+(less a margin), or refuses the key, is no decision of the model:
+:class:`~agos.agents.contract.EndpointOutage` is raised instead, and the agent service tells the
+world, which pauses the episode (docs/AGENTS.md, "Outages are not the model's failures"). Every decision
 carries a :class:`~agos.runtime.schemas.DecisionTrace` (prompt hash, image sizes, raw reply, parsed
 action, fallback flag, latency, tokens, HTTP attempts and re-asks), which the world stores with the
 episode. Retries and re-asks never add decisions.
@@ -22,6 +23,7 @@ import copy
 import json
 import logging
 import math
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -47,6 +49,11 @@ UAV_AT_WAYPOINT_M = 1.0
 MAX_IMAGES = {("uav", "all"): 8, ("ugv", "all"): 12, ("uav", "view_only"): 2, ("ugv", "view_only"): 7}
 """Most images one request of a role carries: UAV view + map + 5 references + the teammate's top view;
 UGV six panels + map + 5 references. ``view_only``: the view(s) and the top reference."""
+
+ANSWER_MARGIN_S = 5.0
+"""A decision's model calls stop this long before the world's decision timeout (at most a quarter of
+it), so that an endpoint that does not answer in time is reported as an outage before the world
+would apply its WAIT for a missing answer."""
 
 PROBE_PX = 64
 """Side of the preflight's probe images: some VLM image processors refuse images under 28-32 px."""
@@ -198,9 +205,10 @@ class VlmAgent(Policy):
         error: str | None = None
         parsed: Parsed | None = None
         call = CallTag(obs.episode_id, self.role, obs.decision_index)
+        deadline = _deadline(obs.decision_timeout_s)
         for ask in range(self.options.reasks + 1):
             try:
-                reply = await self.client().complete(messages, schema=schema, call=call)
+                reply = await self.client().complete(messages, schema=schema, call=call, deadline=deadline)
             except VlmError as exc:
                 if exc.outage:  # not the model's decision: nothing is answered, the episode pauses
                     raise EndpointOutage(str(exc)) from None
@@ -273,6 +281,14 @@ class VlmAgent(Policy):
         self._trace_path.parent.mkdir(parents=True, exist_ok=True)
         with self._trace_path.open("a") as f:
             f.write(json.dumps(line) + "\n")
+
+
+def _deadline(decision_timeout_s: float | None) -> float | None:
+    """When a decision's model calls must have an answer (``time.monotonic()``): the world's decision
+    timeout from now, less :data:`ANSWER_MARGIN_S`; None where no world said (in-process runners)."""
+    if decision_timeout_s is None:
+        return None
+    return time.monotonic() + decision_timeout_s - min(ANSWER_MARGIN_S, decision_timeout_s / 4)
 
 
 def _reask_text(reason: str | None, actions: list[str]) -> str:

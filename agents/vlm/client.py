@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import functools
 import os
 import random
 import time
@@ -174,23 +175,32 @@ class VlmClient:
         return self._rng.uniform(0.0, min(self.backoff_max_s, self.backoff_base_s * 2 ** attempt))
 
     async def complete(self, messages: list[dict[str, Any]], *, schema: dict[str, Any] | None = None,
-                       call: CallTag | None = None) -> Reply:
+                       call: CallTag | None = None, deadline: float | None = None) -> Reply:
         """The model's reply to ``messages``. With a ``cache`` (agents/vlm/cache.py), the cache answers
-        or records the request; ``call`` names the decision asking (its replay stream and index)."""
+        or records the request; ``call`` names the decision asking (its replay stream and index).
+        ``deadline`` (``time.monotonic()`` seconds): no attempt or retry goes past it; a request still
+        unanswered then is a VlmError of kind ``outage``, as when the retries run out."""
         body = self._body(messages, schema)
+        send = self._send if deadline is None else functools.partial(self._send, deadline=deadline)
         if self.cache is not None:
-            return await self.cache.complete(body, call, self._send)
-        return await self._send(body)
+            return await self.cache.complete(body, call, send)
+        return await send(body)
 
-    async def _send(self, body: dict[str, Any]) -> Reply:
-        """``body`` posted to the endpoint, with retries (see the module docstring)."""
+    async def _send(self, body: dict[str, Any], deadline: float | None = None) -> Reply:
+        """``body`` posted to the endpoint, with retries (see the module docstring), within ``deadline``."""
         started = time.monotonic()
         last_error = "no attempt"
+        made = 0
         async with self._limit:
             for attempt in range(self.max_retries + 1):
                 response = None
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    break
+                made += 1
                 try:
-                    response = await self._http.post("/chat/completions", json=body)
+                    response = await self._http.post("/chat/completions", json=body,
+                                                      timeout=self.timeout_s if left is None else min(self.timeout_s, left))
                     if response.status_code in RETRY_STATUS:
                         last_error = f"HTTP {response.status_code}"
                     elif response.status_code in (401, 403):
@@ -207,9 +217,13 @@ class VlmClient:
                 except ValueError as exc:  # a 200 whose body is not JSON, or not a chat completion
                     last_error = self._redact(f"invalid reply body ({exc})")
                 if attempt < self.max_retries:
-                    await asyncio.sleep(self._delay(attempt, response))
-        raise VlmError(f"{self.base_url}: no answer after {self.max_retries + 1} attempts ({last_error})",
-                       attempts=self.max_retries + 1, kind="outage")
+                    delay = self._delay(attempt, response)
+                    if deadline is not None and time.monotonic() + delay >= deadline:
+                        break
+                    await asyncio.sleep(delay)
+        cut = " within the decision's time" if made < self.max_retries + 1 else ""
+        raise VlmError(f"{self.base_url}: no answer after {made} attempt{'' if made == 1 else 's'}{cut} ({last_error})",
+                       attempts=made, kind="outage")
 
     def _redact(self, text: str) -> str:
         """Error text with the API key removed (a server may echo the request's headers)."""
