@@ -12,8 +12,11 @@ perception is the model's whole cost), four ways, ``--repeats`` times each in tu
   recorded run's reply for it, parsed as the agent parses it; so it walks the same trajectory, and
   the world's rendering and the processes are all that is left (the CPU floor of this split).
 
-Figures (best of the repeats; wall = the command's start to its exit, start-up included; episode
-wall = the records' ``wall_time_s``, the episode loop alone):
+Figures (the median over the repeats of the ratio of the repeat's two runs, which ran one after
+the other, and the ratio of the best runs beside it; wall = the command's start to its exit,
+start-up included; episode wall = the records' ``wall_time_s``, the episode loop alone; CPU = the
+CPU seconds of every process of the run, ``RUSAGE_CHILDREN``, which another process's load moves
+least):
 
 * replay vs floor, wall, episode wall and CPU seconds of all the run's processes: goal <= 1.2x;
 * record vs plain, the same three: goal <= 1.05x;
@@ -207,11 +210,12 @@ def main() -> int:
     lookups, stores = lookup_costs(work / "cache-0")
     best = {name: tuple(min(run[i] for run in runs) for i in range(3)) for name, runs in walls.items()}
     rows = [("replay vs floor", "replay", "floor", 1.2), ("record vs plain", "record", "plain", 1.05)]
-    print(f"\n{decisions} decisions, {len(lookups)} model calls a run; best of {args.repeats}:")
+    print(f"\n{decisions} decisions, {len(lookups)} model calls a run; the median of the {args.repeats} repeats' "
+          "ratios (each repeat's runs one after the other), and the best runs':")
     for label, a, b, goal in rows:
         for i, what in enumerate(("wall", "episode wall", "CPU")):
-            ratio = best[a][i] / best[b][i]
-            shown = f"{ratio:.3f}x ({best[a][i]:.1f} s vs {best[b][i]:.1f} s)"
+            ratio = statistics.median(x[i] / y[i] for x, y in zip(walls[a], walls[b], strict=True))
+            shown = f"{ratio:.3f}x (best runs: {best[a][i]:.1f} s vs {best[b][i]:.1f} s, {best[a][i] / best[b][i]:.3f}x)"
             print(f"  {label}, {what}: {shown}  goal <= {goal}x {'met' if ratio <= goal else 'MISSED'}")
             figures.add(f"vlm-cache {label} ({what})", round(ratio, 3), shown, f"<= {goal}x", ratio <= goal)
     for label, costs, goal in (("replay lookup", lookups, 2.0), ("record store", stores, None)):
