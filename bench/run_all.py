@@ -59,6 +59,7 @@ def benches() -> list[Bench]:
         Bench("expert", "bench_expert.py", ["--quick"], 300),
         Bench("eval", "bench_eval.py", ["--quick"], 420),
         Bench("dataset", "bench_dataset.py", ["--quick", "--workers", "1", "--no-breakdown"], 600),
+        Bench("env", "bench_env.py", ["--quick"], 420),  # agos.Env vs the engine; 2 subprocess envs vs 1
         Bench("cues", "bench_cues.py", ["--check"], 600, gate=True),  # the look-alike table still true
     ]
 
