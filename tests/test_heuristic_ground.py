@@ -17,13 +17,16 @@ import cv2
 import numpy as np
 import pytest
 
+from agos.agents.heuristic import ground
 from agos.agents.heuristic.ground import (
     CONFIRM_RANGE_M,
+    PROFILE_TOLERANCE_M,
     GroundJudgement,
     GroundView,
     SideReference,
     find_target,
     judge_views,
+    profile_error,
     side_reference,
 )
 from agos.agents.heuristic.perception import TargetProfile, profile_from_references
@@ -135,7 +138,7 @@ VAN = boxcars.car(RED, length_m=5.2, width_m=2.0, height_m=2.1)
 def reference(name: str) -> tuple[TargetProfile, SideReference]:
     """The profile and side reference of one of the vehicles above, from its rendered references."""
     parts = {"roof box sedan": ROOF_BOX_SEDAN, "sedan": SEDAN, "bus": boxcars.bus(RED),
-             "box truck": boxcars.box_truck(RED)}[name]
+             "box truck": boxcars.box_truck(RED), "pickup": boxcars.pickup(RED)}[name]
     frames = boxcars.references(parts)
     target = profile_from_references(frames)
     return target, side_reference(frames, target)
@@ -196,3 +199,17 @@ def test_a_far_target_is_a_lead_to_look_at_again_not_a_match() -> None:
     far = judged(ROOF_BOX_SEDAN, "roof box sedan", x_m=30.0, y_m=3.5, yaw_deg=7.0)
     assert far.matches == [] and len(far.leads) == 1
     assert far.leads[0].distance_m > CONFIRM_RANGE_M
+
+
+def test_the_outline_along_the_body_tells_a_pickups_short_cab_from_a_long_cabin() -> None:
+    """As tall, as long, the same paint: an SUV-like body whose cabin covers most of its length is
+    not a pickup whose cab stands over a third of it (the outline compared along the body)."""
+    long_cabin = boxcars.car(RED, length_m=5.3, width_m=2.0, height_m=1.85, cabin_share=0.75)
+    _, side = reference("pickup")
+    assert np.nanmax(side.profile_m) == pytest.approx(1.85, abs=0.08) and np.nanmin(side.profile_m) < 1.2
+    view = boxcars.ground_view([boxcars.placed(long_cabin, 9.0, 4.0)], yaw_deg=25.0)
+    parts = [(p.xy_m, p.top_m) for p in ground._join_parts(ground._parts(view, reference("pickup")[0], 40, False))]
+    assert len(parts) == 1 and (profile_error(*parts[0], side) or 0.0) > PROFILE_TOLERANCE_M
+    assert judged(long_cabin, "pickup", y_m=4.0, yaw_deg=25.0).matches == []
+    target = judged(boxcars.pickup(RED), "pickup", y_m=4.0, yaw_deg=25.0)
+    assert len(target.matches) == 1

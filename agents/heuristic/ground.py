@@ -18,6 +18,7 @@ Uses only the agent's images, intrinsics, poses and the reference-derived
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -82,6 +83,8 @@ class _Part:
     """(N,) whether each pixel shows the paint's hue (any brightness)."""
     column_top_m: np.ndarray
     """Height of the highest pixel of each image column the object spans (its upper outline)."""
+    paint_column_top_m: np.ndarray
+    """The same over its paint-hued pixels (the painted outline)."""
     paint_value: np.ndarray
     """(M,) HSV values of its paint-hued pixels."""
     hues: np.ndarray
@@ -176,8 +179,12 @@ def _parts(view: GroundView, profile: TargetProfile, min_pixels: int, paint_only
         dist = float(np.median(distance[oy, ox]))
         column_top = np.full(w, -np.inf, np.float32)
         np.maximum.at(column_top, ox, height[oy, ox])
+        painted = paint[oy, ox]
+        paint_column_top = np.full(w, -np.inf, np.float32)
+        np.maximum.at(paint_column_top, ox[painted], height[oy, ox][painted])
         parts.append(_Part(
-            [view.name], xyz[oy, ox, :2], height[oy, ox], paint[oy, ox], column_top[np.isfinite(column_top)],
+            [view.name], xyz[oy, ox, :2], height[oy, ox], painted, column_top[np.isfinite(column_top)],
+            paint_column_top[np.isfinite(paint_column_top)],
             hsv[:, :, 2][obj & paint].astype(np.float32),
             hsv[:, :, 0][obj & wide], shade_score(obj, view.rgb, height, xyz), dist, dist / view.intrinsics.fy_px,
             cut=bool(ox.min() == 0 or ox.max() == w - 1) and len(ox) < CUT_MEASURED_SHARE * h * w,
@@ -210,6 +217,7 @@ def _join_parts(parts: list[_Part]) -> list[_Part]:
                 q.top_m = np.concatenate([q.top_m, p.top_m])
                 q.is_paint = np.concatenate([q.is_paint, p.is_paint])
                 q.column_top_m = np.concatenate([q.column_top_m, p.column_top_m])
+                q.paint_column_top_m = np.concatenate([q.paint_column_top_m, p.paint_column_top_m])
                 q.paint_value = np.concatenate([q.paint_value, p.paint_value])
                 q.hues = np.concatenate([q.hues, p.hues])
                 q.shade = max(q.shade, p.shade)
@@ -292,15 +300,24 @@ truck paint; a two-tone roof or a stripe takes the paint out of its bands."""
 BAND_MIN_PX = 8
 """Pixels of an object in a band for its share to count."""
 REFERENCE_BAND_MIN_PX = 5
+PAINT_TOP_PERCENTILE = 98
+"""The paint pixels' top: this percentile of their heights (the side reference's is the 97th of its
+paint pixels placed on the vehicle's near side, :func:`~agos.agents.heuristic.perception.profile_from_references`)."""
 OUTLINE_PERCENTILE = 90
 """An outline's top: this percentile of the heights of the highest pixel of each image column it
 spans. A roof box or a bus's roof unit spans a large share of the columns from any side, a lamp
 post or a branch touching the outline a few."""
-PAINT_TOP_PERCENTILE = 98
 SIDE_TOLERANCE_M = 0.10
 """How far an object's top (and its paint's top) may be from the side reference's at zero distance;
 half a pixel's height at the object's distance is added (the sampling of its upper edge). Body
 types and roof boxes differ by 0.17 m (sedan, hatchback) to 0.6 m."""
+PROFILE_STEP_M = 0.25
+PROFILE_MIN_SHARE = 0.6
+"""An object's outline is compared along the body when it shows this share of the target's length
+along its axis (and this share of its bins meets the reference's)."""
+PROFILE_TOLERANCE_M = 0.15
+"""Largest mean difference of the outline along the body from the broadside reference's (a roof
+box over part of the roof, a cab in front of a load bed or a cargo box change it by 0.2 m and more)."""
 BAND_TOLERANCE = 0.35
 """Largest mean difference of the paint's share per band from the closest side reference (the
 target scores 0.02-0.17 from any side, a box truck against a bus 0.55)."""
@@ -322,13 +339,18 @@ class SideReference:
     top_m: float
     """Top of the outline in the broadside reference (``OUTLINE_PERCENTILE`` of its columns' tops)."""
     top_low_m: float
-    """The lowest top a ground camera may see: what stands set back on a roof (a bus's roof unit)
-    hides behind the roof's edge from close by, so the top of the side reference's pixels (most of
-    them below the roof unit) counts too."""
+    """The lowest top a ground camera may see: what stands set back on a roof higher than the
+    camera (a bus's roof unit) hides behind the roof's edge from close by, so for such a body the
+    top of the side reference's pixels (most of them below the roof unit) counts too."""
     paint_top_m: float
     bands: tuple[tuple[float, ...], ...]
     """Per ground-level reference view, the paint's share of the silhouette in each band of
     ``BAND_EDGES_M`` (NaN where the view shows fewer than ``REFERENCE_BAND_MIN_PX`` pixels)."""
+    profile_m: tuple[float, ...] = ()
+    """The broadside reference's upper outline along the body: its highest point in each
+    ``PROFILE_STEP_M`` from the rear to the front (NaN where the view shows none)."""
+    length_m: float = 0.0
+    """The body's length the profile spans."""
 
 
 def band_shares(heights_m: np.ndarray, paint: np.ndarray, min_px: int) -> tuple[np.ndarray, np.ndarray]:
@@ -352,10 +374,77 @@ def outline_top_m(columns: np.ndarray, heights_m: np.ndarray) -> float:
     return float(np.percentile(np.maximum.reduceat(h, starts), OUTLINE_PERCENTILE))
 
 
-def _box_entry_heights(us: np.ndarray, vs: np.ndarray, intrinsics: CameraIntrinsics, vehicle_from_camera: np.ndarray,
-                       length_m: float, width_m: float) -> np.ndarray:
+def _column_tops(us: np.ndarray, vs: np.ndarray) -> np.ndarray:
+    """Indices of the topmost pixel of each image column among pixels (``us``, ``vs``)."""
+    order = np.lexsort((vs, us))  # by column, then from the top of the image down
+    cols = us[order]
+    return order[np.flatnonzero(np.r_[True, cols[1:] != cols[:-1]])]
+
+
+def _column_top_m(us: np.ndarray, vs: np.ndarray, heights_m: np.ndarray) -> float:
+    """``OUTLINE_PERCENTILE`` over the image columns of the height of each column's topmost pixel
+    (0 for none)."""
+    if len(us) == 0:
+        return 0.0
+    return float(np.percentile(heights_m[_column_tops(us, vs)], OUTLINE_PERCENTILE))
+
+
+def _binned_max(along_m: np.ndarray, heights_m: np.ndarray, start_m: float, length_m: float,
+                min_count: int = 1) -> np.ndarray:
+    """Highest ``heights_m`` in each ``PROFILE_STEP_M`` of ``along_m`` from ``start_m`` over
+    ``length_m`` (NaN where fewer than ``min_count`` points)."""
+    n = max(1, math.floor(length_m / PROFILE_STEP_M) + 1)
+    k = np.floor((along_m - start_m) / PROFILE_STEP_M).astype(int)
+    ok = (k >= 0) & (k < n)
+    top = np.full(n, -np.inf)
+    np.maximum.at(top, k[ok], heights_m[ok])
+    count = np.bincount(k[ok], minlength=n)
+    return np.where((count >= min_count) & np.isfinite(top), top, np.nan)
+
+
+def profile_error(xy_m: np.ndarray, heights_m: np.ndarray, side: SideReference) -> float | None:
+    """Mean difference (metres) between an object's upper outline along its long axis and the
+    broadside reference's, at the best shift and direction along the body; None when the object
+    shows less than ``PROFILE_MIN_SHARE`` of the target's length along its axis (seen end-on, or
+    mostly hidden) or the reference has no profile."""
+    ref = np.asarray(side.profile_m)
+    if len(ref) == 0 or len(xy_m) < 10:
+        return None
+    corners = cv2.boxPoints(cv2.minAreaRect(xy_m.astype(np.float32)))
+    edge_a, edge_b = corners[1] - corners[0], corners[2] - corners[1]
+    axis = edge_a if np.hypot(*edge_a) >= np.hypot(*edge_b) else edge_b
+    axis = axis / max(float(np.hypot(*axis)), 1e-9)
+    s = (xy_m - xy_m.mean(axis=0)) @ axis
+    extent = float(s.max() - s.min())
+    if extent < PROFILE_MIN_SHARE * side.length_m:
+        return None
+    seen = _binned_max(s, heights_m, float(s.min()), extent, min_count=3)
+    centres = float(s.min()) + (np.arange(len(seen)) + 0.5) * PROFILE_STEP_M
+    keep = np.isfinite(seen)
+    seen, centres = seen[keep], centres[keep]
+    best: float | None = None
+    for direction in (1.0, -1.0):
+        pos = direction * centres
+        for shift in np.arange(-side.length_m / 2 - pos.max() - PROFILE_STEP_M,
+                               side.length_m / 2 - pos.min() + PROFILE_STEP_M, PROFILE_STEP_M / 2):
+            k = np.floor((pos + shift + side.length_m / 2) / PROFILE_STEP_M).astype(int)
+            inside = (k >= 0) & (k < len(ref))
+            both = inside.copy()
+            both[inside] = np.isfinite(ref[k[inside]])
+            if both.sum() < PROFILE_MIN_SHARE * len(seen):
+                continue
+            err = float(np.mean(np.abs(seen[both] - ref[k[both]])))
+            best = err if best is None else min(best, err)
+    return best
+
+
+def _box_heights(us: np.ndarray, vs: np.ndarray, intrinsics: CameraIntrinsics, vehicle_from_camera: np.ndarray,
+                 length_m: float, width_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Heights where the rays through pixels of a reference view (a camera posed in the vehicle's
-    frame) enter the vehicle's box: the surface the pixel shows, to within the body's own slopes."""
+    frame) enter the vehicle's box, and where they would place an upper outline (height and
+    position along the body): the surface a pixel shows, to within the body's own slopes; an
+    outline lower than the camera is the far edge of a roof seen over it (where the ray leaves the
+    box's sides), one higher its near edge."""
     pose = np.asarray(vehicle_from_camera, dtype=np.float64).reshape(4, 4)
     d = pose[:3, :3] @ np.stack([(us - intrinsics.cx_px) / intrinsics.fx_px,
                                  (vs - intrinsics.cy_px) / intrinsics.fy_px, np.ones(len(us))])
@@ -364,8 +453,10 @@ def _box_entry_heights(us: np.ndarray, vs: np.ndarray, intrinsics: CameraIntrins
     hi = np.array([[length_m / 2], [width_m / 2], [BOX_HEIGHT_M]])
     with np.errstate(divide="ignore", invalid="ignore"):
         t1, t2 = (lo - eye) / d, (hi - eye) / d
-    t = np.nanmax(np.minimum(t1, t2), axis=0)
-    return eye[2, 0] + t * d[2]
+    t_in = np.nanmax(np.minimum(t1, t2), axis=0)
+    t_out = np.nanmin(np.maximum(t1, t2)[:2], axis=0)
+    t_outline = np.where(d[2] < 0, t_out, t_in)
+    return eye[2, 0] + t_in * d[2], eye[2, 0] + t_outline * d[2], eye[0, 0] + t_outline * d[0]
 
 
 def side_reference(references: list[ImageFrame], profile: TargetProfile) -> SideReference:
@@ -375,7 +466,8 @@ def side_reference(references: list[ImageFrame], profile: TargetProfile) -> Side
     width = profile.body_width_m or profile.width_m
     dark = 0.75 * min(profile.value_side[0], profile.value_top)
     bands: list[tuple[float, ...]] = []
-    top, paint_top = 0.0, profile.paint_top_m
+    top, paint_top, eye_m = 0.0, profile.paint_top_m, math.inf
+    profile_m = np.full(0, np.nan)
     for frame in references:
         if frame.name == "ref_top" or frame.intrinsics is None or frame.world_from_camera is None:
             continue
@@ -383,14 +475,22 @@ def side_reference(references: list[ImageFrame], profile: TargetProfile) -> Side
         vs, us = np.nonzero(rgba[:, :, 3] > 0)
         if len(us) == 0:
             continue
-        heights = _box_entry_heights(us, vs, frame.intrinsics, np.asarray(frame.world_from_camera), length, width)
+        heights, outline, along = _box_heights(us, vs, frame.intrinsics, np.asarray(frame.world_from_camera),
+                                               length, width)
         hsv = cv2.cvtColor(np.ascontiguousarray(rgba[:, :, :3]), cv2.COLOR_RGB2HSV)
         paint = hue_match(hsv, profile, dark_below=dark)[vs, us]
         bands.append(tuple(float(v) for v in band_shares(heights, paint, REFERENCE_BAND_MIN_PX)[0]))
         if frame.name == "ref_side":
-            top = outline_top_m(us, heights)
+            eye_m = float(np.asarray(frame.world_from_camera).reshape(4, 4)[2, 3])
+            top = _column_top_m(us, vs, outline)
+            tops = _column_tops(us, vs)
+            profile_m = _binned_max(along[tops], outline[tops], -length / 2, length)
+            # the higher of the paint pixels' top (profile.paint_top_m) and the painted columns' (a
+            # thin painted roof over glass is a small share of the pixels, a large one of the columns)
+            paint_top = max(paint_top, _column_top_m(us[paint], vs[paint], outline[paint]))
     top = top or profile.body_height_m or profile.paint_top_m
-    return SideReference(top, min(top, profile.body_height_m or top), paint_top, tuple(bands))
+    low = min(top, profile.body_height_m or top) if paint_top > eye_m else top
+    return SideReference(top, low, paint_top, tuple(bands), tuple(float(v) for v in profile_m), length)
 
 
 def band_distance(p_shares: np.ndarray, p_counts: np.ndarray, side: SideReference) -> float | None:
@@ -426,8 +526,8 @@ def _verify(p: _Part, profile: TargetProfile, side: SideReference, min_pixels: i
     n_paint, value = paint
     # A pixel's centre lies half a pixel below the upper edge it samples.
     top = outline_top_m(np.arange(len(p.column_top_m)), p.column_top_m) + 0.5 * p.px_m
-    paint_top = (float(np.percentile(p.top_m[p.is_paint], PAINT_TOP_PERCENTILE)) + 0.5 * p.px_m
-                 if p.is_paint.any() else 0.0)
+    paint_top = max(float(np.percentile(p.top_m[p.is_paint], PAINT_TOP_PERCENTILE)) if p.is_paint.any() else 0.0,
+                    outline_top_m(np.arange(len(p.paint_column_top_m)), p.paint_column_top_m)) + 0.5 * p.px_m
     length = _length_m(p)
     shares, counts = band_shares(p.top_m, p.is_paint, BAND_MIN_PX)
     bands = band_distance(shares, counts, side)
@@ -436,14 +536,17 @@ def _verify(p: _Part, profile: TargetProfile, side: SideReference, min_pixels: i
     paint_err = paint_top - side.paint_top_m
     if p.top_cut:  # only lower bounds of the tops are measured: a short one may be looked at again
         top_err, paint_err = max(top_err, -tol), max(paint_err, -tol)
+    outline = None if p.top_cut else profile_error(p.xy_m, p.top_m, side)
     too_long = not profile.body_cut and length > (profile.body_length_m or profile.length_m) + LENGTH_TOLERANCE_M
-    if (too_long or abs(top_err) > LEAD_FACTOR * tol or abs(paint_err) > LEAD_FACTOR * tol
-            or (bands is not None and bands > BAND_TOLERANCE)):
+    if (too_long or max(abs(top_err), abs(paint_err)) > LEAD_FACTOR * tol
+            or (bands is not None and bands > BAND_TOLERANCE)
+            or (outline is not None and outline > LEAD_FACTOR * PROFILE_TOLERANCE_M)):
         return None
     x, y = np.median(p.xy_m, axis=0)
     score = max(0.05, 1.0 - (abs(top_err) + abs(paint_err)) / (4 * tol) - (bands or 0.0))
     obj = GroundObject(tuple(p.views), n_paint, p.distance_m, top, length, float(x), float(y), value, p.shade, score)
-    sure = (abs(top_err) <= tol and abs(paint_err) <= tol and bands is not None
+    sure = (max(abs(top_err), abs(paint_err)) <= tol and bands is not None
+            and (outline is None or outline <= PROFILE_TOLERANCE_M)
             and p.distance_m <= CONFIRM_RANGE_M)
     return ("match" if sure else "lead"), obj
 

@@ -39,12 +39,12 @@ class Part:
 
 
 def car(paint: tuple[int, int, int], *, length_m: float, width_m: float, height_m: float,
-        roof_box: bool = False) -> list[Part]:
-    """A car: a painted lower body to 0.9 m, a painted cabin over the middle half to ``height_m``
-    with glass on its sides, ends and top edge band; ``roof_box``: a grey cargo box 0.45 m high on
-    the roof (what makes a roof rack show from the ground)."""
+        roof_box: bool = False, cabin_share: float = 0.5) -> list[Part]:
+    """A car: a painted lower body to 0.9 m, a painted cabin over the middle ``cabin_share`` of its
+    length to ``height_m`` with glass on its sides, ends and top edge band; ``roof_box``: a grey
+    cargo box 0.45 m high on the roof (what makes a roof rack show from the ground)."""
     hl, hw = length_m / 2, width_m / 2
-    cab_l, cab_w = length_m / 4, hw - 0.1
+    cab_l, cab_w = length_m * cabin_share / 2, hw - 0.1
     parts = [Part((-hl, -hw, 0.25), (hl, hw, 0.9), paint),
              Part((-cab_l, -cab_w, 0.9), (cab_l, cab_w, height_m), paint),
              # glass a centimetre proud of the cabin's sides and ends, up to 0.1 m under its roof
@@ -55,6 +55,16 @@ def car(paint: tuple[int, int, int], *, length_m: float, width_m: float, height_
     if roof_box:
         parts.append(Part((-0.6, -0.55, height_m), (0.6, 0.55, height_m + 0.45), GREY_BOX))
     return parts
+
+
+def pickup(paint: tuple[int, int, int]) -> list[Part]:
+    """A pickup: a painted body to 1.1 m over 5.3 m (the load bed's walls at the rear) and a short
+    painted cab behind the hood to 1.85 m, with glass on its sides and ends."""
+    return [Part((-2.65, -1.0, 0.4), (2.65, 1.0, 1.1), paint),
+            Part((-0.4, -0.9, 1.1), (1.2, 0.9, 1.85), paint),
+            Part((-0.25, -0.91, 1.15), (1.05, 0.91, 1.75), GLASS),
+            Part((-0.41, -0.8, 1.15), (1.21, 0.8, 1.75), GLASS),
+            Part((-2.2, -1.02, 0.0), (-1.4, 1.02, 0.75), DARK), Part((1.4, -1.02, 0.0), (2.2, 1.02, 0.75), DARK)]
 
 
 def bus(paint: tuple[int, int, int]) -> list[Part]:
