@@ -5,11 +5,10 @@ the agents' six-view requests.
 
 The endpoint is checked before the run's plan is made (deploy/run/plan.py::check_endpoint): each
 refusal exits 2 with one line on stderr, having written nothing (no run directory, no episode read
-or generated) and started no process, so those cases run the command in this process against real
-sockets (loopback, milliseconds each). The last case passes that check and fails in the agents'
-own preflight: it runs the command as a process with its children (e2e, ~10 s on 2 cores), and the
-console names the agent and gives its reason in one line. ``agos sweep`` checks the same way before
-its progress bar.
+or generated) and started no other process; each case runs ``agos`` as a process, as a user does,
+against real sockets on loopback (about 1 s each, mostly the interpreter starting). The last case
+passes that check and fails in the agents' own preflight: the console names the agent and gives its
+reason in one line. ``agos sweep`` checks the same way before its progress bar.
 """
 
 from __future__ import annotations
@@ -79,16 +78,20 @@ CASES = {
 }
 
 
-@pytest.mark.loopback
+def _agos(*args: str | Path, env: dict[str, str] | None = None, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    """``agos ARGS`` as a process, without KEY_ENV unless ``env`` sets it."""
+    environ = {k: v for k, v in os.environ.items() if k != KEY_ENV} | (env or {})
+    return subprocess.run([*AGOS, *map(str, args)], env=environ, cwd=cwd, capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.e2e
 @pytest.mark.parametrize("name", list(CASES))
-def test_an_endpoint_failure_is_one_line_before_anything_starts(agos, endpoints, tmp_path: Path, monkeypatch,
-                                                                name: str) -> None:
+def test_an_endpoint_failure_is_one_line_before_anything_starts(endpoints, tmp_path: Path, name: str) -> None:
     endpoint, flags, env, says = CASES[name]
     url = endpoints[endpoint]
-    monkeypatch.delenv(KEY_ENV, raising=False)
     run_dir = tmp_path / "run"
-    result = agos("eval", "--policy", "agos-agent", "--vlm-base-url", url, "--model", MODEL, "--run-dir", run_dir,
-                  *flags, env=env)
+    result = _agos("eval", "--policy", "agos-agent", "--vlm-base-url", url, "--model", MODEL, "--run-dir", run_dir,
+                   *flags, env=env, cwd=tmp_path)
     assert result.returncode == 2, result.stdout + result.stderr
     lines = result.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"eval error: VLM endpoint {url}"), result.stderr
@@ -99,13 +102,13 @@ def test_an_endpoint_failure_is_one_line_before_anything_starts(agos, endpoints,
     assert KEY not in result.stderr and "sk-not-the-key" not in result.stderr
 
 
-@pytest.mark.loopback
-def test_a_sweep_refuses_an_endpoint_before_its_progress_bar(agos, endpoints, tmp_path: Path) -> None:
+@pytest.mark.e2e
+def test_a_sweep_refuses_an_endpoint_before_its_progress_bar(endpoints, tmp_path: Path) -> None:
     split = tmp_path / "eps.jsonl"
     write_episodes(split, grid_episodes()[:1])
     url = endpoints["others"]
-    out = agos("sweep", "--split", split, "--out", tmp_path / "sweep", "--policy", "agos-agent", "--vlm-base-url", url,
-               "--model", MODEL)
+    out = _agos("sweep", "--split", split, "--out", tmp_path / "sweep", "--policy", "agos-agent", "--vlm-base-url", url,
+                "--model", MODEL, cwd=tmp_path)
     assert out.returncode == 2 and len(out.stderr.splitlines()) == 1, out
     assert out.stderr.startswith(f"sweep error: VLM endpoint {url}: model '{MODEL}' is not served there"), out
     assert not out.stdout and not (tmp_path / "sweep").exists()  # no bar drawn, nothing made
