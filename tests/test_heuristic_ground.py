@@ -21,6 +21,7 @@ from agos.agents.heuristic import ground
 from agos.agents.heuristic.ground import (
     CONFIRM_RANGE_M,
     PROFILE_TOLERANCE_M,
+    TOO_CLOSE_M,
     GroundJudgement,
     GroundView,
     SideReference,
@@ -213,3 +214,11 @@ def test_the_outline_along_the_body_tells_a_pickups_short_cab_from_a_long_cabin(
     assert judged(long_cabin, "pickup", y_m=4.0, yaw_deg=25.0).matches == []
     target = judged(boxcars.pickup(RED), "pickup", y_m=4.0, yaw_deg=25.0)
     assert len(target.matches) == 1
+
+
+def test_the_target_right_beside_the_camera_is_a_lead_to_see_from_further() -> None:
+    """Stopped beside a box truck, the view shows a painted wall and the cab's side, not its top:
+    neither a match nor refused, but a lead (the UGV looks again from a road option further off)."""
+    beside = judged(boxcars.box_truck(RED), "box truck", x_m=0.0, y_m=2.6, yaw_deg=90.0)
+    assert beside.matches == [] and len(beside.leads) == 1
+    assert beside.leads[0].distance_m < TOO_CLOSE_M

@@ -39,3 +39,29 @@ def test_an_open_street_and_the_target_standing_at_the_point_are_in_sight() -> N
     assert point_in_sight([boxcars.ground_view([target])], (15.0, 0.0), half_length_m=2.3)  # seen end-on
     # out of every view (behind the camera) is not in sight
     assert not point_in_sight([boxcars.ground_view([target])], (-15.0, 0.0), half_length_m=2.3)
+
+
+def test_the_uav_refuses_only_the_points_the_ugv_rejected_and_goes_back_to_its_best_weaker_match() -> None:
+    """The heuristic UAV's memory: candidate C00k is its k-th annotation, so a rejection refuses
+    that annotation's point (4 m), not the cell around it; weaker detections of one vehicle merge
+    (best score kept), and the best one neither annotated nor refused is where it flies back to."""
+    from types import SimpleNamespace
+
+    from agos.agents.heuristic.uav import HeuristicUav, _Memory
+
+    uav = HeuristicUav()
+    mem = _Memory(profile=None, top_m=None)  # type: ignore[arg-type]
+    mem.annotated = [(0.0, 0.0), (40.0, 0.0)]
+    cands = [SimpleNamespace(candidate_id="C001", status="rejected", center_world_m=(5.0, 5.0)),
+             SimpleNamespace(candidate_id="C002", status="pending", center_world_m=(45.0, 5.0)),
+             SimpleNamespace(candidate_id="C003", status="rejected", center_world_m=(90.0, 90.0))]  # not its own
+    obs = SimpleNamespace(coordination=SimpleNamespace(candidates=cands))
+    points, centres = uav._refused(obs, mem)  # type: ignore[arg-type]
+    assert points == [(0.0, 0.0)] and centres == [(90.0, 90.0)]
+    for point, score in (((10.0, 0.0), 0.6), ((11.0, 1.0), 0.7), ((2.0, 0.0), 0.74), ((40.5, 0.0), 0.73)):
+        uav._remember(mem, point, score)
+    assert mem.remembered == [((10.0, 0.0), 0.7), ((2.0, 0.0), 0.74), ((40.5, 0.0), 0.73)]
+    # (2, 0) is the rejected vehicle, (40.5, 0) the one under verification: back to (10, 0)
+    assert uav._best_remembered(obs, mem) == ((10.0, 0.0), 0.7)  # type: ignore[arg-type]
+    painted = HeuristicUav(paint_only=True)  # the floor refuses 12 m around every rejected centre
+    assert painted._refused(obs, mem) == ([], [(5.0, 5.0), (90.0, 90.0)])  # type: ignore[arg-type]

@@ -202,7 +202,9 @@ def detect_vehicles_from_above(rgb: np.ndarray, depth_m: np.ndarray, profile: Ta
     in world metres and compared with the reference's body length, width and height. Paint in
     shade counts when the ground around it is in shade too. ``paint_only``: any vehicle-sized
     object with the paint scores fully (the cue floor of the ``paint-only`` policy): size and
-    height are not compared.
+    height are not compared. ``top_m`` (the side reference's outline top,
+    :func:`~agos.agents.heuristic.ground.side_reference`): the height is compared with it in metres
+    (:func:`_size_error`), as the heuristic UAV does.
     """
     heights = surface_heights(depth_m, intrinsics, world_from_camera)
     top = (PAINT_ONLY_TOP_M if paint_only else max(profile.body_height_m, profile.paint_top_m, 1.2)) + OBJECT_HEADROOM_M

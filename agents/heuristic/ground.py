@@ -4,13 +4,19 @@ Each pixel of a ground view is placed in the world by its depth, intrinsics and 
 standing above the street (not the road, its markings or the shadows drawn on it) are split
 into objects where the depth jumps (a car in front of a shop front is another object than the
 shop front). Objects with the target's hue are kept; one cut by the edge of a view is joined
-with its other part in the neighbouring view. An object is the target when
+with its other part in the neighbouring view. For :func:`find_target` (the ``paint-only`` policy
+and the VLM stand-in) an object is the target when
 
 - its paint has the references' brightness in the light it stands in (a vehicle in a building's
   shadow is darker; shade is read from the ground around it),
 - its top stands at the reference's body height (a sedan, a hatchback, an SUV and a van differ
   by 0.2-0.5 m), and
 - it is no longer than the target.
+
+The heuristic UGV's :func:`judge_views` is stricter: it measures the target in the side
+references as it measures objects (:class:`SideReference`: the tops of the outline and of the
+paint, the outline along the body, the paint's share per height band) and tells matches (seen
+whole and near) from leads (worth a closer look).
 
 Uses only the agent's images, intrinsics, poses and the reference-derived
 :class:`~agos.agents.heuristic.perception.TargetProfile`; no ground truth.
@@ -324,6 +330,9 @@ target scores 0.02-0.17 from any side, a box truck against a bus 0.55)."""
 CONFIRM_RANGE_M = 22.0
 """An object further than this is a lead, never a match: a pixel there is 0.12 m high, as much as
 a roof box's rails or the step from a sedan to a hatchback."""
+TOO_CLOSE_M = 3.0
+"""An object of the paint nearer than this (the UGV stopped beside it) shows too little of itself
+to be judged: a lead, to be looked at from further."""
 LEAD_FACTOR = 2.0
 """A lead may miss the tolerances by this factor (seen from far or cut, it is to be looked at
 again from closer, not taken)."""
@@ -534,16 +543,20 @@ def _verify(p: _Part, profile: TargetProfile, side: SideReference, min_pixels: i
     tol = SIDE_TOLERANCE_M + 0.5 * p.px_m
     top_err = max(0.0, top - side.top_m) - max(0.0, side.top_low_m - top)
     paint_err = paint_top - side.paint_top_m
-    if p.top_cut:  # only lower bounds of the tops are measured: a short one may be looked at again
-        top_err, paint_err = max(top_err, -tol), max(paint_err, -tol)
+    # Cut by the top of the view, the tops measured are lower bounds: too low is no reason to
+    # refuse (a lead, to be seen from further), only reaching the reference's makes a match.
+    low_ok = LEAD_FACTOR * tol if not p.top_cut else math.inf
     outline = None if p.top_cut else profile_error(p.xy_m, p.top_m, side)
     too_long = not profile.body_cut and length > (profile.body_length_m or profile.length_m) + LENGTH_TOLERANCE_M
-    if (too_long or max(abs(top_err), abs(paint_err)) > LEAD_FACTOR * tol
+    x, y = np.median(p.xy_m, axis=0)
+    if (too_long or max(top_err, paint_err) > LEAD_FACTOR * tol or min(top_err, paint_err) < -low_ok
             or (bands is not None and bands > BAND_TOLERANCE)
             or (outline is not None and outline > LEAD_FACTOR * PROFILE_TOLERANCE_M)):
+        if p.distance_m < TOO_CLOSE_M and not too_long:  # seen in part from beside it: look from further
+            return "lead", GroundObject(tuple(p.views), n_paint, p.distance_m, top, length, float(x), float(y), value,
+                                        p.shade, 0.05)
         return None
-    x, y = np.median(p.xy_m, axis=0)
-    score = max(0.05, 1.0 - (abs(top_err) + abs(paint_err)) / (4 * tol) - (bands or 0.0))
+    score = max(0.05, 1.0 - min(abs(top_err) + abs(paint_err), 4 * tol) / (4 * tol) - (bands or 0.0))
     obj = GroundObject(tuple(p.views), n_paint, p.distance_m, top, length, float(x), float(y), value, p.shade, score)
     sure = (max(abs(top_err), abs(paint_err)) <= tol and bands is not None
             and (outline is None or outline <= PROFILE_TOLERANCE_M)

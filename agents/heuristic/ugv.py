@@ -26,7 +26,7 @@ import re
 import numpy as np
 
 from agos.agents.contract import Policy, action_for
-from agos.agents.heuristic.ground import GroundView, SideReference, find_target, judge_views, side_reference
+from agos.agents.heuristic.ground import TOO_CLOSE_M, GroundView, SideReference, find_target, judge_views, side_reference
 from agos.agents.heuristic.perception import TargetProfile, profile_from_references
 from agos.agents.navigation import Navigator
 from agos.runtime.codec import decode_image
@@ -134,8 +134,9 @@ class HeuristicUgv(Policy):
                                       message="Target confirmed.",
                                       rationale="paint, outline and paint tops, paint bands and length match nearby")
                 if active is not None:
-                    step = self._second_look(obs, active, views, refs[0], [(d.x_m, d.y_m) for d in judged.leads
-                                                                           if d.distance_m > LEAD_WELL_SEEN_M])
+                    leads = [(d.x_m, d.y_m) for d in judged.leads
+                             if d.distance_m > LEAD_WELL_SEEN_M or d.distance_m < TOO_CLOSE_M]
+                    step = self._second_look(obs, active, views, refs[0], leads)
                     if step is not None:
                         return action_for(obs, "MOVE_TO_ROAD_WAYPOINT", waypoint_id=step.waypoint_id,
                                           message=f"{active.candidate_id}: taking a second look.",
@@ -173,7 +174,8 @@ class HeuristicUgv(Policy):
         here = (float(obs.pose.position_world_m[0]), float(obs.pose.position_world_m[1]))
         if leads_xy:
             goal = min(leads_xy, key=lambda xy: math.dist(xy, point))
-            reach = math.dist(here, goal) - MIN_MOVE_M  # nearer to the lead
+            near = math.dist(here, goal)
+            reach = near - MIN_MOVE_M if near > TOO_CLOSE_M else SIGHT_RANGE_M  # nearer to the lead, or away
         elif not point_in_sight(views, point, half_length_m=(profile.body_length_m or profile.length_m) / 2):
             goal = point
             reach = max(math.dist(here, goal), LEAD_WELL_SEEN_M)  # elsewhere, not further
