@@ -453,7 +453,7 @@ def _recording_summary(console: Console, recording: Recording) -> None:
         return
     files = sorted(e["file"] for e in status.get("episodes", {}).values())
     dropped = sum(status.get("dropped_by_queue", {}).values()) + status.get("not_written", 0)
-    console.print(f"recordings: {len(files)} episodes in {recording.out_dir}"
+    console.print(f"recordings: {len(files)} episode{'' if len(files) == 1 else 's'} in {recording.out_dir}"
                   + (f"; the recorder fell behind and dropped {dropped} visualisation samples" if dropped else ""),
                   highlight=False)
     if files:
