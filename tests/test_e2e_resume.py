@@ -30,7 +30,7 @@ def _rows(db: Path) -> list[tuple[str, str]]:
 
 
 def test_interrupted_eval_resumes_and_stores_each_episode_once(tmp_path, sample_mid_episodes) -> None:
-    episodes = sample_mid_episodes(4, seed=5)
+    episodes = sample_mid_episodes(3, seed=5)
     run_dir = tmp_path / "run"
     db = run_dir / "results.sqlite"
     port = str(free_port(23000 + os.getpid() % 400))
@@ -43,16 +43,16 @@ def test_interrupted_eval_resumes_and_stores_each_episode_once(tmp_path, sample_
     first.send_signal(signal.SIGINT)
     out, _ = first.communicate(timeout=60)
     done_first = len(_rows(db))
-    assert first.returncode == (0 if done_first == 4 else 130), out  # interrupted: 130, like a shell
-    if done_first < 4:  # Ctrl-C landed before the end: the run says how to resume
+    assert first.returncode == (0 if done_first == 3 else 130), out  # interrupted: 130, like a shell
+    if done_first < 3:  # Ctrl-C landed before the end: the run says how to resume
         assert f"agos eval --resume {run_dir}" in " ".join(out.split())
     second = subprocess.run([*AGOS, "eval", "--resume", str(run_dir), "--port", port], cwd=tmp_path,
                             capture_output=True, text=True, timeout=300)
     assert second.returncode == 0, second.stdout + second.stderr
-    assert f"{done_first} of 4 episodes already finished" in " ".join(second.stdout.split())
+    assert f"{done_first} of 3 episodes already finished" in " ".join(second.stdout.split())
     rows = _rows(db)
     assert sorted(eid for eid, _ in rows) == sorted(json.loads(line)["episode_id"] for line in episodes.read_text().splitlines())
     assert all(status == "finished" for _, status in rows)
-    if done_first < 4:  # the resume started two workers again, and appended to the first attempt's logs
+    if done_first < 3:  # the resume started two workers again, and appended to the first attempt's logs
         world_1 = (run_dir / "logs" / "world-1.log").read_text()
         assert world_1.count("===== agos world started") == 2, world_1[:2000]
