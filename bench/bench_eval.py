@@ -219,7 +219,7 @@ def run(args: argparse.Namespace) -> int:
     sample = work / "episodes.jsonl"
     sample.write_text("\n".join(episodes) + "\n")
     run_dir = work / f"bench-eval-{datetime.now(UTC).strftime('%Y%m%d-%H%M%S')}"
-    port = free_port(7447)
+    port = free_port(0)  # any free port: 7447 may be wanted by a router started by hand (the README's)
     policy = f"standin-{args.latency_ms}ms"
     cmd = [*AGOS, "eval", "--split", str(sample), "--policy", policy, "--workers", str(args.workers),
            "--run-dir", str(run_dir), "--port", str(port)]
