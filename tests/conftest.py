@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from support.processes import stop_all
+
 # Fails a test that starts a process or opens a socket unless it is marked e2e or loopback (process_guard.py).
 pytest_plugins = ["process_guard"]
 
@@ -122,28 +124,16 @@ class RunningSystem:
         return proc
 
     def stop_extra(self) -> None:
-        _stop(self._extra)
+        stop_all(self._extra)
         self._extra.clear()
 
     def close(self) -> None:
         self.stop_extra()
-        _stop(self._base)
+        stop_all(self._base)
 
     def check_alive(self) -> None:
         exited = [p.args for p in self._base if p.poll() is not None]
         assert not exited, f"shared system processes exited: {exited}"
-
-
-def _stop(procs: list[subprocess.Popen]) -> None:
-    for p in procs:
-        if p.poll() is None:
-            p.terminate()
-    for p in procs:
-        try:
-            p.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
 
 
 @pytest.fixture(scope="session")

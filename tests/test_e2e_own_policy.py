@@ -15,6 +15,8 @@ import pytest
 from agos.deploy.run.launcher import free_port, wait_listening
 from agos.evaluator.store import ResultStore
 
+from support.processes import stop_all
+
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = "examples.my_policy:Explorer"
 BUDGET = 8
@@ -60,11 +62,4 @@ def test_agos_check_agent_passes_the_example_served_from_elsewhere(tmp_path: Pat
         assert out.returncode == 0, out.stdout + out.stderr
         assert "PASS: the agents conform" in out.stdout and f"{BUDGET} decisions, 0 fallbacks" in out.stdout
     finally:
-        for p in procs:
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        stop_all(procs)
