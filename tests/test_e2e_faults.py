@@ -26,6 +26,8 @@ from agos.deploy.run.launcher import free_port, wait_listening
 from agos.runtime import keys
 from agos.runtime.bus import zenoh_config
 
+from support.records import by_episode
+
 pytestmark = pytest.mark.e2e
 AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 
@@ -145,7 +147,7 @@ def clean_lossy(tmp_path_factory, episodes: Path) -> dict[str, dict]:
     clean = Cluster(clean_dir, "clean", workers=1)
     try:
         _finish(clean.eval(episodes, "--comm", "lossy"))
-        return _summaries(clean.records())
+        return by_episode(clean.records())
     finally:
         clean.close()
 
@@ -173,7 +175,7 @@ def test_agos_env_gives_the_record_of_the_process_path(episodes: Path, clean_los
     with Env(spec, EpisodeConfig.model_validate(stored["config"])) as env:
         record = env.play({role: make_policy("heuristic", role) for role in ("uav", "ugv")})
     assert record.comm_profile == "lossy"
-    played = _summaries([json.loads(msgspec.json.encode(record))])[spec.episode_id]  # as the store keeps it
+    played = by_episode([json.loads(msgspec.json.encode(record))])[spec.episode_id]  # as the store keeps it
     assert {k: v for k, v in played.items() if k != "provenance"} == {k: v for k, v in stored.items() if k != "provenance"}
 
 
@@ -195,8 +197,8 @@ def test_killed_world_worker_episode_completes_on_another_with_the_same_record(
         _one_finished_record_each(records, 3)
         assert next(r for r in records if r["episode_id"] == victim)["worker_id"] == "w1"
         assert "re-leased episodes: 1" in out
-        assert _summaries(records)[victim] == clean_lossy[victim]
-        assert _summaries(records) == clean_lossy
+        assert by_episode(records)[victim] == clean_lossy[victim]
+        assert by_episode(records) == clean_lossy
     finally:
         watcher.close()
         cluster.close()
@@ -223,8 +225,8 @@ def test_killed_agent_service_episode_is_rerun_afresh_with_the_same_record(
         _one_finished_record_each(records, 3)
         assert "re-leased episodes: 1" in out, out
         assert "giving the attempt back to be run afresh" in (tmp_path / "w0.log").read_text()
-        assert _summaries(records)[victim] == clean_lossy[victim]
-        assert _summaries(records) == clean_lossy
+        assert by_episode(records)[victim] == clean_lossy[victim]
+        assert by_episode(records) == clean_lossy
     finally:
         watcher.close()
         cluster.close()
@@ -244,11 +246,6 @@ def test_router_restart_clients_reconnect_and_run_completes(tmp_path: Path, epis
     finally:
         watcher.close()
         cluster.close()
-
-
-def _summaries(records: list[dict]) -> dict[str, dict]:
-    volatile = {"wall_time_s", "worker_id", "run_id"}
-    return {r["episode_id"]: {k: v for k, v in r.items() if k not in volatile} for r in records}
 
 
 class VizWatcher:
@@ -303,7 +300,7 @@ def test_same_results_with_slow_and_stuck_observers(tmp_path: Path, episodes: Pa
     viz = VizWatcher(cluster.endpoint)
     try:
         _finish(cluster.eval(episodes, "--comm", "lossy"))
-        observed = _summaries(cluster.records())
+        observed = by_episode(cluster.records())
         # The run finished while the viz observer was still stuck in its first callback: the
         # world never waited for it (its samples were dropped, not queued back to the world).
         assert viz.frozen_samples >= 1 and not viz.release.is_set()
@@ -467,7 +464,7 @@ def test_a_hostile_client_changes_no_record(tmp_path: Path, episodes: Path, clea
         stop.set()
         thread.join(10)
         assert sent[0] >= 1000, sent[0]
-        assert _summaries(cluster.records()) == clean_lossy
+        assert by_episode(cluster.records()) == clean_lossy
         assert "re-leased episodes" not in out, out
         assert len([k for k in genuine if k.endswith("/result")]) == len(ids)
         replays = re.findall(r"duplicate hostile/(\S+) ", (tmp_path / "evaluator.log").read_text())
