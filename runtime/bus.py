@@ -181,6 +181,9 @@ class Bus(Protocol):
 
 VIZ_QUEUE_BATCHES = 16
 """zenoh TX queue of the visualisation priority (DATA_LOW), in 64 KiB batches: see :func:`zenoh_config`."""
+ROUTER_MAX_SESSIONS = 10_000
+"""Client sessions one router accepts (zenoh's default, 1,000, is less than 1,000 world workers and the
+services of their run; each costs the router about 0.1 MB: bench/bench_control_plane.py)."""
 
 
 def zenoh_config(*, mode: str = "client", connect: list[str] | None = None, listen: list[str] | None = None,
@@ -203,6 +206,12 @@ def zenoh_config(*, mode: str = "client", connect: list[str] | None = None, list
     # now and then on an idle loopback. 16 batches (zenoh's maximum; allocated lazily, per link) hold
     # a burst; a subscriber that falls behind still loses samples instead of slowing anyone.
     conf.insert_json5("transport/link/tx/queue/size/data_low", json.dumps(VIZ_QUEUE_BATCHES))
+    # agos sends plain bytes, never zenoh shared-memory buffers, so the shared-memory transport only
+    # costs: a router on the clients' host refused every session past about 350 ("No available SHM
+    # counters"), and 1,000 world workers need more (bench/bench_control_plane.py).
+    conf.insert_json5("transport/shared_memory/enabled", "false")
+    if mode == "router":
+        conf.insert_json5("transport/unicast/max_sessions", json.dumps(ROUTER_MAX_SESSIONS))
     if tls is not None:
         conf.insert_json5("transport/link/tls", json.dumps(tls))
     if access_control is not None:
