@@ -8,10 +8,11 @@ field, e.g. ``config error: demo.toml: world.ugv_speed_mps: Input should be a va
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, ValidationInfo, field_validator
 
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.textfiles import TextFileError, one_line, read_toml
@@ -34,11 +35,34 @@ class _Section(BaseModel):
     model_config = ConfigDict(extra="forbid", use_attribute_docstrings=True)
 
 
+_ENDPOINT = re.compile(r"[a-z][a-z0-9-]*/[^\s,]+")
+
+
+def endpoint_list(text: str) -> list[str]:
+    """The endpoints of a comma-separated list (``"tcp/a:7447, tcp/b:7447"``), blanks dropped."""
+    return [part.strip() for part in text.split(",") if part.strip()]
+
+
+def _check_endpoints(endpoints: list[str], mixed: str) -> None:
+    """A ValueError unless each endpoint is PROTOCOL/ADDRESS and all or none are TLS (``mixed`` says
+    what mixes them)."""
+    for endpoint in endpoints:
+        if not _ENDPOINT.fullmatch(endpoint):
+            raise ValueError(f"{endpoint!r} is not an endpoint: write PROTOCOL/HOST:PORT, e.g. tcp/10.0.0.2:7447")
+    if len({e.startswith("tls/") for e in endpoints}) > 1:
+        raise ValueError(f"{mixed} tls/ and plain endpoints: a secured bus is tls/ on every link")
+
+
 class ZenohSettings(_Section):
     connect: str = "tcp/127.0.0.1:7447"
-    """Router endpoint every process connects to."""
+    """Router endpoint every process connects to. Several, separated by commas, for a router mesh: the
+    nearest router first, the others in order of preference; a process whose router goes away
+    reconnects to the first one that answers (docs/DEPLOY.md, "Router mesh")."""
     listen: str = "tcp/127.0.0.1:7447"
     """Where ``agos router`` listens."""
+    peers: list[str] = Field(default_factory=list)
+    """Other routers ``agos router`` connects to, making a mesh (``--peer``, repeated; in
+    ``AGOS_ZENOH__PEERS`` comma-separated). Each keeps trying a peer that is not up yet or went away."""
     multicast_scouting: bool = False
     connect_timeout_s: float = Field(10.0, gt=0)
     # Mutual TLS (docs/DEPLOY.md, "A secured bus"): used when the endpoint is ``tls/HOST:PORT``.
@@ -55,6 +79,31 @@ class ZenohSettings(_Section):
     """The private key as PEM text (e.g. ``AGOS_ZENOH__KEY_PEM`` from a secret store); never logged."""
     verify_name: bool = True
     """Clients check that the router's certificate names the host they connect to."""
+
+    @field_validator("connect")
+    @classmethod
+    def _connect_list(cls, value: str) -> str:
+        if not endpoint_list(value):
+            raise ValueError("no endpoint: name the router, e.g. tcp/127.0.0.1:7447")
+        _check_endpoints(endpoint_list(value), "the list mixes")
+        return value
+
+    @field_validator("peers", mode="before")
+    @classmethod
+    def _peers_list(cls, value: object) -> object:
+        return endpoint_list(value) if isinstance(value, str) else value
+
+    @field_validator("peers")
+    @classmethod
+    def _peers_like_listen(cls, value: list[str], info: ValidationInfo) -> list[str]:
+        listen = info.data.get("listen")  # absent when it failed its own check
+        _check_endpoints([listen, *value] if listen else value, "the peers and the listen endpoint mix")
+        return value
+
+    @property
+    def connect_endpoints(self) -> list[str]:
+        """:attr:`connect` as a list, the nearest router first."""
+        return endpoint_list(self.connect)
 
 
 class RunSettings(_Section):
