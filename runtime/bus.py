@@ -197,8 +197,12 @@ def zenoh_config(*, mode: str = "client", connect: list[str] | None = None, list
     conf.insert_json5("scouting/multicast/enabled", json.dumps(multicast_scouting))
     if connect:
         conf.insert_json5("connect/endpoints", json.dumps(connect))
-        # A client started before its router waits this long instead of failing at once.
-        conf.insert_json5("connect/timeout_ms", json.dumps({"client": int(connect_timeout_s * 1000), "peer": -1}))
+        # A client started before its router waits this long instead of failing at once. Given several
+        # routers, zenoh (1.10) would retry the first until then and never try the others, so it tries
+        # each once, in order, and open_session(retry_for_s=) tries the list again. A router keeps
+        # trying its peers in the background (-1), also after losing one.
+        client_ms = int(connect_timeout_s * 1000) if len(connect) == 1 else 0
+        conf.insert_json5("connect/timeout_ms", json.dumps({"client": client_ms, "peer": -1, "router": -1}))
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     # The visualisation stream (DATA_LOW, DROP) comes in bursts: six full-resolution views at a
@@ -220,15 +224,23 @@ def zenoh_config(*, mode: str = "client", connect: list[str] | None = None, list
 
 
 def session_config(z: ZenohSettings, *, mode: str = "client", access_control: dict[str, Any] | None = None) -> zenoh.Config:
-    """The zenoh config of a process from its ``[zenoh]`` settings: a client of ``z.connect``, or the
-    router on ``z.listen``; TLS (mutual, with this process's credentials) when the endpoint says ``tls/``."""
+    """The zenoh config of a process from its ``[zenoh]`` settings: a client of ``z.connect`` (the
+    nearest router first), or the router on ``z.listen`` connecting to its ``z.peers``; TLS (mutual,
+    with this process's credentials) when the endpoints say ``tls/`` (the settings allow all or none)."""
     from agos.runtime.tls import tls_section
 
     router = mode == "router"
-    tls = tls_section(z, listening=router) if (z.listen if router else z.connect).startswith("tls/") else None
-    return zenoh_config(mode=mode, connect=None if router else [z.connect], listen=[z.listen] if router else None,
-                        multicast_scouting=z.multicast_scouting, connect_timeout_s=z.connect_timeout_s, tls=tls,
-                        access_control=access_control)
+    endpoints = [z.listen, *z.peers] if router else z.connect_endpoints
+    tls = tls_section(z, listening=router) if endpoints[0].startswith("tls/") else None
+    return zenoh_config(mode=mode, connect=z.peers if router else z.connect_endpoints,
+                        listen=[z.listen] if router else None, multicast_scouting=z.multicast_scouting,
+                        connect_timeout_s=z.connect_timeout_s, tls=tls, access_control=access_control)
+
+
+def connect_retry_s(z: ZenohSettings) -> float:
+    """How long :func:`open_session` itself tries again for a client of ``z``: ``connect_timeout_s`` with
+    several routers (zenoh tries each once: :func:`zenoh_config`), 0 with one (zenoh waits for it)."""
+    return z.connect_timeout_s if len(z.connect_endpoints) > 1 else 0.0
 
 
 class _ZenohQuery:
@@ -263,15 +275,12 @@ class RouterUnreachable(RuntimeError):
 
 OPEN_POLL_S = 0.1
 """How often a process waiting for its zenoh session looks whether it was asked to stop."""
+OPEN_RETRY_S = 0.25
+"""Pause between two tries of a list of routers none of which answered (:func:`open_session`)."""
 
 
-def open_session(config: zenoh.Config) -> zenoh.Session:
-    """``zenoh.open``, failing with one line that names the endpoint and what to check.
-
-    The connection is made on a thread of its own while this one waits, so a stop signal during the
-    wait (up to ``[zenoh] connect_timeout_s`` when no router answers) is heard at once: Ctrl-C raises
-    ``KeyboardInterrupt`` here, a process with a stop flag (runtime/process.py) gets
-    :class:`~agos.runtime.process.Interrupted`. A session that opens after that is left to the exit."""
+def _open_once(config: zenoh.Config) -> zenoh.Session | BaseException:
+    """One ``zenoh.open`` on a thread of its own while this one looks for a stop request."""
     outcome: list[zenoh.Session | BaseException] = []
 
     def connect() -> None:
@@ -286,9 +295,31 @@ def open_session(config: zenoh.Config) -> zenoh.Session:
         thread.join(OPEN_POLL_S)
         if stop_requested():
             raise Interrupted("stopped while connecting to the zenoh router")
-    if isinstance(outcome[0], zenoh.Session):
-        return outcome[0]
-    exc = outcome[0]
+    return outcome[0]
+
+
+def open_session(config: zenoh.Config, *, retry_for_s: float = 0.0) -> zenoh.Session:
+    """``zenoh.open``, failing with one line that names the endpoint and what to check.
+
+    The connection is made on a thread of its own while this one waits, so a stop signal during the
+    wait (up to ``[zenoh] connect_timeout_s`` when no router answers) is heard at once: Ctrl-C raises
+    ``KeyboardInterrupt`` here, a process with a stop flag (runtime/process.py) gets
+    :class:`~agos.runtime.process.Interrupted`. A session that opens after that is left to the exit.
+    ``retry_for_s``: try again every :data:`OPEN_RETRY_S` until then while no router answers (a list
+    of routers, which zenoh tries once each: :func:`connect_retry_s`)."""
+    deadline = time.monotonic() + retry_for_s
+    while True:
+        outcome = _open_once(config)
+        if isinstance(outcome, zenoh.Session):
+            return outcome
+        if not isinstance(outcome, zenoh.ZError) or time.monotonic() + OPEN_RETRY_S > deadline:
+            break
+        again_at = time.monotonic() + OPEN_RETRY_S
+        while time.monotonic() < again_at:
+            time.sleep(OPEN_POLL_S)
+            if stop_requested():
+                raise Interrupted("stopped while connecting to the zenoh router")
+    exc = outcome
     if isinstance(exc, zenoh.ZError):
         try:
             endpoints = ", ".join(json.loads(config.get_json("connect/endpoints"))) or "?"
@@ -304,8 +335,9 @@ def open_session(config: zenoh.Config) -> zenoh.Session:
 class ZenohBus:
     """A real zenoh session (client of a router by default); a context manager that closes it."""
 
-    def __init__(self, config: zenoh.Config) -> None:
-        self.session = open_session(config)
+    def __init__(self, config: zenoh.Config, *, retry_for_s: float = 0.0) -> None:
+        """Open the session (:func:`open_session`: ``retry_for_s`` is its own)."""
+        self.session = open_session(config, retry_for_s=retry_for_s)
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._watched: dict[str, _MatchingFlag] = {}
         self._keep: list[Any] = []
@@ -324,8 +356,9 @@ class ZenohBus:
 
     @classmethod
     def from_settings(cls, z: ZenohSettings) -> ZenohBus:
-        """A client session as the process's ``[zenoh]`` settings say (TLS included)."""
-        return cls(session_config(z))
+        """A client session as the process's ``[zenoh]`` settings say (TLS included; with several
+        routers, the first that answers, in their order)."""
+        return cls(session_config(z), retry_for_s=connect_retry_s(z))
 
     def _publisher(self, key: str, *, viz: bool = False) -> zenoh.Publisher:
         pub = self._publishers.get(key)  # the common case, without the lock

@@ -20,7 +20,7 @@ import msgspec
 import zenoh
 
 from agos.runtime import keys
-from agos.runtime.bus import open_session, session_config
+from agos.runtime.bus import connect_retry_s, open_session, session_config
 from agos.runtime.settings import ZenohSettings
 
 
@@ -30,7 +30,7 @@ class Observer:
         """``endpoint``: a router endpoint, or whole ``[zenoh]`` settings (a secured bus's credentials)."""
         key_exprs = (key_expr,) if key_expr else keys.viz_light()
         z = endpoint if isinstance(endpoint, ZenohSettings) else ZenohSettings(connect=endpoint)
-        self.session = open_session(session_config(z))
+        self.session = open_session(session_config(z), retry_for_s=connect_retry_s(z))
         self.subscribers = [self.session.declare_subscriber(k, zenoh.handlers.RingChannel(capacity)) for k in key_exprs]
         self.handle = handle
         self.seen = 0

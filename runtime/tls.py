@@ -40,13 +40,17 @@ def _credential(z: ZenohSettings, name: str, what: str, endpoint: str) -> tuple[
 
 
 def tls_section(z: ZenohSettings, *, listening: bool) -> dict[str, Any]:
-    """zenoh's ``transport/link/tls`` for this process: mutual TLS, the peer checked against the CA."""
-    side = "listen" if listening else "connect"
+    """zenoh's ``transport/link/tls`` for this process: mutual TLS, the peer checked against the CA.
+    A router (``listening``) with peers presents the same certificate on the links it opens to them
+    (``zenoh.peers``: a router mesh), and checks their names as clients do."""
+    sides = ["listen", *(["connect"] if z.peers else [])] if listening else ["connect"]
     endpoint = z.listen if listening else z.connect
     section: dict[str, Any] = {"enable_mtls": True, "verify_name_on_connect": z.verify_name}
-    for name, zenoh_name, what in (("ca", "root_ca_certificate", "the CA certificate"),
-                                   ("cert", f"{side}_certificate", "this process's certificate"),
-                                   ("key", f"{side}_private_key", "this process's private key")):
+    names = [("ca", "root_ca_certificate", "the CA certificate")]
+    for side in sides:
+        names += [("cert", f"{side}_certificate", "this process's certificate"),
+                  ("key", f"{side}_private_key", "this process's private key")]
+    for name, zenoh_name, what in names:
         kind, value = _credential(z, name, what, endpoint)
         section[zenoh_name if kind == "path" else f"{zenoh_name}_base64"] = value
     return section
