@@ -17,7 +17,12 @@ What each identity may say (the issue's rules):
 - ``orchestrator`` (``agos eval``, the compose ``eval`` job): the manifest, lease notices and
   infrastructure failure records; serves jobs and assets; hears results, acknowledgements and events.
 - ``observer``: only reads the visualisation stream.
-- ``router``: nothing but the health check (every identity may ask which processes are alive).
+- ``router``: relays everything under ``agos/**``, both ways (a router mesh: docs/DEPLOY.md). zenoh
+  applies these rules to the links between routers as to any other, by the certificate the other
+  router presents, so without this grant nothing would cross a mesh (measured: not a put, query or
+  token). Each router enforces its own clients' rules where their messages come in, so what another
+  router relays was already checked there; the price is that ``router.key`` may say anything: it
+  belongs on router hosts only.
 
 Which episodes a world may publish results for is not a key rule (a worker's episodes change
 with every lease): any ``world`` certificate may publish any episode's result, and the evaluator
@@ -49,6 +54,8 @@ class Grants:
     serve: tuple[str, ...] = ()
     tokens: tuple[str, ...] = ()
     watch: tuple[str, ...] = ()
+    relay: tuple[str, ...] = ()
+    """Every message kind, both ways: another router of a mesh forwarding its clients' traffic."""
 
 
 def _health() -> tuple[str, ...]:
@@ -66,7 +73,7 @@ def _agent(role: str) -> Grants:
 
 
 IDENTITIES: dict[str, Grants] = {
-    "router": Grants(watch=_health()),
+    "router": Grants(watch=_health(), relay=(f"{keys.ROOT}/**",)),
     "world": Grants(
         publish=(keys.obs(ANY, ANY, ANY), keys.events(ANY, ANY), keys.coord_truth(ANY, ANY),
                  keys.coord_view(ANY, ANY, ANY), keys.message(ANY, ANY, ANY, ANY), keys.result(ANY, ANY),
@@ -105,6 +112,8 @@ _RULES: dict[str, list[tuple[list[str], list[str]]]] = {
     "tokens": [(["liveliness_token"], ["ingress"])],
     "watch": [(["declare_liveliness_subscriber", "liveliness_query"], ["ingress"]),
               (["liveliness_token", "reply"], ["egress"])],
+    "relay": [(["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable", "liveliness_token",
+                "declare_liveliness_subscriber", "liveliness_query"], ["ingress", "egress"])],
 }
 
 

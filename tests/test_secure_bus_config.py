@@ -37,8 +37,10 @@ def test_who_may_publish_what() -> None:
     assert not _allowed("agent-uav", "put", "ingress", act_ugv)
     assert not _allowed("agent-uav", "put", "ingress", result)
     assert not _allowed("agent-ugv", "put", "ingress", act_uav)
-    assert [i for i in IDENTITIES if _allowed(i, "put", "ingress", ack)] == ["evaluator"]
-    assert sorted(i for i in IDENTITIES if _allowed(i, "put", "ingress", result)) == ["orchestrator", "world"]
+    # A router relays everything (tests/test_router_mesh.py); among the processes' identities:
+    clients = [i for i in IDENTITIES if i != "router"]
+    assert [i for i in clients if _allowed(i, "put", "ingress", ack)] == ["evaluator"]
+    assert sorted(i for i in clients if _allowed(i, "put", "ingress", result)) == ["orchestrator", "world"]
     for key in (keys.obs("r", "e", "uav"), keys.events("r", "e"), keys.coord_truth("r", "e"),
                 keys.message("r", "e", "uav", "ugv"), keys.viz_frame("r", "e", "uav")):
         assert _allowed("world", "put", "ingress", key)

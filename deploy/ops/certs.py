@@ -121,6 +121,9 @@ def zenohd_config(listen: str = "tls/0.0.0.0:7447", certs_dir: str = CONTAINER_C
             "root_ca_certificate": f"{certs_dir}/ca.pem",
             "listen_certificate": f"{certs_dir}/router.pem",
             "listen_private_key": f"{certs_dir}/router.key",
+            # Presented to other routers when it connects to them (a router mesh: add connect/endpoints).
+            "connect_certificate": f"{certs_dir}/router.pem",
+            "connect_private_key": f"{certs_dir}/router.key",
             "enable_mtls": True,
         }}},
         "access_control": access_control(),
