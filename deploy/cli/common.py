@@ -46,7 +46,8 @@ def by_subcommand(dest: str, handlers: dict[str, Handler]) -> Handler:
 def connection_flags(p: argparse.ArgumentParser) -> None:
     """``--config``, ``--connect`` and ``--run`` of the processes that join a run."""
     p.add_argument("--config", type=Path, help="TOML settings file (see deploy/configs/demo.toml)")
-    p.add_argument("--connect", help="zenoh router endpoint, e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--connect", help="zenoh router endpoint, e.g. tcp/127.0.0.1:7447; several, comma-separated: "
+                                     "the nearest router first, the others as fallbacks")
     p.add_argument("--run", dest="run_id", help="run id (the <run> in agos/<run>/...)")
 
 
@@ -87,7 +88,8 @@ def settings_of(args: argparse.Namespace) -> AgosConfig:
                 "structured": False if getattr(args, "vlm_no_structured", False) else None,
                 "trace_file": getattr(args, "vlm_trace", None), "cache_dir": getattr(args, "vlm_cache", None),
                 "cache_mode": getattr(args, "vlm_cache_mode", None)},
-        "zenoh": {"connect": getattr(args, "connect", None), "listen": getattr(args, "listen", None)},
+        "zenoh": {"connect": getattr(args, "connect", None), "listen": getattr(args, "listen", None),
+                  "peers": getattr(args, "peers", None)},
         "world": {"decision_timeout_s": getattr(args, "decision_timeout", None),
                   "uav_during_verification": getattr(args, "uav_verification", None)},
         "run": {"run_id": getattr(args, "run_id", None), "runs_dir": getattr(args, "runs_dir", None),

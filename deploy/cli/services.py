@@ -1,6 +1,6 @@
 """The service processes' parsers: each command starts one process of a run and calls its ``main``.
 
-    agos router --listen EP         the zenoh router
+    agos router --listen EP         the zenoh router (--peer EP: a mesh of routers)
     agos world --connect EP --run R world worker
     agos agent --role uav|ugv ...   agent service
     agos human --role uav|ugv|both  a person plays in the browser (the Human reference); --spectate: watch
@@ -40,6 +40,8 @@ def _add_router(sub: Any) -> None:
     router = sub.add_parser("router", help="zenoh router")
     router.add_argument("--config", type=Path)
     router.add_argument("--listen", help="endpoint to listen on (default tcp/127.0.0.1:7447)")
+    router.add_argument("--peer", action="append", dest="peers", metavar="EP",
+                        help="another router to connect to, making a mesh (repeat; docs/DEPLOY.md 'Router mesh')")
 
 
 def _router(args: argparse.Namespace, cfg: AgosConfig) -> int:
