@@ -12,7 +12,7 @@ UV     := $(VENV)/uv-$(UV_VERSION)/bin/uv
 UV_ENV := UV_PROJECT_ENVIRONMENT=$(VENV) UV_PYTHON_DOWNLOADS=never
 LOCK_EXPORT := $(UV) export --frozen --no-emit-project --quiet
 
-.PHONY: demo check test static all-tests lint lock lock-check typecheck contracts unit loopback e2e deploy-test clean
+.PHONY: demo check test static all-tests lint lock lock-check typecheck contracts unit loopback e2e deploy-test slurm-test clean
 
 $(UV):
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -98,6 +98,11 @@ bench: $(STAMP)
 # docker.io, docker-compose and debootstrap when missing. Not part of `make test`.
 deploy-test: $(STAMP)
 	$(BIN)/python tests/deploy/compose_e2e.py
+
+# deploy/slurm/agos-eval.sbatch for real on a 3-node Slurm cluster started on this machine: needs root
+# and Debian's slurmctld, slurmd, slurm-client and munge (.ci/run installs them). Not part of `make test`.
+slurm-test: $(STAMP)
+	$(BIN)/python tests/deploy/slurm_e2e.py
 
 lint: $(STAMP) lock-check
 	$(BIN)/ruff check .
