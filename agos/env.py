@@ -47,6 +47,7 @@ from pathlib import Path
 from typing import Any, Literal, Self, cast
 
 from agos.agents.contract import Policy, action_for
+from agos.agents.inprocess import InProcessAgents
 from agos.agents.names import tools_for
 from agos.runtime.camera import parse_cell
 from agos.runtime.episode_config import EpisodeConfig, ToolConfig
@@ -64,7 +65,7 @@ from agos.runtime.schemas import (
     StepEvent,
 )
 from agos.world.sim import rules
-from agos.world.sim.engine import ROLE_ORDER, EpisodeRunner, EpisodeSink, SetupMemo
+from agos.world.sim.engine import ROLE_ORDER, DecisionSource, EpisodeRunner, EpisodeSink, SetupMemo
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import Town, open_town, town_for
 
@@ -170,18 +171,20 @@ class Env:
     rich look, as ``agos eval`` runs). ``scene`` and ``town``: one already built for this town and
     ``config.look`` (tests share one across many episodes); otherwise the Env builds its own and
     closes it in :meth:`close`. ``sink``: also gets every step event, coordination state and
-    message (as a world worker publishes them). ``run_id`` names the run in observations and records.
+    message (as a world worker publishes them). ``run_id`` names the run in observations and records,
+    ``worker_id`` the player in records (``agos sweep`` writes ``"sweep"``).
     """
 
     def __init__(self, episode: EpisodeSpec | str | os.PathLike[str], config: EpisodeConfig | None = None, *,
-                 index: int = 0, illegal: IllegalMode = "raise", run_id: str = "env", scene: Scene | None = None,
-                 town: Town | None = None, sink: EpisodeSink | None = None) -> None:
+                 index: int = 0, illegal: IllegalMode = "raise", run_id: str = "env", worker_id: str = "env",
+                 scene: Scene | None = None, town: Town | None = None, sink: EpisodeSink | None = None) -> None:
         if illegal not in ("raise", "wait"):
             raise ValueError(f"illegal={illegal!r}: give 'raise' (an IllegalActionError) or 'wait' (a counted WAIT)")
         self.config = config or EpisodeConfig()
         self.spec = episode if isinstance(episode, EpisodeSpec) else _from_file(Path(episode), index, self.config.look)
         self.illegal: IllegalMode = illegal
         self.run_id = run_id
+        self.worker_id = worker_id
         if scene is not None and scene.look != self.config.look:
             raise ValueError(f"the scene was built with look {scene.look!r} but the configuration's look is "
                              f"{self.config.look!r}: build it with look=config.look")
@@ -266,7 +269,7 @@ class Env:
                                  f"{self._town.town_id}: build another Env for it")
             self.spec = episode
         self._record = None
-        self._runner = EpisodeRunner(self._scene, self._town, self.spec, run_id=self.run_id, worker_id="env",
+        self._runner = EpisodeRunner(self._scene, self._town, self.spec, run_id=self.run_id, worker_id=self.worker_id,
                                      config=self.config, sink=self._sink, setup_memo=self._memo)
         self._sink.take()
         observations = self._runner.start()
@@ -291,14 +294,27 @@ class Env:
         record = self._finish() if not observations else None
         return StepResult(observations, events, messages, record)
 
-    def play(self, policies: Mapping[Role, Policy]) -> EpisodeRecord:
-        """The whole episode from its start, each role's decisions by its policy (``act``, on this
-        thread); each policy is told the episode has ended. The record."""
+    def play(self, agents: Mapping[Role, Policy] | DecisionSource, *,
+             seen: list[Observation] | None = None) -> EpisodeRecord:
+        """The whole episode from its start; its record. ``agents``: one :class:`Policy` per role, called
+        as :class:`~agos.agents.inprocess.InProcessAgents` calls them (``act``, on this thread; a policy
+        that defines only ``act_async`` has it run to completion on a fresh event loop per decision,
+        and VLM policies' ``act`` does that with a fresh HTTP client, as in ``agos sweep``), each told
+        the episode has ended; or a :class:`~agos.world.sim.engine.DecisionSource`, one object whose
+        ``decide(observations)`` answers every role asked in a round (a scripted pair, a central
+        controller, agents asked over the bus). ``seen``: gets every observation asked, in the order
+        asked. An exception from a policy or source abandons the episode (no record) and propagates."""
+        policies: Mapping[Role, Policy] = agents if isinstance(agents, Mapping) else {}
+        source = InProcessAgents(dict(policies)) if isinstance(agents, Mapping) else agents
         observations = self.reset()
         try:
             while observations:
-                observations = self.step({role: policies[role].act(obs) for role, obs in observations.items()}).observations
+                if seen is not None:
+                    seen.extend(observations.values())
+                observations = self.step(source.decide(observations)).observations
         finally:
+            if self._record is None:  # an exception: the episode's vehicles leave the scene
+                self.abandon()
             for policy in policies.values():
                 policy.end_episode(self.spec.episode_id)
         return self.record

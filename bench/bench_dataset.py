@@ -158,8 +158,8 @@ class Stopwatch:
 def breakdown(split: Path, look: str, capture_every_m: float, work: Path) -> dict[str, float]:
     """Play ``split`` in this process with the dataset writer, timing render, plan, write and assemble."""
     from agos.agents.dataset.writer import DatasetWriter
-    from agos.agents.inprocess import InProcessAgents
     from agos.deploy.dataset.build import Assembler
+    from agos.env import Env
     from agos.runtime.episode_config import EpisodeConfig, ToolConfig
     from agos.world import expert
     from agos.world.episodes.sampling import read_episodes
@@ -189,8 +189,8 @@ def breakdown(split: Path, look: str, capture_every_m: float, work: Path) -> dic
                 town = town_for(spec.town.generator, spec.town.seed, spec.asset_sha256, town_id=spec.town.town_id)
                 scenes[spec.asset_sha256] = (town, Scene(town.layout, look=look))
             town, scene = scenes[spec.asset_sha256]
-            agents = InProcessAgents({r: DatasetWriter(r, out) for r in ("uav", "ugv")})
-            record = engine.EpisodeRunner(scene, town, spec, run_id="bench", worker_id="bench", config=config).run(agents)
+            with Env(spec, config, illegal="wait", run_id="bench", worker_id="bench", scene=scene, town=town) as env:
+                record = env.play({r: DatasetWriter(r, out) for r in ("uav", "ugv")})
             decisions += record.decisions_uav + record.decisions_ugv
             ta = time.perf_counter()
             problem = assembler.assemble(record)

@@ -46,10 +46,7 @@ def observations() -> list[Observation]:
         seen: list[Observation] = []
         policies = {r: make_policy("heuristic", r) for r in ("uav", "ugv")}
         with Env(spec, EpisodeConfig(look="flat"), run_id="bench", scene=scene, town=town) as env:
-            observations = env.reset()
-            while observations:
-                seen.extend(observations.values())
-                observations = env.step({r: policies[r].act(o) for r, o in observations.items()}).observations
+            env.play(policies, seen=seen)
     return seen
 
 

@@ -29,7 +29,6 @@ also one machine-readable line per figure (bench/figures.py).
 from __future__ import annotations
 
 import argparse
-import contextlib
 import statistics
 import subprocess
 import sys
@@ -116,26 +115,19 @@ while True:
 
 
 def sample_observation() -> Observation:
-    """A real UAV observation (rendered, encoded) from the grid town."""
-    from agos.agents.inprocess import InProcessAgents
+    """A real UAV observation (rendered, encoded) from the grid town: an episode's first."""
+    from agos.env import Env
+    from agos.runtime.episode_config import EpisodeConfig
     from agos.world.episodes.sampling import sample_episode
-    from agos.world.sim.engine import EpisodeRunner
     from agos.world.sim.scene import Scene
     from agos.world.towns.asset import open_town
 
     town = open_town("grid-s7")
     with Scene(town.layout, look="flat") as scene:
         spec = sample_episode(town, scene, "mid", 0, seed=1)
-        captured: list[Observation] = []
-
-        class Capture(InProcessAgents):
-            def decide(self, observations):
-                captured.extend(o for o in observations.values() if o.role == "uav")
-                raise StopIteration
-
-        with contextlib.suppress(StopIteration):
-            EpisodeRunner(scene, town, spec, run_id="bench", worker_id="bench").run(Capture({}))
-    return msgspec.structs.replace(captured[0], run_id="bench", episode_id="e0")
+        with Env(spec, EpisodeConfig(look="flat"), run_id="bench", worker_id="bench", scene=scene, town=town) as env:
+            first = env.reset()["uav"]
+    return msgspec.structs.replace(first, run_id="bench", episode_id="e0")
 
 
 class World:

@@ -15,14 +15,15 @@ import msgspec
 import pytest
 
 from agos import Env, EnvStateError, IllegalActionError, episode_config
+from agos.agents.contract import Policy, action_for
 from agos.agents.registry import make_policy
 from agos.deploy.run.configure import episode_config as eval_config
 from agos.runtime.episode_config import EpisodeConfig
-from agos.runtime.schemas import EpisodeRecord
+from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role
 from agos.runtime.settings import AgosConfig
 from agos.world.episodes.files import EpisodeFileError, write_episodes
 from agos.world.episodes.sampling import sample_episode
-from agos.world.sim.scene import Scene
+from agos.world.sim.scene import Scene, pb
 from agos.world.towns.asset import open_town
 
 from support.bus_path import BusPath
@@ -75,6 +76,39 @@ def test_an_episode_played_again_gives_the_same_record(world) -> None:
              town=town) as env:
         first, second = (_summary(env.play({r: make_policy("oracle", r) for r in ("uav", "ugv")})) for _ in range(2))
     assert first == second and first["termination"] == "confirmed"
+
+
+def test_play_takes_one_source_for_both_roles_keeps_what_was_asked_and_abandons_on_an_error(world) -> None:
+    """``play`` with a DecisionSource (one object answering every role asked), ``seen`` and
+    ``worker_id``; a policy's exception abandons the episode: propagated, its vehicles out of the
+    scene, each policy told the end, the Env ready for the next reset."""
+    town, scene, spec = world
+    config = episode_config(look="flat", decision_budget=4, cameras=SMALL)
+
+    class Both:  # a central controller: WAIT for every role asked
+        def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
+            return {role: action_for(obs, "WAIT") for role, obs in observations.items()}
+
+    ended: list[str] = []
+
+    class Failing(Policy):
+        def act(self, obs: Observation) -> Action:
+            raise RuntimeError(f"{self.role} cannot decide")
+
+        def end_episode(self, episode_id: str) -> None:
+            ended.append(self.role)
+
+    bodies = pb.getNumBodies(physicsClientId=scene.client)
+    seen: list[Observation] = []
+    with Env(spec, config, worker_id="me", scene=scene, town=town) as env:
+        record = env.play(Both(), seen=seen)
+        assert (record.worker_id, record.termination, record.fallbacks) == ("me", "budget_exhausted", 0)
+        assert [(o.role, o.decision_index) for o in seen][:2] == [("uav", 1), ("ugv", 1)] and len(seen) == 4
+        with pytest.raises(RuntimeError, match="uav cannot decide"):
+            env.play({r: Failing(r) for r in ("uav", "ugv")})
+        assert ended == ["uav", "ugv"] and not env.pending and not env.done
+        assert pb.getNumBodies(physicsClientId=scene.client) == bodies
+        assert env.play(Both()).termination == "budget_exhausted"
 
 
 def test_calls_out_of_order_say_which_call_comes_next(world) -> None:

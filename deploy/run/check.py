@@ -2,9 +2,9 @@
 
     agos check agent --connect tcp/HOST:PORT --run RUN [--budget 16] [--town grid-s7]
 
-Before a long evaluation, the author of a remote agent runs one real episode (world simulated in
-this process, decisions asked over zenoh exactly as a world worker asks them) and gets a verdict
-per check:
+Before a long evaluation, the author of a remote agent runs one real episode (the world simulated
+in this process by an ``agos.Env``, decisions asked over zenoh exactly as a world worker asks them)
+and gets a verdict per check:
 
 * ``subscribed``: an agent service of each role listens for the run (else: which role is missing);
 * ``answered``: every decision answered before the deadline, with the right decision index;
@@ -111,8 +111,8 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policies: dict[st
     agent runs (default heuristic), for the world's tools; a name that names no policy raises
     ValueError before the bus is opened."""
     from agos.deploy.run.configure import episode_config
+    from agos.env import Env
     from agos.world.episodes.sampling import generate_episodes
-    from agos.world.sim.engine import EpisodeRunner
     from agos.world.sim.scene import Scene
     from agos.world.sim.worker import BusDecisionSource, BusSink, MissingAgent, ModelOutage
     from agos.world.towns.asset import open_town
@@ -136,8 +136,9 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policies: dict[st
                                    timeout_s=config.decision_timeout_s, stop=stop, agent_wait_s=cfg.run.agent_wait_s)
         sink = StepChecks(BusSink(bus, run_id, spec.episode_id), v)
         try:
-            record = EpisodeRunner(scene, town, spec, run_id=run_id, worker_id="check", sink=sink,
-                                   config=config).run(CheckingSource(source, v))
+            with Env(spec, config, illegal="wait", run_id=run_id, worker_id="check", scene=scene, town=town,
+                     sink=sink) as env:  # the world's own fallbacks: the checks count illegal answers
+                record = env.play(CheckingSource(source, v))
             v.check("subscribed", True)
         except MissingAgent as exc:
             v.check("subscribed", False, str(exc))

@@ -110,19 +110,18 @@ _CACHE: dict[tuple[str, str], Any] = {}
 
 
 def _run_point_episode(args: tuple[str, str, list[str], str, str]) -> tuple[int, str]:
-    """Worker process: one episode under one point's episode configuration; returns (point, record JSON)."""
+    """Worker process: one episode under one point's episode configuration, played by an
+    :class:`agos.Env` on this process's scene of the town (illegal answers are the world's counted
+    WAITs, as over the bus); returns (point, record JSON)."""
     config_json, episode_json, policies, point, vlm_json = args
-    from agos.agents.inprocess import InProcessAgents
     from agos.agents.registry import make_policy
+    from agos.env import Env
     from agos.runtime.episode_config import EpisodeConfig
     from agos.runtime.schemas import EpisodeSpec
     from agos.runtime.settings import VlmOptions
-    from agos.world.expert import install
-    from agos.world.sim.engine import EpisodeRunner
     from agos.world.sim.scene import Scene
     from agos.world.towns.asset import town_for
 
-    install()  # expert runs carry the world's plan in their observations
     spec = from_json(episode_json, EpisodeSpec)
     config = EpisodeConfig.model_validate_json(config_json)
     key = (spec.asset_sha256, config.look)
@@ -131,10 +130,8 @@ def _run_point_episode(args: tuple[str, str, list[str], str, str]) -> tuple[int,
         _CACHE[key] = (town, Scene(town.layout, look=config.look))
     town, scene = _CACHE[key]
     vlm = VlmOptions.model_validate_json(vlm_json) if vlm_json else None
-    agents = InProcessAgents({"uav": make_policy(policies[0], "uav", vlm=vlm),
-                              "ugv": make_policy(policies[1], "ugv", vlm=vlm)})
-    record = EpisodeRunner(scene, town, spec, run_id="sweep", worker_id="sweep",
-                           config=config).run(agents)
+    with Env(spec, config, illegal="wait", run_id="sweep", worker_id="sweep", scene=scene, town=town) as env:
+        record = env.play({"uav": make_policy(policies[0], "uav", vlm=vlm), "ugv": make_policy(policies[1], "ugv", vlm=vlm)})
     return int(point), to_json(record).decode()
 
 
