@@ -87,10 +87,7 @@ def observations() -> list:
     with Scene(town.layout, look="flat") as scene:
         spec = generate_episodes(town, scene, per_difficulty=1, seed=1)[0]
         with Env(spec, EpisodeConfig(look="flat"), run_id="t", scene=scene, town=town) as env:
-            observations = env.reset()
-            while observations:
-                seen.extend(observations.values())
-                observations = env.step({r: policies[r].act(o) for r, o in observations.items()}).observations
+            env.play(policies, seen=seen)
     return seen
 
 

@@ -384,10 +384,9 @@ def test_geometry_reaches_the_link():
 # ----- end to end -------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def lossy_records():
-    from agos.agents.inprocess import InProcessAgents
+    from agos import Env
     from agos.agents.registry import make_policy
     from agos.world.episodes.sampling import sample_episode
-    from agos.world.sim.engine import EpisodeRunner
     from agos.world.sim.scene import Scene
     from agos.world.towns.asset import open_town
 
@@ -395,11 +394,10 @@ def lossy_records():
     with Scene(town.layout, look="flat") as scene:
         spec = sample_episode(town, scene, "easy", 0, seed=1)
         records = []
-        for _ in range(2):
-            agents = InProcessAgents({role: make_policy("heuristic", role) for role in ("uav", "ugv")})
-            runner = EpisodeRunner(scene, town, spec, run_id="links", worker_id="w",
-                                   config=EpisodeConfig(look="flat", comm=load_profile("lossy")))
-            records.append(runner.run(agents))
+        for _ in range(2):  # an Env each: the second renders the episode's setup again
+            with Env(spec, EpisodeConfig(look="flat", comm=load_profile("lossy")), run_id="links", worker_id="w",
+                     scene=scene, town=town) as env:
+                records.append(env.play({role: make_policy("heuristic", role) for role in ("uav", "ugv")}))
     return records
 
 

@@ -1,10 +1,13 @@
-"""The episode engine in-process, with the real PyBullet scene and scripted decision sources."""
+"""The episode engine in-process, with the real PyBullet scene and scripted decision sources: its
+own contract (the shared budget, counted WAITs, the frozen UAV, one record per episode and policy)
+on EpisodeRunner itself; what a heuristic episode sends (types, maps) played through agos.Env."""
 
 from __future__ import annotations
 
 import msgspec
 import pytest
 
+from agos import Env
 from agos.agents.contract import action_for
 from agos.agents.inprocess import InProcessAgents
 from agos.agents.registry import make_policy
@@ -159,15 +162,9 @@ def test_every_message_is_written_with_its_declared_types(world) -> None:
 
     town, scene, episodes = world
     sink, seen = Everything(), []
-    agents = heuristic()
-
-    class Spy:
-        def decide(self, observations):
-            seen.extend(observations.values())
-            return agents.decide(observations)
-
-    record = EpisodeRunner(scene, town, episodes["mid000"], run_id="t", worker_id="w", sink=sink,
-                           config=EpisodeConfig(look="flat", comm=load_profile("lossy"))).run(Spy())
+    with Env(episodes["mid000"], EpisodeConfig(look="flat", comm=load_profile("lossy")), run_id="t", worker_id="w",
+             scene=scene, town=town, sink=sink) as env:
+        record = env.play({r: make_policy("heuristic", r) for r in ("uav", "ugv")}, seen=seen)
     assert record.ledger and sink.messages and seen
     for message in [*seen, *sink.messages, record]:
         payload = encode(message)
@@ -178,21 +175,15 @@ def test_the_map_shows_the_teammate_where_the_link_reported_it(world) -> None:
     """M carries no more than the link: each role's map has its own marker where it is and its
     teammate's at the pose in that role's coordination view (none before the first report)."""
     from agos.runtime.codec import decode_image
-    from agos.world.towns.topdown import region_map
-
-    seen: list[tuple[Observation, bytes]] = []
-    agents = heuristic()
-
-    class Watching:
-        def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
-            seen.extend((obs, next(f.data for f in obs.images if f.kind == "map")) for obs in observations.values())
-            return agents.decide(observations)
-
     from agos.runtime.links import load_profile
+    from agos.world.towns.topdown import region_map
 
     town, scene, episodes = world
     config = EpisodeConfig(look="flat", comm=load_profile("outage"))  # nothing gets through after 20 s
-    EpisodeRunner(scene, town, episodes["mid000"], run_id="t", worker_id="w", config=config).run(Watching())  # a long one
+    asked: list[Observation] = []
+    with Env(episodes["mid000"], config, run_id="t", worker_id="w", scene=scene, town=town) as env:
+        env.play({r: make_policy("heuristic", r) for r in ("uav", "ugv")}, seen=asked)  # a long one
+    seen = [(obs, next(f.data for f in obs.images if f.kind == "map")) for obs in asked]
     late = [(obs, png) for obs, png in seen if obs.sim_time_s > 60.0]
     assert len(late) > 5
     for obs, png in seen[:6] + late[:6]:

@@ -9,14 +9,12 @@ from pathlib import Path
 
 import pytest
 
-from agos.agents.inprocess import InProcessAgents
+from agos import Env
 from agos.agents.names import tools_for
 from agos.agents.registry import make_policy
 from agos.runtime.episode_config import EpisodeConfig, ToolConfig
-from agos.runtime.schemas import EpisodeRecord, ExpertStep
-from agos.world import expert
+from agos.runtime.schemas import EpisodeRecord, ExpertStep, Observation
 from agos.world.expert import planner
-from agos.world.sim.engine import EpisodeRunner
 from agos.world.sim.scene import Scene
 
 CARLA = Path(__file__).resolve().parents[2] / "shared" / "maps" / "carla"
@@ -49,11 +47,10 @@ def _play(town, scene, spec) -> tuple[EpisodeRecord, dict[str, list[ExpertStep]]
 
     sink = Events()
     planner.plan_episode = keep  # type: ignore[assignment]
-    try:
-        expert.install()
-        agents = InProcessAgents({r: make_policy("expert", r) for r in ("uav", "ugv")})
-        record = EpisodeRunner(scene, town, spec, run_id="t", worker_id="t", sink=sink,
-                               config=EpisodeConfig(look="flat", tools=ToolConfig(expert=True))).run(agents)
+    try:  # an expert configuration has the Env install the world's planner
+        with Env(spec, EpisodeConfig(look="flat", tools=ToolConfig(expert=True)), run_id="t", worker_id="t",
+                 scene=scene, town=town, sink=sink) as env:
+            record = env.play({r: make_policy("expert", r) for r in ("uav", "ugv")})
     finally:
         planner.plan_episode = original  # type: ignore[assignment]
     assert len(plans) == 1, "the world plans once per episode"
@@ -107,21 +104,9 @@ def test_the_expert_needs_the_world_plan_and_only_its_runs_get_one() -> None:
         from agos.world.episodes.sampling import sample_episode
 
         spec = sample_episode(town, scene, "easy", 0, seed=3, stream=0)
-        seen: list = []
-
-        class Spy:
-            role = "uav"
-            name = "spy"
-
-            def act(self, obs):
-                seen.append(obs)
-                return make_policy("random", obs.role).act(obs)
-
-            def end_episode(self, episode_id: str) -> None:
-                pass
-
-        EpisodeRunner(scene, town, spec, run_id="t", worker_id="t", config=EpisodeConfig(look="flat")).run(
-            InProcessAgents({"uav": Spy(), "ugv": Spy()}))  # type: ignore[dict-item]
+        seen: list[Observation] = []
+        with Env(spec, EpisodeConfig(look="flat"), run_id="t", worker_id="t", scene=scene, town=town) as env:
+            env.play({r: make_policy("random", r) for r in ("uav", "ugv")}, seen=seen)
         assert seen and all(obs.expert is None for obs in seen)
         with pytest.raises(ValueError, match="policy 'expert'"):
             ExpertPolicy("uav").act(seen[0])

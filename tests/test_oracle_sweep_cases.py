@@ -17,14 +17,14 @@ from pathlib import Path
 
 import pytest
 
-from agos.agents.inprocess import InProcessAgents
+from agos import Env
 from agos.agents.navigation import uav_route
 from agos.agents.registry import make_policy
 from agos.runtime.codec import from_json
 from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.runtime.schemas import EpisodeRecord, EpisodeSpec, StepEvent, TownRef, VehicleSpec, Waypoint
 from agos.world.episodes.solvability import check
-from agos.world.sim.engine import EpisodeRunner, NullSink
+from agos.world.sim.engine import NullSink
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import Town, freeze
 
@@ -87,10 +87,9 @@ class _Steps(NullSink):
 def _play(town: Town, spec: EpisodeSpec) -> tuple[EpisodeRecord, list[StepEvent]]:
     assert town.sha256 == spec.asset_sha256, "the town pipeline changed: this case is no longer the same episode"
     sink = _Steps()
-    with Scene(town.layout, look="flat") as scene:
-        config = EpisodeConfig(look="flat", tools=ToolConfig(oracle=True))
-        agents = InProcessAgents({r: make_policy("oracle", r) for r in ("uav", "ugv")})
-        record = EpisodeRunner(scene, town, spec, run_id="t", worker_id="w", config=config, sink=sink).run(agents)
+    config = EpisodeConfig(look="flat", tools=ToolConfig(oracle=True))
+    with Env(spec, config, run_id="t", worker_id="w", town=town, sink=sink) as env:  # its own scene of the town
+        record = env.play({r: make_policy("oracle", r) for r in ("uav", "ugv")})
     return record, sink.steps
 
 

@@ -63,10 +63,9 @@ def test_the_contract_gives_each_method_a_default_and_refuses_a_policy_that_cann
 def test_the_example_plays_an_episode_in_process(repo_on_path: None) -> None:
     """``make_policy("examples.my_policy:Explorer", role)`` in this process: every decision legal and
     with valid arguments (no fallback), the budget spent, the memory of the episode dropped when told."""
-    from agos.agents.inprocess import InProcessAgents
+    from agos import Env
     from agos.runtime.episode_config import EpisodeConfig
     from agos.world.episodes.sampling import generate_episodes
-    from agos.world.sim.engine import EpisodeRunner
     from agos.world.sim.scene import Scene
     from agos.world.towns.asset import open_town
 
@@ -79,8 +78,12 @@ def test_the_example_plays_an_episode_in_process(repo_on_path: None) -> None:
     town = open_town("grid-s7")
     with Scene(town.layout, look="flat") as scene:
         spec = generate_episodes(town, scene, per_difficulty=1, seed=1, difficulties=("easy",))[0]
-        record = EpisodeRunner(scene, town, spec, run_id="t", worker_id="w",
-                               config=EpisodeConfig(look="flat", decision_budget=10)).run(InProcessAgents(policies))
+        with Env(spec, EpisodeConfig(look="flat", decision_budget=10), run_id="t", worker_id="w", scene=scene,
+                 town=town) as env:  # illegal="raise": an action without valid arguments fails here
+            observations = env.reset()
+            while observations:  # Env.play would tell the policies the end before the visits are counted
+                observations = env.step({r: policies[r].act(o) for r, o in observations.items()}).observations
+            record = env.record
     assert (record.status, record.termination, record.fallbacks) == ("finished", "budget_exhausted", 0)
     assert record.decisions_uav + record.decisions_ugv == 10 and record.ugv_path_length_m > 0
     ugv = policies["ugv"]

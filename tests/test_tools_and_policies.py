@@ -147,11 +147,7 @@ def test_no_rgpp_removes_go_to_candidate_and_gives_distance_hints(world) -> None
     config = EpisodeConfig(look="flat", tools=ToolConfig(rgpp=False))
     policies = {r: make_policy("heuristic:no_rgpp", r) for r in ("uav", "ugv")}
     with Env(episodes[0], config, run_id="t", scene=scene, town=town) as env:
-        observations = env.reset()
-        while observations:
-            seen.extend(observations.values())
-            observations = env.step({r: policies[r].act(o) for r, o in observations.items()}).observations
-        record = env.record
+        record = env.play(policies, seen=seen)
     ugv = [o for o in seen if o.role == "ugv"]
     assert all("GO_TO_CANDIDATE" not in o.legal_actions for o in ugv)
     with_candidate = [o for o in ugv if any(c.status == "pending" for c in o.coordination.candidates)]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import pytest
 
+from agos import Env
 from agos.agents.contract import action_for
 from agos.deploy.cli import build_parser
 from agos.deploy.cli.common import settings_of
@@ -15,7 +16,7 @@ from agos.runtime.episode_config import EpisodeConfig, StoredConfigError, ToolCo
 from agos.runtime.schemas import Action, Observation, Role, StepEvent
 from agos.runtime.settings import load_config
 from agos.world.episodes.sampling import generate_episodes
-from agos.world.sim.engine import EpisodeRunner, NullSink
+from agos.world.sim.engine import NullSink
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import build_town
 
@@ -45,10 +46,10 @@ class AnnotateThenHold:
     def __init__(self, *, reject: bool = True) -> None:
         self.reject = reject
         self.seen: list[Observation] = []
+        """What it was asked, in order (Env.play's ``seen``)."""
         self.open_tries = 0
 
     def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
-        self.seen.extend(observations.values())
         return {role: self._choose(obs) for role, obs in observations.items()}
 
     def _choose(self, obs: Observation) -> Action:
@@ -72,7 +73,8 @@ class AnnotateThenHold:
 def _run(world, config: EpisodeConfig, source: AnnotateThenHold) -> Log:
     town, scene, spec = world
     log = Log()
-    EpisodeRunner(scene, town, spec, run_id="t", worker_id="w", config=config, sink=log).run(source)
+    with Env(spec, config, illegal="wait", run_id="t", worker_id="w", scene=scene, town=town, sink=log) as env:
+        env.play(source, seen=source.seen)  # illegal="wait": the UAV's NO_RELIABLE_CANDIDATE while verified is the world's WAIT
     return log
 
 

@@ -17,8 +17,9 @@ import msgspec
 import numpy as np
 import pytest
 
+from agos import Env
 from agos.runtime.codec import decode, decode_as, decode_image, encode, from_json, to_json
-from agos.runtime.episode_config import CameraConfig
+from agos.runtime.episode_config import CameraConfig, EpisodeConfig
 from agos.runtime.schemas import EpisodeSpec, JobGrant, TownRef, VehicleSpec
 from agos.world.episodes import sampling
 from agos.world.episodes.lookalikes import (
@@ -33,7 +34,6 @@ from agos.world.episodes.lookalikes import (
 )
 from agos.world.episodes.sampling import sample_episode
 from agos.world.sim import sensors
-from agos.world.sim.engine import EpisodeRunner
 from agos.world.sim.episode_vehicles import LookMismatch, add_episode_vehicles, check_look
 from agos.world.sim.scene import Scene, pb
 from agos.world.towns.asset import open_town
@@ -243,10 +243,10 @@ def test_flat_look_gives_todays_episodes(town, flat):
 def test_a_flat_world_refuses_a_rich_episode_before_adding_anything(town, flat):
     ep = sample_episode(town, flat, "easy", 0, seed=11, stream=0)
     rich_ep = msgspec.structs.replace(ep, target=msgspec.structs.replace(ep.target, model="sedan", rack=True))
-    runner = EpisodeRunner(flat, town, rich_ep, run_id="r", worker_id="w")
     bodies = pb.getNumBodies(physicsClientId=flat.client)
-    with pytest.raises(LookMismatch, match="its target needs look"):
-        runner._setup()
+    with Env(rich_ep, EpisodeConfig(look="flat"), run_id="r", worker_id="w", scene=flat, town=town) as env, \
+            pytest.raises(LookMismatch, match="its target needs look"):
+        env.reset()
     assert pb.getNumBodies(physicsClientId=flat.client) == bodies
 
 
