@@ -23,7 +23,7 @@ from pathlib import Path
 import msgspec
 import pytest
 
-from agos.agents.inprocess import InProcessAgents
+from agos import Env
 from agos.agents.names import tools_for
 from agos.agents.registry import make_policy
 from agos.agents.vlm.cache import cache_stats
@@ -32,7 +32,6 @@ from agos.deploy.run.launcher import free_port, wait_listening
 from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.runtime.settings import VlmOptions
 from agos.world.episodes.sampling import read_episodes, write_episodes
-from agos.world.sim.engine import EpisodeRunner
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import open_town
 
@@ -62,8 +61,8 @@ def reference(episode_file) -> dict[str, dict]:
         for policy in POLICIES:
             tools = tools_for({"uav": policy, "ugv": policy})
             config = EpisodeConfig(tools=ToolConfig(candidates=tools["candidates"], e2a=tools["e2a"], rgpp=tools["rgpp"]))
-            agents = InProcessAgents({r: make_policy(policy, r, vlm=options) for r in ("uav", "ugv")})
-            record = EpisodeRunner(scene, town, spec, run_id="ref", worker_id="w", config=config).run(agents)
+            with Env(spec, config, illegal="wait", run_id="ref", worker_id="w", scene=scene, town=town) as env:
+                record = env.play({r: make_policy(policy, r, vlm=options) for r in ("uav", "ugv")})
             out[policy] = msgspec.to_builtins(record)
     scene.close()
     return out
