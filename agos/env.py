@@ -21,6 +21,9 @@ Contract (docs/LIBRARY.md):
   made, and, once the episode has ended, its :class:`~agos.runtime.schemas.EpisodeRecord`. Rounds
   come in simulated time: a role is asked again when its last action has finished, so a round may
   ask one role or both.
+* ``play(agents)`` is ``reset`` then ``step`` until the end, the actions from a :class:`Policy` per
+  role (called as in-process runners always called them) or from one ``DecisionSource`` answering
+  every role asked; ``agos sweep``, ``agos check agent``, tests and benchmarks play so.
 * Calls out of order raise :class:`EnvStateError` (a ``RuntimeError``) saying which call comes
   next: ``step`` before ``reset``, ``step`` after the end, anything after ``close``.
 * With ``illegal="raise"`` (the default) an action that cannot answer its observation (a name not
