@@ -23,6 +23,7 @@ import re
 import shutil
 import socket
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -266,3 +267,40 @@ class SlurmCluster:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def main(argv: list[str]) -> int:
+    """``python tests/support/slurm.py DIR [NODES]``: a cluster under DIR until Ctrl-C or SIGTERM (to try
+    deploy/slurm/ by hand: docs/DEPLOY.md, "Slurm")."""
+    import signal
+
+    if not argv:
+        print("usage: python tests/support/slurm.py DIR [NODES]", file=sys.stderr)
+        return 2
+    work = Path(argv[0]).resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    stop = False
+
+    def on_signal(*_: object) -> None:
+        nonlocal stop
+        stop = True
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    cluster = SlurmCluster(work, nodes=int(argv[1]) if len(argv) > 1 else 3)
+    try:
+        cluster.start()
+        print(f"nodes {', '.join(cluster.nodes)} idle; in another shell: export SLURM_CONF={cluster.conf}", flush=True)
+        while not stop:
+            time.sleep(0.5)
+    except SlurmError as exc:
+        print(f"slurm: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        for problem in cluster.close():
+            print(f"cleanup: {problem}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
