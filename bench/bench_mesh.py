@@ -13,7 +13,10 @@ one key, over loopback TCP. Paths:
 Per transfer: the publisher waits for the subscriber to match, then puts ``--messages`` samples as
 fast as BLOCK lets it; MB/s is the payload bytes over the time from its first put to the
 subscriber's last sample (one clock: CLOCK_MONOTONIC is machine-wide). Also the samples lost (BLOCK:
-none expected) and the routers' CPU seconds per GB carried (``/proc``, each router's own). Rounds
+none expected), the routers' CPU seconds per GB carried (``/proc``, each router's own) and the CPU
+per GB of every process of the path (publisher and subscriber from their first sample to their end,
+routers): on a machine with fewer cores than the path has processes, MB/s measures the cores
+shared, and the CPU per GB what a path costs wherever it runs. Rounds
 interleave the paths, because a shared machine's load drifts; the table shows each path's median
 over the rounds and its range, and the median of the per-round ratios to raw zenoh.
 
@@ -83,10 +86,12 @@ def _bus(mode: str, endpoint: str, *, listening: bool) -> ZenohBus:
 
 def _subscriber(mode: str, endpoint: str, messages: int, timeout_s: float) -> int:
     """Count the samples on :data:`KEY`; print READY once subscribed, then one JSON line."""
-    received, nbytes, last = [0], [0], [0.0]
+    received, nbytes, last, cpu_first = [0], [0], [0.0], [0.0]
     done = threading.Event()
 
     def on_payload(payload: bytes) -> None:  # zenoh's thread: counting only
+        if not received[0]:
+            cpu_first[0] = time.process_time()
         received[0] += 1
         nbytes[0] += len(payload)
         last[0] = time.monotonic()
@@ -97,23 +102,26 @@ def _subscriber(mode: str, endpoint: str, messages: int, timeout_s: float) -> in
         bus.subscribe_payloads(KEY, on_payload)
         print("READY", flush=True)
         done.wait(timeout_s)
-        print(json.dumps({"received": received[0], "bytes": nbytes[0], "last": last[0]}), flush=True)
+        cpu_s = time.process_time() - cpu_first[0] if received[0] else 0.0
+        print(json.dumps({"received": received[0], "bytes": nbytes[0], "last": last[0], "cpu_s": cpu_s}), flush=True)
     return 0
 
 
 def _publisher(mode: str, endpoint: str, messages: int, size: int) -> int:
     """Put ``messages`` samples of ``size`` bytes once the subscriber matches; print one JSON line,
-    then keep the session open until stdin closes (closing it at once could drop what is queued)."""
+    keep the session open until stdin closes (closing it at once could drop what is queued), then
+    print the CPU seconds spent since the first put."""
     payload = os.urandom(size)
     with _bus(mode, endpoint, listening=False) as bus:
         if not bus.wait_for_subscriber(KEY, START_TIMEOUT_S):
             print(json.dumps({"error": "no subscriber matched"}), flush=True)
             return 1
-        start = time.monotonic()
+        start, cpu_start = time.monotonic(), time.process_time()
         for _ in range(messages):
             bus.publish(KEY, payload)
         print(json.dumps({"start": start, "end": time.monotonic()}), flush=True)
         sys.stdin.read()
+        print(json.dumps({"cpu_s": time.process_time() - cpu_start}), flush=True)
     return 0
 
 
@@ -136,6 +144,8 @@ class Transfer:
     mb_s: float
     lost: int
     router_cpu_s_per_gb: float | None
+    cpu_s_per_gb: float
+    """Publisher, subscriber and routers together."""
 
 
 def _start_routers(tmp: Path) -> tuple[list[Route], list[subprocess.Popen]]:
@@ -184,10 +194,12 @@ def transfer(path: Route, messages: int, size: int, tmp: Path) -> Transfer:
             raise RuntimeError(f"{path.name}: {sent['error']}")
         got = json.loads(_line(sub.stdout, "subscriber"))  # type: ignore[arg-type]
         cpu_after = sum(cpu_s(r.pid) for r in path.routers)
+        pub.stdin.close()  # type: ignore[union-attr]
+        pub_cpu_s = json.loads(_line(pub.stdout, "publisher"))["cpu_s"]  # type: ignore[arg-type]
     finally:
         for proc in (pub, sub):
             if proc is not None:
-                if proc.stdin:
+                if proc.stdin and not proc.stdin.closed:
                     proc.stdin.close()
                 try:
                     proc.wait(timeout=15)
@@ -195,9 +207,10 @@ def transfer(path: Route, messages: int, size: int, tmp: Path) -> Transfer:
                     proc.kill()
                     proc.wait()
     seconds = max(got["last"] - sent["start"], 1e-9)
-    gb = got["bytes"] / 1e9
+    gb = max(got["bytes"] / 1e9, 1e-9)
+    routers_cpu_s = cpu_after - cpu_before
     return Transfer(path.name, got["bytes"] / 1e6 / seconds, messages - got["received"],
-                    (cpu_after - cpu_before) / gb if path.routers and gb else None)
+                    routers_cpu_s / gb if path.routers else None, (routers_cpu_s + pub_cpu_s + got["cpu_s"]) / gb)
 
 
 @dataclass
@@ -208,6 +221,7 @@ class Row:
     ratio_to_raw: float
     lost: int
     router_cpu_s_per_gb: float | None
+    cpu_s_per_gb: float
 
 
 def measure(messages: int = 1000, rounds: int = 3, size: int = OBSERVATION_BYTES) -> list[Row]:
@@ -231,20 +245,20 @@ def measure(messages: int = 1000, rounds: int = 3, size: int = OBSERVATION_BYTES
         cpu = [t.router_cpu_s_per_gb for t in mine if t.router_cpu_s_per_gb is not None]
         rows.append(Row(name, statistics.median(t.mb_s for t in mine), (min(t.mb_s for t in mine), max(t.mb_s for t in mine)),
                         statistics.median(run[k].mb_s / run[0].mb_s for run in runs), sum(t.lost for t in mine),
-                        statistics.median(cpu) if cpu else None))
+                        statistics.median(cpu) if cpu else None, statistics.median(t.cpu_s_per_gb for t in mine)))
     return rows
 
 
-def print_table(rows: list[Row], messages: int, rounds: int, size: int) -> None:
+def print_table(rows: list[Row], messages: int, rounds: int, size: int, load: tuple[float, float]) -> None:
     print(f"observation path: {messages} samples of {size / 1000:.0f} KB a transfer, {rounds} round(s), "
-          f"reliable + BLOCK, loopback TCP, {os.cpu_count()} CPUs, load {os.getloadavg()[0]:.1f}")
+          f"reliable + BLOCK, loopback TCP, {os.cpu_count()} CPUs, load {load[0]:.1f} before, {load[1]:.1f} after")
     print(f"| {'path':<26} | {'MB/s (median)':>13} | {'range':>13} | {'vs raw':>6} | {'lost':>4} | "
-          f"{'router CPU s/GB':>15} |")
-    print(f"|{'-' * 28}|{'-' * 14}:|{'-' * 14}:|{'-' * 7}:|{'-' * 5}:|{'-' * 16}:|")
+          f"{'router CPU s/GB':>15} | {'all CPU s/GB':>12} |")
+    print(f"|{'-' * 28}|{'-' * 14}:|{'-' * 14}:|{'-' * 7}:|{'-' * 5}:|{'-' * 16}:|{'-' * 13}:|")
     for r in rows:
         cpu = f"{r.router_cpu_s_per_gb:.1f}" if r.router_cpu_s_per_gb is not None else "-"
         print(f"| {r.path:<26} | {r.mb_s:>13.0f} | {r.mb_s_range[0]:>5.0f} - {r.mb_s_range[1]:<5.0f} | "
-              f"{r.ratio_to_raw:>5.2f}x | {r.lost:>4} | {cpu:>15} |")
+              f"{r.ratio_to_raw:>5.2f}x | {r.lost:>4} | {cpu:>15} | {r.cpu_s_per_gb:>12.1f} |")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -265,8 +279,9 @@ def main(argv: list[str] | None = None) -> int:
         print("bench_mesh: --messages and --rounds must be >= 1 and --payload-kb > 0", file=sys.stderr)
         return 2
     size = int(args.payload_kb * 1000)
+    load_before = os.getloadavg()[0]
     rows = measure(args.messages, args.rounds, size)
-    print_table(rows, args.messages, args.rounds, size)
+    print_table(rows, args.messages, args.rounds, size, (load_before, os.getloadavg()[0]))
     figures = Figures(args.json)
     for r in rows:
         figures.add(f"observation path MB/s: {r.path}", r.mb_s,
