@@ -181,6 +181,8 @@ class Bus(Protocol):
 
 VIZ_QUEUE_BATCHES = 16
 """zenoh TX queue of the visualisation priority (DATA_LOW), in 64 KiB batches: see :func:`zenoh_config`."""
+ALIVE_TOKENS_ROOM = 1 << 20
+"""Replies :meth:`ZenohBus.alive_tokens` can take (the channel grows as they come, up to this)."""
 ROUTER_MAX_SESSIONS = 10_000
 """Client sessions one router accepts (zenoh's default, 1,000, is less than 1,000 world workers and the
 services of their run; each costs the router about 0.1 MB: bench/bench_control_plane.py)."""
@@ -485,8 +487,13 @@ class ZenohBus:
         return sub
 
     def alive_tokens(self, key_expr: str, timeout_s: float = 1.0) -> list[str]:
-        """The liveliness tokens matching ``key_expr`` alive now (a liveliness query to the router)."""
-        replies = self.session.liveliness().get(key_expr, timeout=timeout_s)
+        """The liveliness tokens matching ``key_expr`` alive now (a liveliness query to the router).
+
+        The replies go to a channel with room for ``ALIVE_TOKENS_ROOM``: a session that watches
+        these tokens itself (``watch_liveliness``) is answered inside ``get``, on this thread, and
+        zenoh's default channel (256 replies) then filled up with nobody reading it: ``agos eval``
+        with more than 256 world workers hung there for good, at its first presence check."""
+        replies = self.session.liveliness().get(key_expr, zenoh.handlers.FifoChannel(ALIVE_TOKENS_ROOM), timeout=timeout_s)
         return sorted({str(r.ok.key_expr) for r in replies if r.ok is not None})
 
     def close(self) -> None:

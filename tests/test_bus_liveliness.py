@@ -1,0 +1,49 @@
+"""Liveliness at the scale of a large run, on a real zenoh router in this process (no process started)."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+import zenoh
+
+from agos.deploy.run.launcher import free_port
+from agos.runtime import keys
+from agos.runtime.bus import Inbox, ZenohBus, zenoh_config
+
+pytestmark = pytest.mark.loopback
+
+
+def test_alive_tokens_answers_beyond_256_tokens_its_own_session_watches() -> None:
+    """``agos eval`` watches the world workers' tokens and asks for them at each presence check; with
+    more than 256 workers the query used to hang for good (zenoh answered it on the asking thread,
+    into a 256-reply channel nobody read), and the orchestrator's session with it."""
+    endpoint = f"tcp/127.0.0.1:{free_port(0)}"
+    router = zenoh.open(zenoh_config(mode="router", listen=[endpoint]))
+    workers = ZenohBus.connect(endpoint)
+    orchestrator = ZenohBus.connect(endpoint)
+    try:
+        n = 300
+        for i in range(n):
+            workers.declare_token(keys.live("big", "world", f"w{i}"))
+        seen = Inbox()
+        orchestrator.watch_liveliness(keys.live("big", "world", "*"), seen)
+        deadline = time.monotonic() + 10.0
+        heard: set[str] = set()
+        while len(heard) < n and time.monotonic() < deadline:
+            sample = seen.get(0.5)
+            if sample is not None:
+                heard.add(sample.key)
+        assert len(heard) == n
+        answer: list[list[str]] = []
+        asking = threading.Thread(target=lambda: answer.append(
+            orchestrator.alive_tokens(keys.live("big", "world", "*"), timeout_s=1.0)), daemon=True)
+        asking.start()
+        asking.join(10.0)
+        assert answer, "alive_tokens hung"
+        assert len(answer[0]) == n
+    finally:
+        orchestrator.close()
+        workers.close()
+        router.close()
