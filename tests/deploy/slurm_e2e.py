@@ -29,6 +29,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import sqlite3
 import subprocess
 import sys
@@ -185,7 +186,15 @@ def finish_local(proc: subprocess.Popen[bytes], what: str, log: Path) -> None:
         raise Failed(f"{what}: exit {code}; {log}:\n{tail(log)}")
 
 
+def stop_on_sigterm(*_: object) -> None:
+    """SIGTERM (an interrupted CI kills the test's process group) cleans up as Ctrl-C does: the cluster's
+    daemons run in sessions of their own and would outlive this process otherwise."""
+    raise KeyboardInterrupt
+
+
 def main() -> int:
+    signal.signal(signal.SIGTERM, stop_on_sigterm)
+    signal.signal(signal.SIGHUP, stop_on_sigterm)
     if not AGOS.exists():
         print(f"slurm-test: {AGOS} is missing; run `make .venv/.installed` first", file=sys.stderr)
         return 1
