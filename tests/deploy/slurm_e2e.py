@@ -18,7 +18,9 @@ munge, which .ci/run installs). The cluster (tests/support/slurm.py) starts once
               byte (sha256), as the one-host build; a world worker on every node joined
   cleanup     the daemons stopped by pid, the nodes' cgroups removed, no process of the test left
 
-A step that cannot be done fails the test with the reason (exit 1); nothing is skipped.
+A step that cannot be done fails the test with the reason (exit 1); nothing is skipped. The cluster
+tracks a job's processes with proctrack/cgroup where cgroup v1 is mounted, else proctrack/pgid;
+SLURM_TEST_PROCTRACK=pgid (or cgroup) picks one.
 """
 
 from __future__ import annotations
@@ -199,7 +201,7 @@ def main() -> int:
         print(f"slurm-test: {AGOS} is missing; run `make .venv/.installed` first", file=sys.stderr)
         return 1
     work = Path(tempfile.mkdtemp(prefix="agos-slurm-test-"))
-    cluster = SlurmCluster(work)
+    cluster = SlurmCluster(work, proctrack=os.environ.get("SLURM_TEST_PROCTRACK"))
     locals_: list[subprocess.Popen[bytes]] = []
     jobs: set[int] = set()
     failure: str | None = None
@@ -207,7 +209,8 @@ def main() -> int:
     try:
         with phase("cluster: munged, slurmctld, 3 slurmd"):
             cluster.start()
-            print(f"nodes {', '.join(cluster.nodes)} idle; SLURM_CONF={cluster.conf}", flush=True)
+            print(f"nodes {', '.join(cluster.nodes)} idle (proctrack/{cluster.proctrack}); SLURM_CONF={cluster.conf}",
+                  flush=True)
         with phase("split"):
             split, dataset_split, episodes = sample_split(work)
             print(f"eval split {episodes}; dataset split {episodes[:1]}", flush=True)

@@ -4,8 +4,10 @@ Debian's slurm-wlm and munge (packages slurmctld, slurmd, slurm-client, munge; .
 them). One slurmctld, one ``slurmd -N <node>`` per node, all on this host: every node's address is
 127.0.0.1 with a port of its own, and each declares more CPUs than the machine has
 (``SlurmdParameters=config_overrides``) so that several one-task-per-node jobs run side by side.
-``proctrack/cgroup`` (cgroup v1 here): ``scancel`` ends every process of a job's steps, double-forked
-and SIGTERM-ignoring ones included.
+``proctrack/cgroup`` where cgroup v1 is mounted with its freezer (as on this machine): ``scancel``
+ends every process of a job's steps, double-forked and SIGTERM-ignoring ones included. Elsewhere
+(cgroup v2 without systemd, which Slurm 22.05's cgroup/v2 needs) ``proctrack/pgid``: a job's
+processes that leave their process group then escape ``scancel`` (agos's services leave none).
 
 Everything is private to the cluster: its own munge key and daemon socket (``AuthInfo=socket=``),
 free ports, state, spool and logs under the work folder, node names with a prefix of this process's
@@ -61,8 +63,11 @@ class SlurmCluster:
     """``nodes`` slurmd nodes (``<prefix>n1`` ...) of ``cpus_per_node`` CPUs each, in partition
     ``debug``, started under ``work``. A context manager; :meth:`start` waits until every node is idle."""
 
-    def __init__(self, work: Path, *, nodes: int = 3, cpus_per_node: int = 4, kill_wait_s: int = 5) -> None:
+    def __init__(self, work: Path, *, nodes: int = 3, cpus_per_node: int = 4, kill_wait_s: int = 5,
+                 proctrack: str | None = None) -> None:
+        """``proctrack``: ``cgroup`` or ``pgid`` (default: cgroup where cgroup v1's freezer is mounted)."""
         self.work = work
+        self.proctrack = proctrack or ("cgroup" if (FREEZER / "cgroup.procs").exists() else "pgid")
         self.prefix = f"a{os.getpid()}"
         self.nodes = [f"{self.prefix}n{k}" for k in range(1, nodes + 1)]
         self.cpus_per_node, self.kill_wait_s = cpus_per_node, kill_wait_s
@@ -126,7 +131,7 @@ class SlurmCluster:
             f"StateSaveLocation={w / 'state'}", f"SlurmdSpoolDir={w / 'spool-%n'}",
             f"SlurmctldPidFile={w / 'slurmctld.pid'}", f"SlurmdPidFile={w / 'slurmd-%n.pid'}",
             f"SlurmctldLogFile={self.logs / 'slurmctld.log'}", f"SlurmdLogFile={self.logs / 'slurmd-%n.log'}",
-            "ProctrackType=proctrack/cgroup", "TaskPlugin=task/none",
+            f"ProctrackType=proctrack/{self.proctrack}", "TaskPlugin=task/none",
             "SelectType=select/cons_tres", "SelectTypeParameters=CR_Core", "SlurmdParameters=config_overrides",
             "ReturnToService=2", "MpiDefault=none", "AccountingStorageType=accounting_storage/none",
             "JobAcctGatherType=jobacct_gather/none", f"KillWait={self.kill_wait_s}", "MinJobAge=600",
@@ -135,7 +140,8 @@ class SlurmCluster:
                   f"CPUs={self.cpus_per_node} RealMemory=2000 State=UNKNOWN" for node in self.nodes]
         lines.append("PartitionName=debug Nodes=ALL Default=YES MaxTime=INFINITE State=UP")
         self.conf.write_text("\n".join(lines) + "\n")
-        (self.conf.parent / "cgroup.conf").write_text("CgroupPlugin=cgroup/v1\nCgroupAutomount=yes\n")
+        if self.proctrack == "cgroup":
+            (self.conf.parent / "cgroup.conf").write_text("CgroupPlugin=cgroup/v1\nCgroupAutomount=yes\n")
 
     def _spawn(self, name: str, argv: list[str]) -> None:
         with (self.logs / f"{name}.out").open("ab") as out:
