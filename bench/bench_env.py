@@ -8,13 +8,15 @@
 * ``process``: the same episodes through ``agos eval`` (processes on a bus): the world's decisions per
   second of episode wall time (from the records) and of the whole command, against ``agos.Env``.
   Reported, no goal (the bus, the agent processes and the run's start-up are what it measures).
-* ``vector``: steps per second of ``agos.vector.make_vector_env(2)`` against ``make_vector_env(1)``
-  (environments in subprocesses, the UGV learning beside the heuristic UAV, random masked actions,
-  images on), each counted as environment steps over the same wall time. Goal: >= 1.7x on 2 cores.
+* ``vector``: steps per second of 2 environments in subprocesses against 1 (the UGV learning beside
+  the Explorer flying the UAV, random masked actions, images on), each counted as environment steps
+  over the same wall time, two ways: ``agos.vector.AsyncEnvPool`` (each environment sent its next
+  action as soon as it answers; goal: >= 1.7x on 2 cores) and ``make_vector_env`` (Gymnasium's
+  ``AsyncVectorEnv``, lockstep: each step waits for the slower environment; reported).
 
     .venv/bin/python bench/bench_env.py [--quick] [--only env --only vector] [--json]
 
-``--quick`` (``make bench``): 2 episodes, 2 rounds, 20 s per vector size, no ``process``. ``--json``:
+``--quick`` (``make bench``): 2 episodes, 2 rounds, 20 s per vector size and way, no ``process``. ``--json``:
 also one machine-readable line per figure (bench/figures.py).
 """
 
@@ -30,6 +32,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from figures import Figures
@@ -73,12 +76,12 @@ def env_vs_engine(town: Town, scene: Scene, specs: list[EpisodeSpec], config: Ep
                 seconds += time.perf_counter() - started
                 decisions += record.decisions_uav + record.decisions_ugv
             rates[way].append(decisions / seconds)
-    engine, env = statistics.median(rates["engine"]), statistics.median(rates["env"])
-    ratio = env / engine
-    print(f"env ({POLICY}): agos.Env {env:.1f} decisions/s, EpisodeRunner.run {engine:.1f} decisions/s: {ratio:.3f}x "
+    engine, env_rate = statistics.median(rates["engine"]), statistics.median(rates["env"])
+    ratio = env_rate / engine
+    print(f"env ({POLICY}): agos.Env {env_rate:.1f} decisions/s, EpisodeRunner.run {engine:.1f} decisions/s: {ratio:.3f}x "
           f"(goal >= 0.95x; rounds {[round(r, 1) for r in rates['env']]} vs {[round(r, 1) for r in rates['engine']]})")
     figures.add("agos.Env vs the engine driven directly (decisions/s)", ratio, f"{ratio:.3f}x", ">= 0.95x", ratio >= 0.95)
-    return env
+    return env_rate
 
 
 def process_path(specs: list[EpisodeSpec], env_rate: float, figures: Figures) -> None:
@@ -105,40 +108,86 @@ def process_path(specs: list[EpisodeSpec], env_rate: float, figures: Figures) ->
 
 
 def vector(specs: list[EpisodeSpec], config: EpisodeConfig, seconds: float, figures: Figures) -> None:
-    """Steps per second of 1 and 2 subprocess environments; beside it, the CPU each subprocess spent
-    per step and the share of a core it got (a loaded machine gives less than one each, and then no
-    more steps per second: the CPU per step says whether the work itself stays the same)."""
+    """Steps per second of 1 and 2 subprocess environments, in lockstep (``make_vector_env``) and as a
+    pool (``AsyncEnvPool``); beside each, the CPU each subprocess spent per step, this process's CPU
+    per step (actions, shared memory or the pipe's observations) and the share of a core each
+    subprocess got (a loaded machine gives less than one each, and then no more steps per second:
+    the CPU per step says whether the work itself stays the same)."""
+    kwargs: dict[str, Any] = {"role": "ugv", "partner": POLICY, "episodes": specs, "config": config, "text": False}
+    rates: dict[tuple[str, int], float] = {}
+    cpu_per_step: dict[tuple[str, int], float] = {}
+    for mode in ("pool", "lockstep"):
+        for n in (1, 2):
+            play = _lockstep if mode == "lockstep" else _pool
+            steps, wall, used, parent_s = play(n, seconds, kwargs)
+            rates[mode, n], cpu_per_step[mode, n] = steps / wall, sum(used) / steps
+            print(f"vector {mode}, {n} env{'s' if n > 1 else ''}: {rates[mode, n]:.2f} steps/s; each step "
+                  f"{cpu_per_step[mode, n]:.3f} s of CPU in its subprocess, {1000 * parent_s / steps:.2f} ms in this "
+                  f"one; the subprocesses got {', '.join(f'{u / wall:.2f}' for u in used)} of a core "
+                  f"(load average {os.getloadavg()[0]:.1f})")
+    lockstep, pool = rates["lockstep", 2] / rates["lockstep", 1], rates["pool", 2] / rates["pool", 1]
+    cpu = {mode: cpu_per_step[mode, 2] / cpu_per_step[mode, 1] for mode in ("lockstep", "pool")}
+    print(f"vector: 2 subprocess envs vs 1: pool {pool:.2f}x steps/s (goal >= 1.7x on 2 cores; {os.cpu_count()} "
+          f"cores), lockstep {lockstep:.2f}x; CPU per step 2 vs 1: pool {cpu['pool']:.2f}x, lockstep "
+          f"{cpu['lockstep']:.2f}x")
+    figures.add("2 subprocess envs vs 1, AsyncEnvPool (steps/s, images on)", pool, f"{pool:.2f}x", ">= 1.7x",
+                pool >= 1.7)
+    figures.add("2 subprocess envs vs 1, lockstep make_vector_env (steps/s, images on)", lockstep, f"{lockstep:.2f}x")
+    figures.add("2 subprocess envs vs 1, AsyncEnvPool (CPU per step)", cpu["pool"], f"{cpu['pool']:.2f}x")
+    figures.add("2 subprocess envs vs 1, lockstep (CPU per step)", cpu["lockstep"], f"{cpu['lockstep']:.2f}x")
+
+
+def _lockstep(n: int, seconds: float, kwargs: dict[str, Any]) -> tuple[int, float, list[float], float]:
+    """``make_vector_env(n)`` stepped for ``seconds``: environment steps, wall seconds, each
+    subprocess's CPU seconds and this process's."""
     from agos.vector import make_vector_env
 
-    rates, cpu_per_step, share = {}, {}, {}
-    for n in (1, 2):
-        envs = make_vector_env(n, role="ugv", partner=POLICY, episodes=specs, config=config, text=False)
+    envs = make_vector_env(n, **kwargs)
+    try:
         obs, _ = envs.reset(seed=0)
         space = envs.single_action_space
         space.seed(0)
         for _ in range(3):  # warm-up: first renders, first resets
             obs, *_ = envs.step(np.array([space.sample(mask=obs["action_mask"][i]) for i in range(n)]))
-        pids = [p.pid for p in envs.processes]
+        pids = [p.pid for p in envs.processes if p.pid is not None]
         cpu_before, parent_before = [_cpu_s(pid) for pid in pids], time.process_time()
         steps, started = 0, time.perf_counter()
         while time.perf_counter() - started < seconds:
-            actions = np.array([space.sample(mask=obs["action_mask"][i]) for i in range(n)])
-            obs, *_ = envs.step(actions)
+            obs, *_ = envs.step(np.array([space.sample(mask=obs["action_mask"][i]) for i in range(n)]))
             steps += n
         wall = time.perf_counter() - started
         used = [_cpu_s(pid) - before for pid, before in zip(pids, cpu_before, strict=True)]
-        rates[n], cpu_per_step[n], share[n] = steps / wall, sum(used) / steps, [u / wall for u in used]
-        parent_ms = 1000 * (time.process_time() - parent_before) / steps
-        print(f"vector, {n} env{'s' if n > 1 else ''}: {rates[n]:.2f} steps/s; each step {cpu_per_step[n]:.3f} s of CPU "
-              f"in its subprocess, {parent_ms:.2f} ms in this one; the subprocesses got "
-              f"{', '.join(f'{x:.2f}' for x in share[n])} of a core (load average {os.getloadavg()[0]:.1f})")
+        return steps, wall, used, time.process_time() - parent_before
+    finally:
         envs.close()
-    ratio = rates[2] / rates[1]
-    print(f"vector: 2 subprocess envs vs 1: {ratio:.2f}x steps/s (goal >= 1.7x on 2 cores; {os.cpu_count()} cores); "
-          f"CPU per step 2 vs 1: {cpu_per_step[2] / cpu_per_step[1]:.2f}x")
-    figures.add("2 subprocess envs vs 1 (steps/s, images on)", ratio, f"{ratio:.2f}x", ">= 1.7x", ratio >= 1.7)
-    figures.add("2 subprocess envs vs 1 (CPU per step)", cpu_per_step[2] / cpu_per_step[1],
-                f"{cpu_per_step[2] / cpu_per_step[1]:.2f}x")
+
+
+def _pool(n: int, seconds: float, kwargs: dict[str, Any]) -> tuple[int, float, list[float], float]:
+    """``AsyncEnvPool(n)`` for ``seconds``, each environment sent its next action as soon as it
+    answers: as :func:`_lockstep` returns, steps counting the answers received in the time."""
+    from agos.vector import AsyncEnvPool, PoolResult
+
+    with AsyncEnvPool(n, **kwargs) as pool:
+        pool.reset(seed=0)
+        ready = pool.recv(min_envs=n)
+        space = pool.single_action_space
+        space.seed(0)
+
+        def step(ready: PoolResult) -> PoolResult:
+            pool.send([space.sample(mask=m) for m in ready.observations["action_mask"]], ready.env_ids)
+            return pool.recv()
+
+        for _ in range(3 * n):  # warm-up: first renders, first resets
+            ready = step(ready)
+        pids = [p.pid for p in pool.processes if p.pid is not None]
+        cpu_before, parent_before = [_cpu_s(pid) for pid in pids], time.process_time()
+        steps, started = 0, time.perf_counter()
+        while time.perf_counter() - started < seconds:
+            ready = step(ready)
+            steps += len(ready.env_ids)
+        wall = time.perf_counter() - started
+        used = [_cpu_s(pid) - before for pid, before in zip(pids, cpu_before, strict=True)]
+        return steps, wall, used, time.process_time() - parent_before
 
 
 def _cpu_s(pid: int) -> float:
@@ -153,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", action="append", choices=["env", "process", "vector"])
     ap.add_argument("--episodes", type=int, help="episodes (default 6; quick 2)")
     ap.add_argument("--rounds", type=int, help="rounds of env vs engine (default 4; quick 2)")
-    ap.add_argument("--vector-seconds", type=float, help="seconds per vector size (default 60; quick 20)")
+    ap.add_argument("--vector-seconds", type=float, help="seconds per vector size and way (default 60; quick 20)")
     ap.add_argument("--json", action="store_true", help="also print each figure as a BENCH-FIGURE line")
     args = ap.parse_args(argv)
     os.chdir(Path(__file__).resolve().parents[1])  # the repository root: where the policy's module is found
