@@ -12,7 +12,7 @@ UV     := $(VENV)/uv-$(UV_VERSION)/bin/uv
 UV_ENV := UV_PROJECT_ENVIRONMENT=$(VENV) UV_PYTHON_DOWNLOADS=never
 LOCK_EXPORT := $(UV) export --frozen --no-emit-project --quiet
 
-.PHONY: demo check test static all-tests lint lock lock-check typecheck contracts unit loopback e2e deploy-test slurm-test clean
+.PHONY: demo check test static all-tests lint lock lock-check typecheck contracts unit unit-quick loopback e2e deploy-test slurm-test clean
 
 $(UV):
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -40,9 +40,10 @@ demo: $(STAMP)
 # The test tiers (README, Development). A test's marks say what it may do, and tests/process_guard.py
 # fails one that does more: unmarked (unit) starts no process and opens no socket; loopback opens
 # sockets in its own process; e2e starts processes.
-# check: ruff, the layer contracts, mypy and the unit tests, the four at once.
+# check: ruff, the layer contracts, mypy and the unit tests but the slow ones (marked slow: they play
+# or sample rendered episodes by the dozen), the four at once; make test runs the slow ones too.
 check: $(STAMP)
-	$(MAKE) --no-print-directory -j4 --output-sync=target lint contracts typecheck unit
+	$(MAKE) --no-print-directory -j4 --output-sync=target lint contracts typecheck unit-quick
 
 # test: what check runs, and every loopback and e2e test too, in one pytest session on two workers
 # (each file on one worker, so a module's running system is started once; every test takes free
@@ -80,6 +81,9 @@ typecheck-links:
 # The unit tests on every core; a module's tests stay on one worker, so its fixtures are built once.
 unit: $(STAMP)
 	$(BIN)/python -m pytest -q -n auto --dist loadscope -m "not e2e and not loopback"
+
+unit-quick: $(STAMP)
+	$(BIN)/python -m pytest -q -n auto --dist loadscope -m "not e2e and not loopback and not slow"
 
 loopback: $(STAMP)
 	$(BIN)/python -m pytest -q -m "loopback and not e2e"

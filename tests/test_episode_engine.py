@@ -71,6 +71,7 @@ def test_heuristic_confirms_an_easy_target(world) -> None:
     assert record.shortest_path_length_m is not None and record.final_distance_m <= 50.0
 
 
+@pytest.mark.slow
 def test_same_episode_and_policy_give_identical_records(world) -> None:
     first = run(world, "mid000", heuristic())
     second = run(world, "mid000", heuristic())
@@ -171,6 +172,7 @@ def test_every_message_is_written_with_its_declared_types(world) -> None:
         assert encode(decode(payload)) == payload, type(message).__name__
 
 
+@pytest.mark.slow
 def test_the_map_shows_the_teammate_where_the_link_reported_it(world) -> None:
     """M carries no more than the link: each role's map has its own marker where it is and its
     teammate's at the pose in that role's coordination view (none before the first report)."""

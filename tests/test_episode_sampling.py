@@ -39,6 +39,8 @@ from agos.world.towns.placement import ParkingSlot
 from agos.world.towns.procedural import TEST_TOWNS, TOWNS
 from agos.world.towns.streets import strip
 
+pytestmark = pytest.mark.slow  # samples and renders episodes of every town: make test, not make check
+
 SEED = 1
 SOLVE_TOWNS = ("grid-s7", "tee-s17", "parks-s23")
 CASES = [(t, d) for t in SOLVE_TOWNS for d in DIFFICULTIES]

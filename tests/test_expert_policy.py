@@ -57,6 +57,7 @@ def _play(town, scene, spec) -> tuple[EpisodeRecord, dict[str, list[ExpertStep]]
     return record, plans[0].steps, sink.steps, sink.texts
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("town_name", ["tee-s17", "Town10HD"])
 def test_the_expert_succeeds_and_its_decisions_are_the_plan(town_name: str) -> None:
     from agos.world.episodes.sampling import sample_episode

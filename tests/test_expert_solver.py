@@ -249,6 +249,7 @@ def planned() -> list[_Planned]:
     return out
 
 
+@pytest.mark.slow
 def test_truncation_at_t_f_and_the_handoff(planned: list[_Planned]) -> None:
     assert {p.plan.finder for p in planned} == {"uav", "ugv"}
     for case in planned:
@@ -275,6 +276,7 @@ def test_truncation_at_t_f_and_the_handoff(planned: list[_Planned]) -> None:
         assert path and path[-1].t_s == pytest.approx(plan.t_arr_s)
 
 
+@pytest.mark.slow
 def test_messages_and_determinism(planned: list[_Planned]) -> None:
     for case in planned:
         plan = case.plan

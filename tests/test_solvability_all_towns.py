@@ -15,6 +15,8 @@ from agos.world.sim.scene import Scene
 from agos.world.towns.asset import Town, freeze, open_town
 from agos.world.towns.procedural import TOWNS
 
+pytestmark = pytest.mark.slow  # samples and renders episodes of every town: make test, not make check
+
 CARLA = Path(__file__).resolve().parents[2] / "shared" / "maps" / "carla"
 CARLA_TOWNS = ["Town01", "Town02", "Town04", "Town06", "Town07", "Town10HD"]
 

@@ -134,6 +134,7 @@ def _run(world, policy: str, spec, sink=None):
         return env.play({r: make_policy(policy, r) for r in ("uav", "ugv")})
 
 
+@pytest.mark.slow
 def test_oracle_solves_every_episode_and_random_is_legal(world) -> None:
     for spec in world[2]:
         assert _run(world, "oracle", spec).success, spec.episode_id

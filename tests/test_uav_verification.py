@@ -103,6 +103,7 @@ def test_active_uav_may_only_move_or_wait_while_its_candidate_is_verified(world)
     assert after and {"ANNOTATE_CANDIDATE", "NO_RELIABLE_CANDIDATE", "WAIT"} <= set(after[0].legal_actions)
 
 
+@pytest.mark.slow
 def test_frozen_uav_is_asked_nothing_until_max_freeze_and_keeps_its_actions(world) -> None:
     config = EpisodeConfig(look="flat")
     assert config.uav_during_verification == "frozen"  # the default
