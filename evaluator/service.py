@@ -82,7 +82,8 @@ class Evaluator:
             log.info("%s %s/%s (%s, %s)", "stored" if newly else "duplicate", message.run_id, message.episode_id,
                      message.status, "success" if message.success else "failure")
             self.bus.publish(keys.result_ack(message.run_id, message.episode_id),
-                             ResultAck(run_id=message.run_id, episode_id=message.episode_id, newly_stored=newly))
+                             ResultAck(run_id=message.run_id, episode_id=message.episode_id, newly_stored=newly),
+                             once=True)  # one key an episode: no publisher kept (runtime/bus.py)
         elif isinstance(message, RunManifest) and message.status == "running":
             # Present for the run at once, but no file yet: a manifest alone (perhaps forged) must not
             # make a run directory look as if it held results.

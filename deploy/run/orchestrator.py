@@ -240,7 +240,7 @@ class Orchestrator:
             # key) and was refused above, so the evaluator acknowledges it once more, in order.
             unacked = {e: self.records[e] for e in self.unacknowledged()} | self.gave_up
             for episode_id, record in unacked.items():
-                self.bus.publish(keys.result(self.run_id, episode_id), record)
+                self.bus.publish(keys.result(self.run_id, episode_id), record, once=True)
         self._answer_queries()
         return newly
 
@@ -258,8 +258,9 @@ class Orchestrator:
         return (lease is not None and record.worker_id == lease.worker) or record == given_up
 
     def _announce(self, lease: Lease) -> None:
+        # Keys of one episode: published without a publisher kept for each (runtime/bus.py, ``once``).
         self.bus.publish(keys.lease(self.run_id, lease.spec.episode_id), LeaseNotice(
-            run_id=self.run_id, episode_id=lease.spec.episode_id, worker_id=lease.worker, attempt=lease.attempt))
+            run_id=self.run_id, episode_id=lease.spec.episode_id, worker_id=lease.worker, attempt=lease.attempt), once=True)
 
     def _release_worker(self, worker: str, why: str) -> None:
         """Take back ``worker``'s leases but those whose record is in (played: only storage is awaited)."""
@@ -276,7 +277,7 @@ class Orchestrator:
             record = self.gave_up[episode_id] = failure_record(
                 self.run_id, lease.spec, status=status, worker_id=lease.worker,
                 error=f"gave up after {lease.attempt} attempts: {why}", config=self.config)
-            self.bus.publish(keys.result(self.run_id, episode_id), record)
+            self.bus.publish(keys.result(self.run_id, episode_id), record, once=True)
             return
         log.warning("re-leasing %s (attempt %d): %s", episode_id, lease.attempt + 1, why)
         self.pending.appendleft((lease.spec, lease.attempt + 1))
@@ -297,7 +298,7 @@ class Orchestrator:
             record = self.gave_up[episode_id] = failure_record(
                 self.run_id, lease.spec, status="infra_error", worker_id=lease.worker,
                 error=f"the model endpoint gave no answer in {lost} attempts: {why}", config=self.config)
-            self.bus.publish(keys.result(self.run_id, episode_id), record)
+            self.bus.publish(keys.result(self.run_id, episode_id), record, once=True)
             self.notices.append(f"{episode_id}: stored as infra_error after {lost} attempts without an answer from the "
                                 f"model endpoint (not scored; --resume plays it again){self._waiting_text('; ')}")
             return

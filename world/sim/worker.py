@@ -409,8 +409,7 @@ class WorldWorker:
             self.bus.forget(keys.viz_prefix(self.run_id, spec.episode_id))
         # The viewers' copy of the record travels like control traffic (one small message an episode):
         # on the lossy stream a full-resolution recording lost it under load, and the file its outcome.
-        self.bus.publish(keys.viz_result(self.run_id, spec.episode_id), record)
-        self.bus.forget(keys.viz_result(self.run_id, spec.episode_id))
+        self.bus.publish(keys.viz_result(self.run_id, spec.episode_id), record, once=True)
         self.submit(record)
         log.info("episode %s: %s (%s) in %.1f s", spec.episode_id, record.termination,
                  "success" if record.success else "failure", time.monotonic() - started)
@@ -426,7 +425,7 @@ class WorldWorker:
         handle = self.bus.subscribe(keys.result_ack(self.run_id, record.episode_id), inbox)
         try:
             for attempt in range(1, SUBMIT_ATTEMPTS + 1):
-                self.bus.publish(keys.result(self.run_id, record.episode_id), record)
+                self.bus.publish(keys.result(self.run_id, record.episode_id), record, once=True)
                 sample = inbox.get(timeout_s=ACK_WAIT_S)
                 ack = None if sample is None else self._read(sample.payload, sample.key)
                 if isinstance(ack, ResultAck) and (ack.run_id, ack.episode_id) == (record.run_id, record.episode_id):
