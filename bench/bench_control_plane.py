@@ -1,0 +1,775 @@
+"""The control plane at scale: one orchestrator, one evaluator and one router against N world workers.
+
+Started here, as a deployment starts them by hand (docs/DEPLOY.md): ``agos router``, ``agos evaluator``
+and the orchestrator as ``agos eval --connect`` (the real processes, unchanged), and N *simulated*
+world workers. A simulated worker is :class:`~agos.world.sim.worker.WorldWorker` itself with one
+method replaced: ``serve`` (its liveliness token, presence file, manifest watch, job requests, the
+1 s back-off, give-backs, the end of the run) and ``submit`` (the record published until its ack) are
+the real code, and so are the per-episode declarations of ``BusDecisionSource`` (the episode's
+liveliness token, the action subscriptions, the agents' ``ready`` watch) and ``BusSink`` (step
+events on the reliable and the lossy stream). Only ``run_episode`` renders nothing and asks no agent:
+it announces the episode started, publishes one step event every ``--decision-s`` for ``--episode-s``
+and submits a valid ``finished`` record of ``--record-decisions`` decisions a role (step log, ledger,
+the run's configuration and provenance), which the evaluator checks and stores like any other.
+
+Each simulated worker has its own zenoh session, as a world worker process has: the router sees N
+clients, N liveliness tokens, N job queries at a time. The workers are threads, ``--hosts``
+processes of them (default one per 250 workers), because 1,000 Python processes of ~60 MB do not fit
+a 2-core machine; a session costs its host process 0.12-0.18 MB and the router 0.04-0.06 MB (measured
+here). What that costs in realism: the simulated workers share the machine's cores with the
+processes measured (their CPU is in the tables), they share a GIL per host (a late reply to a job
+query can be a busy host, so the lease latency is an upper bound), all traffic is loopback TCP, and
+nothing of the agents' path (observations, actions, coordination state) is sent: bench_runtime.py
+and bench_mesh.py measure that.
+
+Per N: lease latency (a job request's round trip when it was granted an episode, measured in the
+workers; the first lease of each worker, the run-start burst, apart), records stored per second
+(rows of the run's ``results.sqlite`` counted every 0.5 s, between 10 % and 90 % of the episodes
+stored), lost episodes (in the split, not stored when ``agos eval`` ended), the CPU (cores) and RSS
+of the orchestrator, the evaluator, the router and the worker hosts (``/proc``), the machine's load
+from processes outside the bench, and what saturates. Goals at N = 1,000: lease p99 <= 1 s, >= 200
+records/s stored with none lost, the orchestrator and the evaluator each <= 1 core.
+
+    .venv/bin/python bench/bench_control_plane.py                      # N = 10, 100, 1000
+    .venv/bin/python bench/bench_control_plane.py --workers 1000 --episodes-per-worker 8
+    .venv/bin/python bench/bench_control_plane.py --quick              # N = 5 (make bench, its test)
+
+Prints one line per N (``control plane N=1000: lease p50 12 ms p99 340 ms, 250 records/s, lost 0``),
+then the tables. ``--json``: also one machine-readable line per figure (bench/figures.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from figures import Figures
+from rich.console import Console
+from rich.table import Table
+
+AGOS = [sys.executable, "-m", "agos.deploy.cli"]
+TOWN = "grid-s7"
+WORKERS_PER_HOST = 250
+POLL_S = 0.5
+GOAL_LEASE_P99_S = 1.0
+GOAL_RECORDS_PER_S = 200.0
+GOAL_CORES = 1.0
+RUN_LIMIT_S = 600.0
+"""``agos eval`` still running this long after its start is interrupted (its unstored episodes are lost;
+``--limit-s``)."""
+TICK = os.sysconf("SC_CLK_TCK")
+
+
+# --------------------------------------------------------------------------------------------------
+# The simulated world workers (run inside a worker host process: ``--host FILE``)
+# --------------------------------------------------------------------------------------------------
+
+@dataclass
+class HostPlan:
+    """What one worker host runs (written by the bench as JSON, read by ``--host``)."""
+
+    endpoint: str
+    run_id: str
+    worker_ids: list[str]
+    episode_s: float
+    decision_s: float
+    record_decisions: int
+    out: str
+
+
+def host_main(plan_path: Path) -> int:
+    """Open one session per worker, run each worker's real ``serve`` loop on a thread until the run is
+    over (or SIGTERM), then write the host's figures to the plan's ``out`` as JSON."""
+    plan = HostPlan(**json.loads(plan_path.read_text()))
+    logging.basicConfig(level=logging.WARNING, format=f"%(asctime)s host[{os.getpid()}] %(levelname)s %(name)s: %(message)s")
+    counts = _WarningCounts()
+    logging.getLogger("agos").addHandler(counts)
+
+    from agos.runtime.process import StopFlag
+    from agos.runtime.settings import AgosConfig
+
+    stop = StopFlag()
+    signal.signal(signal.SIGTERM, stop.set)
+    signal.signal(signal.SIGINT, stop.set)
+    cfg = AgosConfig()
+    cfg = cfg.model_copy(update={"run": cfg.run.model_copy(update={"run_id": plan.run_id})})
+    sim = _sim_worker_class()
+    rss_before = _rss_mb()
+    workers, failed = [], 0
+    opened = time.monotonic()
+    for worker_id in plan.worker_ids:
+        try:
+            bus = TimedBus.connect(plan.endpoint, plan.run_id, connect_timeout_s=30.0)
+        except Exception as exc:  # counted and reported: a router refusing sessions is a finding
+            failed += 1
+            print(f"host {os.getpid()}: session for {worker_id} refused: {exc}", file=sys.stderr, flush=True)
+            continue
+        workers.append(sim(cfg, bus, stop, worker_id, plan))
+    threads = [threading.Thread(target=w.serve_counted, name=w.worker_id, daemon=True) for w in workers]
+    for t in threads:
+        t.start()
+    print(f"ready {len(workers)} {failed} {time.monotonic() - opened:.2f} {_rss_mb() - rss_before:.1f}", flush=True)
+    for t in threads:
+        while t.is_alive():
+            t.join(0.5)
+    leases = [lease for w in workers for lease in w.bus.leases]
+    refused = [lat for w in workers for lat in w.bus.refused]
+    usage = os.times()
+    Path(plan.out).write_text(json.dumps({
+        "workers": len(workers), "failed_sessions": failed, "leases": leases, "none_replies": refused,
+        "episodes": sum(w.played for w in workers), "acked": sum(w.acked for w in workers),
+        "unacked": sum(w.unacked for w in workers), "resubmits": counts.resubmits, "warnings": counts.other,
+        "crashed": sum(w.crashed for w in workers),
+        "cpu_s": usage.user + usage.system, "peak_rss_mb": _peak_rss_mb(),
+    }))
+    for w in workers:
+        w.close()
+    return 0
+
+
+class _WarningCounts(logging.Handler):
+    """Counts the workers' record resubmissions (``no ack ... resubmitting``) and other warnings."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.resubmits = self.other = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if "resubmitting" in record.getMessage():
+            self.resubmits += 1
+        else:
+            self.other += 1
+
+
+def _rss_mb() -> float:
+    got = proc_cpu_rss(os.getpid())
+    return got[1] if got else 0.0
+
+
+def _peak_rss_mb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _bus_class() -> type:
+    from agos.runtime.bus import ZenohBus
+    from agos.runtime.codec import DecodeError, decode
+    from agos.runtime.schemas import JobGrant
+
+    class _TimedBus(ZenohBus):
+        """A worker's own zenoh session that times its job requests: (wall time sent, round trip s,
+        first lease of this worker) for each granted one, the round trip of each refused one."""
+
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            self.leases: list[tuple[float, float, bool]] = []
+            self.refused: list[float] = []
+            self.jobs_key = ""
+            """The run's job queryable (runtime/keys.py): the requests timed."""
+
+        def request(self, key: str, message: Any, timeout_s: float) -> list[bytes]:
+            if key != self.jobs_key:
+                return super().request(key, message, timeout_s)
+            sent, started = time.time(), time.perf_counter()
+            replies = super().request(key, message, timeout_s)
+            took = time.perf_counter() - started
+            granted = False
+            for payload in replies:
+                try:
+                    grant = decode(payload)
+                except DecodeError:
+                    continue
+                granted = granted or (isinstance(grant, JobGrant) and grant.episode is not None)
+            if granted:
+                self.leases.append((sent, took, not self.leases))
+            elif replies:
+                self.refused.append(took)
+            return replies
+
+    return _TimedBus
+
+
+class TimedBus:
+    """Made on first use inside a host (importing zenoh in the bench's own process is not needed)."""
+
+    _cls: Any = None
+
+    @classmethod
+    def connect(cls, endpoint: str, run_id: str, *, connect_timeout_s: float) -> Any:
+        from agos.runtime import keys
+
+        if cls._cls is None:
+            cls._cls = _bus_class()
+        bus = cls._cls.connect(endpoint, connect_timeout_s=connect_timeout_s)
+        bus.jobs_key = keys.jobs(run_id)
+        return bus
+
+
+def _sim_worker_class() -> type:
+    from agos.runtime import keys
+    from agos.runtime.codec import encode
+    from agos.runtime.episode_config import read_config
+    from agos.runtime.provenance import provenance
+    from agos.runtime.schemas import (
+        CandidateOutcome,
+        EpisodeRecord,
+        EpisodeSpec,
+        EpisodeStarted,
+        JobGrant,
+        LedgerEntry,
+        LinkStats,
+        LoggedStep,
+        Pose,
+        Role,
+        StepEvent,
+    )
+    from agos.world.sim import worker as world_worker
+    from agos.world.sim.worker import BusDecisionSource, BusSink, WorldWorker
+
+    # A worker process writes its presence file once (runtime/health.py, a temporary file named by its
+    # pid); here many workers share a process, so they write it one at a time.
+    announce, announcing = world_worker.announce, threading.Lock()
+
+    def announce_once_at_a_time(*args: Any) -> None:
+        with announcing:
+            announce(*args)
+
+    world_worker.announce = announce_once_at_a_time  # type: ignore[assignment]
+
+    class SimWorker(WorldWorker):
+        """A world worker that plays no episode: the lease, the episode's declarations, its step events
+        and its record are the real worker's; the simulation is a sleep."""
+
+        def __init__(self, cfg: Any, bus: Any, stop: Any, worker_id: str, plan: HostPlan) -> None:
+            super().__init__(cfg, bus, stop, worker_id)
+            self.plan = plan
+            self.played = self.acked = self.unacked = 0
+            self.crashed = False
+
+        def serve_counted(self) -> None:
+            try:
+                self.serve()
+            except Exception:  # logged and counted; its session ends, as a dead process's
+                self.crashed = True
+                logging.getLogger("agos.world").exception("simulated worker %s crashed", self.worker_id)
+                self.bus.close()
+
+        def close(self) -> None:
+            self.bus.close()
+
+        def run_episode(self, spec: EpisodeSpec, grant: JobGrant) -> None:
+            started = time.monotonic()
+            config = read_config(grant.config, where="job grant")
+            started_msg = encode(EpisodeStarted(run_id=self.run_id, episode_id=spec.episode_id, difficulty=spec.difficulty,
+                                                worker_id=self.worker_id, town_id=spec.town.town_id,
+                                                asset_sha256=spec.asset_sha256))
+            self.bus.publish(keys.events(self.run_id, spec.episode_id), started_msg)
+            self.bus.publish_viz(keys.viz_events(self.run_id, spec.episode_id), started_msg)
+            self.bus.publish_viz(keys.viz_spec(self.run_id, spec.episode_id), spec)
+            source = BusDecisionSource(self.bus, self.run_id, spec.episode_id, worker_id=self.worker_id,
+                                       timeout_s=config.decision_timeout_s, stop=self.stop, frames=self.frames,
+                                       attempt=grant.attempt, rejections=self.rejections)
+            sink = BusSink(self.bus, self.run_id, spec.episode_id)
+            steps = max(1, round(self.plan.episode_s / self.plan.decision_s)) if self.plan.decision_s > 0 else 0
+            wait_s = self.plan.episode_s / max(1, steps)
+            try:
+                for step in range(steps):
+                    if self.stop.wait(wait_s):
+                        return  # interrupted: never submitted, as a real worker
+                    role: Role = "uav" if step % 2 == 0 else "ugv"
+                    sink.step(StepEvent(run_id=self.run_id, episode_id=spec.episode_id, role=role,
+                                        decision_index=step // 2 + 1, episode_step=step + 1, sim_time_s=2.0 * step,
+                                        requested=None, applied="WAIT", pose_after=Pose(position_world_m=(0.0, 0.0, 0.0),
+                                                                                         yaw_rad=0.0)))
+                if steps == 0 and self.stop.wait(self.plan.episode_s):
+                    return
+            finally:
+                source.close()
+                self.frames.forget(keys.viz_prefix(self.run_id, spec.episode_id))
+                self.bus.forget(keys.episode_prefix(self.run_id, spec.episode_id))
+                self.bus.forget(keys.viz_prefix(self.run_id, spec.episode_id))
+            record = synthetic_record(self.run_id, spec, self.worker_id, config, self.plan.record_decisions,
+                                      time.monotonic() - started)
+            self.played += 1
+            self.bus.publish(keys.viz_result(self.run_id, spec.episode_id), record, once=True)
+            if self.submit(record):
+                self.acked += 1
+            else:
+                self.unacked += 1
+
+    def synthetic_record(run_id: str, spec: EpisodeSpec, worker_id: str, config: Any, decisions: int,
+                         wall_s: float) -> EpisodeRecord:
+        """A ``finished`` record as a played episode's (``decisions`` a role, its step log and ledger),
+        valid for the evaluator: this run, episode and lease holder, finite numbers."""
+        seed = spec.seed
+        success = seed % 3 != 0
+        steps = [LoggedStep(role=role, decision_index=i + 1, sim_time_s=round(4.0 * i + (role == "ugv"), 3),
+                            applied="MOVE_TO_UAV_WAYPOINT" if role == "uav" else "MOVE_TO_ROAD_WAYPOINT",
+                            position_world_m=(round(1.5 * i - 60.0, 3), round(0.7 * i + 20.0, 3)),
+                            road_path_world_m=[] if role == "uav" else [(round(1.5 * i - 61.0, 3), 20.5)])
+                 for i in range(decisions) for role in ("uav", "ugv")]
+        ledger = [LedgerEntry(seq=i + 1, kind="sync", sender=("uav", "ugv")[i % 2], receiver=("ugv", "uav")[i % 2],
+                              sent_s=4.0 * i, size_bytes=92, delivered=True, arrive_s=4.0 * i, delay_s=0.0)
+                  for i in range(decisions)]
+        return EpisodeRecord(
+            run_id=run_id, episode_id=spec.episode_id, difficulty=spec.difficulty, status="finished",
+            termination="confirmed" if success else "budget_exhausted", success=success, ground_observed=success,
+            n_confirm=int(success), ugv_path_length_m=120.5, shortest_path_length_m=98.25, final_distance_m=4.5,
+            uav_budget=config.decision_budget or spec.decision_budget, uav_first_visible_step=3,
+            candidates=[CandidateOutcome(candidate_id="C001", cell="B2", center_world_m=(10.0, 12.0),
+                                         status="confirmed" if success else "pending", distance_to_polygon_m=0.0,
+                                         center_error_m=2.5)],
+            decisions_uav=decisions, decisions_ugv=decisions, sim_time_s=4.0 * decisions, wall_time_s=round(wall_s, 3),
+            worker_id=worker_id, town_id=spec.town.town_id, asset_sha256=spec.asset_sha256, seed=seed,
+            renderer=config.renderer, comm_profile=config.comm.name, timing_mode=config.timing_mode,
+            link=LinkStats(profile=config.comm.name, sent=decisions, delivered=decisions, dropped={}, delivery_rate=1.0,
+                           mean_delay_s=0.0, max_delay_s=0.0, bytes_sent=92 * decisions,
+                           mean_info_age_s={"uav": 4.0, "ugv": 4.0}, candidates_delivered=1, candidates_lost=0),
+            ledger=ledger, tools=config.tools.model_dump(), step_log=steps, config=config.model_dump(mode="json"),
+            config_hash=config.config_hash(), provenance=provenance())
+
+    return SimWorker
+
+
+# --------------------------------------------------------------------------------------------------
+# The bench: processes, monitoring, figures
+# --------------------------------------------------------------------------------------------------
+
+def synthetic_split(path: Path, n: int) -> Path:
+    """``n`` episodes on grid-s7 that pass ``agos eval``'s checks of a split (real waypoints of the town,
+    a target the flat look draws); nobody plays them, so they are not sampled by rendering (seconds
+    instead of minutes). Ids ``cp-<difficulty>-<k>``."""
+    from agos.runtime.codec import to_json
+    from agos.runtime.schemas import Difficulty, EpisodeSpec, VehicleSpec
+    from agos.world.episodes.sampling import town_ref
+    from agos.world.towns.asset import open_town
+
+    town = open_town(TOWN)
+    uav = sorted(town.uav_grid.nodes)
+    anchors = sorted(town.roads.anchors)
+    lines = []
+    for k in range(n):
+        difficulties: tuple[Difficulty, ...] = ("easy", "mid", "hard")
+        difficulty = difficulties[k % 3]
+        active = [uav[(k + j) % len(uav)] for j in range(6)]
+        spec = EpisodeSpec(
+            episode_id=f"cp-{difficulty}-{k:05d}", town=town_ref(town), asset_sha256=town.sha256, difficulty=difficulty,
+            region_world_m=(-50.0, -50.0, 50.0, 50.0),
+            target=VehicleSpec(model="sedan", colour="red", position_world_m=(10.0, 12.0, 0.0), yaw_rad=0.0),
+            uav_start_waypoint=active[0], ugv_start_waypoint=town.roads.anchor_id(anchors[k % len(anchors)]),
+            active_uav_waypoints=active, seed=1000 + k)
+        lines.append(to_json(spec))
+    path.write_bytes(b"\n".join(lines) + b"\n")
+    return path
+
+
+def proc_cpu_rss(pid: int) -> tuple[float, float] | None:
+    """(CPU seconds, RSS MB) of a live process from /proc; None when it is gone."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return None
+    fields = stat.rsplit(")", 1)[1].split()
+    cpu = (int(fields[11]) + int(fields[12])) / TICK
+    rss = next((int(line.split()[1]) / 1024 for line in status.splitlines() if line.startswith("VmRSS:")), 0.0)
+    return cpu, rss
+
+
+def machine_busy_s() -> float:
+    """CPU seconds the machine spent busy so far (user, nice, system, irq, softirq; /proc/stat)."""
+    fields = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    user, nice, system, _idle, _iowait, irq, softirq = (fields + [0] * 7)[:7]
+    return (user + nice + system + irq + softirq) / TICK
+
+
+def count_rows(db: Path) -> int:
+    if not db.exists():
+        return 0
+    try:
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=1.0) as conn:
+            return int(conn.execute("SELECT count(*) FROM episodes").fetchone()[0])
+    except sqlite3.Error:
+        return -1  # the evaluator is creating it: try again next poll
+
+
+@dataclass
+class Sample:
+    t: float
+    rows: int
+    busy_s: float
+    procs: dict[str, tuple[float, float]]
+    """role -> (CPU s, RSS MB), summed over the role's processes (the worker hosts are one role)."""
+
+
+class Monitor:
+    """Samples the processes, the machine and the store every ``POLL_S`` on a thread."""
+
+    def __init__(self, db: Path, roles: dict[str, list[int]]) -> None:
+        self.db, self.roles = db, roles
+        self.samples: list[Sample] = []
+        self._last: dict[int, float] = {}
+        """pid -> CPU seconds when last seen: a process that ended keeps what it spent."""
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="monitor", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self._sample()
+
+    def _run(self) -> None:
+        while not self._stop.wait(POLL_S):
+            self._sample()
+
+    def _sample(self) -> None:
+        procs: dict[str, tuple[float, float]] = {}
+        for role, pids in list(self.roles.items()):
+            cpu = rss = 0.0
+            for pid in pids:
+                got = proc_cpu_rss(pid)
+                if got is not None:
+                    self._last[pid] = got[0]
+                    rss += got[1]
+                cpu += self._last.get(pid, 0.0)
+            procs[role] = (cpu, rss)
+        rows = count_rows(self.db)
+        if rows < 0:
+            rows = self.samples[-1].rows if self.samples else 0
+        self.samples.append(Sample(time.time(), rows, machine_busy_s(), procs))
+
+
+def percentile(values: list[float], q: float) -> float:
+    """The q-quantile (0..1) by the nearest rank; nan for no values."""
+    if not values:
+        return float("nan")
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, max(0, math.ceil(q * len(ordered)) - 1))]
+
+
+@dataclass
+class Result:
+    n: int
+    episodes: int
+    stored: int = 0
+    lost: int = 0
+    invalid: int = 0
+    leases: list[tuple[float, float, bool]] = field(default_factory=list)
+    none_replies: int = 0
+    records_per_s: float = float("nan")
+    ideal_per_s: float = float("nan")
+    window_s: float = float("nan")
+    cores: dict[str, float] = field(default_factory=dict)
+    """Mean cores of each role over the window."""
+    peak_cores: dict[str, float] = field(default_factory=dict)
+    """Highest 2 s mean of each role during the run."""
+    rss_mb: dict[str, float] = field(default_factory=dict)
+    machine_cores: float = float("nan")
+    other_cores: float = float("nan")
+    sessions: int = 0
+    failed_sessions: int = 0
+    router_mb_per_session: float = float("nan")
+    host_mb_per_worker: float = float("nan")
+    resubmits: int = 0
+    unacked: int = 0
+    crashed: int = 0
+    """Simulated workers whose thread raised (a bench fault, reported, never hidden)."""
+    wall_s: float = 0.0
+    eval_rc: int | None = None
+    load: tuple[float, float] = (0.0, 0.0)
+
+    def lease_ms(self, q: float, which: str = "all") -> float:
+        pick = {"all": lambda f: True, "first": lambda f: f, "later": lambda f: not f}[which]
+        return 1000 * percentile([lat for _, lat, first in self.leases if pick(first)], q)
+
+    def line(self) -> str:
+        return (f"control plane N={self.n}: lease p50 {self.lease_ms(0.5):.0f} ms p99 {self.lease_ms(0.99):.0f} ms, "
+                f"{self.records_per_s:.0f} records/s, lost {self.lost}")
+
+
+ROLES = ("orchestrator", "evaluator", "router", "worker hosts")
+
+
+def start(cmd: list[str], log: Path, env: dict[str, str], **kwargs: Any) -> subprocess.Popen:
+    with log.open("ab") as out:
+        return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env, start_new_session=True, **kwargs)
+
+
+def stop_process(proc: subprocess.Popen, timeout_s: float = 15.0) -> None:
+    """SIGTERM, then SIGKILL after ``timeout_s``; waits for it."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def measure(n: int, args: argparse.Namespace, work: Path, console: Console) -> Result:
+    """One control plane against ``n`` simulated workers, from start to the run's end."""
+    from agos.deploy.run.launcher import free_port, wait_listening
+
+    stamp = datetime.now(UTC).strftime("%H%M%S")
+    run_id = f"cp-n{n}-{stamp}"
+    here = work / run_id
+    logs = here / "logs"
+    logs.mkdir(parents=True)
+    total = n * args.episodes_per_worker
+    split = synthetic_split(here / "episodes.jsonl", total)
+    runs = here / "runs"
+    env = {**os.environ, "AGOS_HEALTH_DIR": str(here / "health"), "PYTHONUNBUFFERED": "1"}
+    port = free_port(0)  # never 7447: a router started by hand (the README's) may want it
+    endpoint = f"tcp/127.0.0.1:{port}"
+    result = Result(n, total, load=os.getloadavg()[:2])
+    procs: list[subprocess.Popen] = []
+    hosts: list[subprocess.Popen] = []
+    monitor: Monitor | None = None
+    try:
+        router = start([*AGOS, "router", "--listen", endpoint], logs / "router.log", env)
+        procs.append(router)
+        if not wait_listening("127.0.0.1", port, 60.0):
+            raise RuntimeError(f"agos router did not listen on {endpoint} within 60 s; see {logs / 'router.log'}")
+        evaluator = start([*AGOS, "evaluator", "--connect", endpoint, "--runs-dir", str(runs), "--run", run_id],
+                          logs / "evaluator.log", env)
+        procs.append(evaluator)
+        router_before = (proc_cpu_rss(router.pid) or (0.0, 0.0))[1]
+        n_hosts = args.hosts or max(1, math.ceil(n / WORKERS_PER_HOST))
+        ids = [f"sim{k:04d}" for k in range(n)]
+        for h in range(n_hosts):
+            plan = HostPlan(endpoint, run_id, ids[h::n_hosts], args.episode_s, args.decision_s, args.record_decisions,
+                            str(here / f"host-{h}.json"))
+            plan_path = here / f"host-{h}.plan.json"
+            plan_path.write_text(json.dumps(plan.__dict__))
+            hosts.append(subprocess.Popen([sys.executable, __file__, "--host", str(plan_path)], stdout=subprocess.PIPE,
+                                          stderr=(logs / f"host-{h}.log").open("ab"), env=env, text=True,
+                                          start_new_session=True))
+        workers_mb = 0.0
+        for host in hosts:  # each says "ready <sessions> <refused> <seconds> <MB>" once its workers ask for jobs
+            line = host.stdout.readline() if host.stdout else ""
+            while line and not line.startswith("ready"):  # anything a library printed first
+                line = host.stdout.readline() if host.stdout else ""
+            parts = line.split()
+            if len(parts) != 5 or parts[0] != "ready":
+                raise RuntimeError(f"a worker host exited before its workers were up; see {logs}")
+            result.sessions += int(parts[1])
+            result.failed_sessions += int(parts[2])
+            workers_mb += float(parts[4])
+        result.host_mb_per_worker = workers_mb / max(1, result.sessions)
+        time.sleep(2.0)  # the sessions' declarations settle at the router
+        router_after = (proc_cpu_rss(router.pid) or (0.0, 0.0))[1]
+        result.router_mb_per_session = (router_after - router_before) / max(1, result.sessions)
+        console.print(f"N={n}: {result.sessions} worker sessions in {n_hosts} host processes"
+                      + (f", [red]{result.failed_sessions} refused" if result.failed_sessions else "")
+                      + f"; {total} episodes", highlight=False)
+        cmd = [*AGOS, "eval", "--connect", endpoint, "--run", run_id, "--run-dir", str(runs / run_id), "--split", str(split)]
+        (logs / "command.txt").write_text(" ".join(cmd) + "\n")
+        t0 = time.time()
+        orchestrator = start(cmd, logs / "eval.log", {**env, "COLUMNS": "120"})
+        procs.append(orchestrator)
+        monitor = Monitor(runs / run_id / "results.sqlite", {
+            "orchestrator": [orchestrator.pid], "evaluator": [evaluator.pid], "router": [router.pid],
+            "worker hosts": [h.pid for h in hosts]})
+        monitor.start()
+        try:
+            result.eval_rc = orchestrator.wait(args.limit_s)
+        except subprocess.TimeoutExpired:
+            console.print(f"[red]N={n}: agos eval still running after {args.limit_s:.0f} s: interrupted", highlight=False)
+            orchestrator.send_signal(signal.SIGINT)
+            result.eval_rc = orchestrator.wait(60.0)
+        result.wall_s = time.time() - t0
+        monitor.stop()
+        for host in hosts:  # they end themselves once the run is over (the real workers' way)
+            try:
+                host.wait(30.0)
+            except subprocess.TimeoutExpired:
+                stop_process(host)
+    finally:
+        for proc in reversed(procs):
+            stop_process(proc)
+        for host in hosts:
+            stop_process(host)
+    for h in range(len(hosts)):
+        path = here / f"host-{h}.json"
+        if path.exists():
+            data = json.loads(path.read_text())
+            result.leases += [(float(t), float(lat), bool(first)) for t, lat, first in data["leases"]]
+            result.none_replies += len(data["none_replies"])
+            result.resubmits += data["resubmits"]
+            result.unacked += data["unacked"]
+            result.crashed += data["crashed"]
+    samples = monitor.samples if monitor else []
+    (here / "samples.json").write_text(json.dumps([s.__dict__ for s in samples]))  # rows, CPU and RSS every 0.5 s
+    summarize(result, samples, runs / run_id, run_id, args)
+    return result
+
+
+def summarize(result: Result, samples: list[Sample], run_dir: Path, run_id: str, args: argparse.Namespace) -> None:
+    """Stored and lost episodes from the store, rates and CPU over the steady window."""
+    from agos.evaluator.store import ResultStore
+
+    db = run_dir / "results.sqlite"
+    if db.exists():
+        with ResultStore(db, create=False) as store:
+            records = store.records(run_id)  # every row decodes as a record of the schema
+        result.stored = len(records)
+        result.invalid = sum(1 for r in records if r.status != "finished" or not r.worker_id.startswith("sim"))
+    result.lost = result.episodes - result.stored
+    result.ideal_per_s = result.n / args.episode_s if args.episode_s > 0 else float("inf")
+    if len(samples) < 2:
+        return
+    lo, hi = 0.1 * result.episodes, 0.9 * result.episodes
+    a = next((s for s in samples if s.rows >= lo), samples[0])
+    b = next((s for s in samples if s.rows >= hi), samples[-1])
+    if b.t - a.t < 2 * POLL_S:  # too few samples between 10 % and 90 % (a short quick run): the whole run
+        a, b = samples[0], samples[-1]
+    result.window_s = b.t - a.t
+    if result.window_s > 0:
+        result.records_per_s = (b.rows - a.rows) / result.window_s
+        for role in ROLES:
+            result.cores[role] = (b.procs[role][0] - a.procs[role][0]) / result.window_s
+        result.machine_cores = (b.busy_s - a.busy_s) / result.window_s
+        own = sum(result.cores.values())
+        result.other_cores = max(0.0, result.machine_cores - own)
+    step = max(1, round(2.0 / POLL_S))
+    for role in ROLES:
+        peaks = [(samples[i + step].procs[role][0] - samples[i].procs[role][0]) / (samples[i + step].t - samples[i].t)
+                 for i in range(len(samples) - step) if samples[i + step].t > samples[i].t]
+        result.peak_cores[role] = max(peaks, default=float("nan"))
+        result.rss_mb[role] = max(s.procs[role][1] for s in samples)
+
+
+def saturation(r: Result, cores: int) -> str:
+    """Which resource held the stored rate below the workers' ideal, as far as the figures tell."""
+    share = r.records_per_s / r.ideal_per_s if r.ideal_per_s > 0 else float("nan")
+    busiest = max(("orchestrator", "evaluator", "router"), key=lambda role: r.peak_cores.get(role, 0.0))
+    if share >= 0.85:
+        return f"none: {100 * share:.0f} % of the workers' ideal rate"
+    if r.machine_cores >= 0.9 * cores:
+        return (f"the machine: {r.machine_cores:.2f} of {cores} cores busy ({r.cores.get('worker hosts', 0):.2f} the simulated "
+                f"workers'); busiest service: {busiest} at {r.peak_cores.get(busiest, 0):.2f} cores")
+    if r.peak_cores.get(busiest, 0.0) >= 0.9:
+        return f"{busiest}: {r.peak_cores[busiest]:.2f} cores at its peak (one Python thread's worth)"
+    return f"below {100 * share:.0f} % of the workers' ideal rate with no core full (lease round trips, back-off)"
+
+
+def report(results: list[Result], args: argparse.Namespace, console: Console, work: Path) -> None:
+    cores = len(os.sched_getaffinity(0))
+    for r in results:
+        console.print(r.line(), highlight=False)
+    t = Table(title=f"Control plane: episodes of {args.episode_s:g} s, a step event every {args.decision_s:g} s, "
+                    f"records of {args.record_decisions} decisions a role; {cores} cores")
+    for col in ("N", "lease p50 / p99", "first lease p50 / p99", "later p99", "records/s (ideal)", "lost",
+                "orchestrator cores (peak), MB", "evaluator cores (peak), MB", "router cores (peak), MB"):
+        t.add_column(col, justify="right")
+    for r in results:
+        def cell(role: str, r: Result = r) -> str:
+            return f"{r.cores.get(role, float('nan')):.2f} ({r.peak_cores.get(role, float('nan')):.2f}), " \
+                   f"{r.rss_mb.get(role, float('nan')):.0f}"
+        t.add_row(str(r.n), f"{r.lease_ms(0.5):.0f} / {r.lease_ms(0.99):.0f} ms",
+                  f"{r.lease_ms(0.5, 'first'):.0f} / {r.lease_ms(0.99, 'first'):.0f} ms", f"{r.lease_ms(0.99, 'later'):.0f} ms",
+                  f"{r.records_per_s:.1f} ({r.ideal_per_s:.0f})", str(r.lost), cell("orchestrator"), cell("evaluator"),
+                  cell("router"))
+    console.print(t)
+    u = Table(title="Load and realism: the simulated workers share the machine with what is measured")
+    for col in ("N", "sessions (refused)", "worker hosts cores, MB", "MB a session: host / router", "machine cores busy",
+                "other load (cores)", "loadavg 1/5 min", "episodes stored / invalid", "record resubmits", "wall"):
+        u.add_column(col, justify="right")
+    for r in results:
+        u.add_row(str(r.n), f"{r.sessions} ({r.failed_sessions})",
+                  f"{r.cores.get('worker hosts', float('nan')):.2f}, {r.rss_mb.get('worker hosts', float('nan')):.0f}",
+                  f"{r.host_mb_per_worker:.2f} / {r.router_mb_per_session:.2f}", f"{r.machine_cores:.2f} of {cores}",
+                  f"{r.other_cores:.2f}", f"{r.load[0]:.1f} / {r.load[1]:.1f}", f"{r.stored} / {r.invalid}",
+                  str(r.resubmits), f"{r.wall_s:.0f} s")
+    console.print(u)
+    for r in results:
+        console.print(f"N={r.n}: saturates: {saturation(r, cores)}", highlight=False)
+    console.print(f"work: {work}", highlight=False)
+    figures = Figures(args.json)
+    big = results[-1]
+    tag = f"control plane N={big.n}"
+    figures.add(f"{tag}: lease p99", big.lease_ms(0.99), f"{big.lease_ms(0.99):.0f} ms", f"<= {1000 * GOAL_LEASE_P99_S:.0f} ms",
+                big.lease_ms(0.99) <= 1000 * GOAL_LEASE_P99_S)
+    figures.add(f"{tag}: lost episodes", big.lost, str(big.lost), "0", big.lost == 0)
+    at_scale = big.n >= 1000
+    figures.add(f"{tag}: records stored/s", big.records_per_s, f"{big.records_per_s:.0f}/s (ideal {big.ideal_per_s:.0f})",
+                f">= {GOAL_RECORDS_PER_S:.0f}/s at N=1000" if at_scale else "", big.records_per_s >= GOAL_RECORDS_PER_S
+                if at_scale else None)
+    for role in ("orchestrator", "evaluator"):
+        c = big.cores.get(role, float("nan"))
+        figures.add(f"{tag}: {role} cores", c, f"{c:.2f} (peak {big.peak_cores.get(role, float('nan')):.2f})",
+                    f"<= {GOAL_CORES:g}", c <= GOAL_CORES)
+
+
+def run(args: argparse.Namespace) -> int:
+    console = Console(width=200)
+    work = Path(tempfile.mkdtemp(prefix="agos-bench-cp-")) if args.work is None else args.work
+    work.mkdir(parents=True, exist_ok=True)
+    console.print(f"[bold]bench_control_plane[/]: N = {', '.join(map(str, args.workers))}; {args.episodes_per_worker} "
+                  f"episodes a worker of {args.episode_s:g} s; load average {os.getloadavg()[0]:.1f} on "
+                  f"{len(os.sched_getaffinity(0))} cores", highlight=False)
+    results = []
+    for n in args.workers:
+        results.append(measure(n, args, work, console))
+        if results[-1].eval_rc:
+            console.print(f"[red]N={n}: agos eval exited {results[-1].eval_rc}; see {work}", highlight=False)
+    report(results, args, console, work)
+    for r in results:
+        if r.crashed:
+            console.print(f"[red]N={r.n}: {r.crashed} simulated workers crashed (their host logs say why)", highlight=False)
+    bad = [r for r in results if r.lost or r.invalid or r.eval_rc or r.crashed or r.failed_sessions]
+    return 1 if bad else 0
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--workers", type=int, action="append", help="N simulated world workers (repeat; default 10, "
+                                                                       "100, 1000; --quick 5)")
+    parser.add_argument("--episodes-per-worker", type=int, help="episodes in the split per worker (default 4; --quick 2)")
+    parser.add_argument("--episode-s", type=float, help="seconds a simulated episode lasts (default 2; --quick 0.3)")
+    parser.add_argument("--decision-s", type=float, default=1.0,
+                        help="a step event every this many seconds of an episode (default 1, a decision at model speed; "
+                             "0: none)")
+    parser.add_argument("--record-decisions", type=int, default=40, help="decisions a role in each record (default 40)")
+    parser.add_argument("--hosts", type=int, help=f"worker host processes (default one per {WORKERS_PER_HOST} workers)")
+    parser.add_argument("--work", type=Path, help="directory for the runs and logs (default: a new temp dir)")
+    parser.add_argument("--limit-s", type=float, default=RUN_LIMIT_S,
+                        help=f"interrupt agos eval after this long (default {RUN_LIMIT_S:.0f} s); what it did not store is lost")
+    parser.add_argument("--quick", action="store_true", help="N = 5, 2 episodes a worker of 0.3 s")
+    parser.add_argument("--json", action="store_true", help="also print each figure as a BENCH-FIGURE line")
+    parser.add_argument("--host", type=Path, help=argparse.SUPPRESS)  # internal: run one worker host
+    args = parser.parse_args()
+    if args.host is not None:
+        return host_main(args.host)
+    args.workers = args.workers or ([5] if args.quick else [10, 100, 1000])
+    args.episodes_per_worker = args.episodes_per_worker or (2 if args.quick else 4)
+    args.episode_s = args.episode_s if args.episode_s is not None else (0.3 if args.quick else 2.0)
+    if min(args.workers) < 1 or args.episodes_per_worker < 1 or args.episode_s < 0 or args.decision_s < 0 \
+            or args.record_decisions < 0:
+        parser.error("--workers and --episodes-per-worker >= 1; --episode-s, --decision-s, --record-decisions >= 0")
+    try:
+        return run(args)
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
