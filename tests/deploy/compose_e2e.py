@@ -26,7 +26,6 @@ reason (exit 1); nothing is skipped.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import re
@@ -39,11 +38,14 @@ import tempfile
 import time
 import tomllib
 from collections import Counter
-from collections.abc import Iterator
 from pathlib import Path
 from typing import ClassVar
 
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "tests"))
+
+from support.phases import Failed, phase, print_phases  # noqa: E402
+
 COMPOSE_FILE = ROOT / "deploy" / "compose.yaml"
 SECURE_FILE = ROOT / "deploy" / "compose.secure.yaml"
 AGOS = ROOT / ".venv" / "bin" / "agos"
@@ -55,25 +57,6 @@ CONTAINER_UID = 10001
 """The image's user (Dockerfile); bind-mounted folders and keys are handed to it."""
 HEALTH_INTERVAL = "5s"
 EVAL_TIMEOUT_S = 420
-
-
-class Failed(Exception):
-    """A step that could not be done; the message says which and why."""
-
-
-PHASES: list[tuple[str, float]] = []
-
-
-@contextlib.contextmanager
-def phase(name: str) -> Iterator[None]:
-    print(f"\n== {name}", flush=True)
-    start = time.monotonic()
-    try:
-        yield
-    finally:
-        took = time.monotonic() - start
-        PHASES.append((name, took))
-        print(f"-- {name}: {took:.1f} s", flush=True)
 
 
 def tail(text: str | bytes | None, lines: int = 30) -> str:
@@ -551,10 +534,7 @@ def main() -> int:
             if engine is not None:
                 stop_engine(engine)
             shutil.rmtree(work, ignore_errors=True)
-    PHASES.append(("total", time.monotonic() - total))
-    print("\ndeploy-test phases:")
-    for name, took in PHASES:
-        print(f"  {name:<62} {took:7.1f} s")
+    print_phases("deploy-test", time.monotonic() - total, width=62)
     if failure:
         print(f"\ndeploy-test FAILED: {failure}", file=sys.stderr)
         return 1

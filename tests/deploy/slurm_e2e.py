@@ -37,12 +37,13 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Collection, Iterator
+from collections.abc import Collection
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tests"))
 
+from support.phases import Failed, phase, print_phases  # noqa: E402
 from support.records import by_episode  # noqa: E402
 from support.slurm import SlurmCluster, SlurmError, free_port  # noqa: E402
 
@@ -50,25 +51,6 @@ SCRIPT = ROOT / "deploy" / "slurm" / "agos-eval.sbatch"
 AGOS = ROOT / ".venv" / "bin" / "agos"
 JOB_TIMEOUT_S = 300.0
 DATASET_ARGS = ["--look", "flat", "--capture-every", "50"]
-
-
-class Failed(Exception):
-    """A step that could not be done, or a check that did not hold; the message says which."""
-
-
-PHASES: list[tuple[str, float]] = []
-
-
-@contextlib.contextmanager
-def phase(name: str) -> Iterator[None]:
-    print(f"\n== {name}", flush=True)
-    start = time.monotonic()
-    try:
-        yield
-    finally:
-        took = time.monotonic() - start
-        PHASES.append((name, took))
-        print(f"-- {name}: {took:.1f} s", flush=True)
 
 
 def tail(path: Path, lines: int = 25) -> str:
@@ -326,10 +308,7 @@ def main() -> int:
                 print("daemons stopped, cgroups of the nodes removed, no process of the test left", flush=True)
             if failure is None:
                 shutil.rmtree(work, ignore_errors=True)
-    PHASES.append(("total", time.monotonic() - total))
-    print("\nslurm-test phases:")
-    for name, took in PHASES:
-        print(f"  {name:<70} {took:7.1f} s")
+    print_phases("slurm-test", time.monotonic() - total)
     if failure:
         print(f"\nslurm-test FAILED: {failure}\n(work folder kept: {work})", file=sys.stderr)
         return 1
