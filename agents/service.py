@@ -2,9 +2,10 @@
 
     agos agent --role uav --policy heuristic --connect tcp/HOST:PORT --run RUN [--concurrency 32]
 
-Every observation on ``agos/<run>/ep/<ep>/obs/<role>`` is answered on the matching
-``.../act/<role>`` key, for each episode a world announces with its liveliness token
-(``agos/<run>/ep/<ep>/live/<worker>``). Observations are handled concurrently on an asyncio loop, at most
+Every observation on a world worker's slot, ``agos/<run>/slot/<worker>/obs/<role>``, is answered on
+the slot's ``.../act/<role>`` key, for each slot a world announces with its liveliness token
+(``agos/<run>/slot/<worker>/live``); one slot carries the worker's episodes one after another, each
+observation naming its episode and attempt. Observations are handled concurrently on an asyncio loop, at most
 ``concurrency`` at a time: the service awaits each policy's ``act_async`` (agents/contract.py), so
 policies that define one (remote models, the fixed-latency stand-in) overlap their waiting, and
 the others run ``act`` in one of ``concurrency`` worker threads (the contract's default);
@@ -52,38 +53,46 @@ class _Dispatch:
     no I/O), or hands the decoded message to the asyncio loop. Answering inline saves a thread
     hand-over per decision (docs/ARCHITECTURE.md, "Decision round trip").
 
-    The observation and result subscriptions may call in from different threads: one lock
-    serialises decoding and, for inline policies, every policy call."""
+    Observations of different slots may call in from different threads: one lock serialises
+    decoding, the slots' episode bookkeeping and, for inline policies, every policy call."""
 
     def __init__(self, bus: Bus, policy: Policy, run_id: str, loop: asyncio.AbstractEventLoop,
-                 on_loop: Callable[[Observation], None]) -> None:
+                 on_loop: Callable[[str, Observation], None]) -> None:
         self.bus, self.policy, self.run_id, self.loop, self.on_loop = bus, policy, run_id, loop, on_loop
         self.inline = policy.inline
         self.lock = threading.Lock()
-        self.attempts: dict[str, int] = {}  # episode -> the latest attempt observed
+        self.slots: dict[str, tuple[str, int]] = {}  # worker -> the (episode, attempt) its slot runs now
         self.rejections = Rejections(log)
 
-    def _current(self, obs: Observation) -> bool:
-        """Whether ``obs`` belongs to the episode's latest attempt. A newer attempt (the episode was
-        re-leased) starts afresh: the policy forgets what it kept of the earlier one, before this
-        observation is answered. A late observation of an older attempt is ignored."""
-        latest = self.attempts.get(obs.episode_id, obs.attempt)
-        if obs.attempt < latest:
-            log.info("ignoring %s decision %d of attempt %d: attempt %d is running", obs.episode_id,
-                     obs.decision_index, obs.attempt, latest)
+    def _current(self, worker: str, obs: Observation) -> bool:
+        """Whether ``obs`` (on ``worker``'s slot) belongs to the episode's latest attempt, noting it as
+        the slot's episode. A slot that moved on to another episode ends the policy's memory of the one
+        it ran (unless another slot runs it now). A newer attempt (the episode was re-leased, here or to
+        another worker) starts afresh: the policy forgets the earlier one before this observation is
+        answered. A late observation of an older attempt is ignored."""
+        episode, attempt = obs.episode_id, obs.attempt
+        if self.slots.get(worker) == (episode, attempt):
+            return True
+        newest = max((a for e, a in self.slots.values() if e == episode), default=attempt)
+        if attempt < newest:
+            log.info("ignoring %s decision %d of attempt %d: attempt %d is running", episode,
+                     obs.decision_index, attempt, newest)
             return False
-        self.attempts[obs.episode_id] = obs.attempt
-        if obs.attempt > latest:
-            log.info("%s re-leased (attempt %d): its earlier attempt is forgotten", obs.episode_id, obs.attempt)
-            if self.inline:
-                self.policy.end_episode(obs.episode_id)
-            else:  # on the loop, like every other call of a non-inline policy, before this observation
-                self.loop.call_soon_threadsafe(self.policy.end_episode, obs.episode_id)
+        previous = self.slots.pop(worker, None)
+        if previous is not None and previous[0] != episode:
+            self._release(previous[0])
+        earlier = [w for w, (e, a) in self.slots.items() if e == episode and a < attempt]
+        for w in earlier:
+            del self.slots[w]
+        if earlier or (previous is not None and previous[0] == episode):
+            log.info("%s re-leased (attempt %d): its earlier attempt is forgotten", episode, attempt)
+            self._end(episode)
+        self.slots[worker] = (episode, attempt)
         return True
 
-    def take(self, payload: bytes, key: str) -> None:
-        """One payload received on the observation key ``key``: answered when it is an observation
-        of this run for that key's episode and role, with finite numbers, of the episode's latest
+    def take(self, payload: bytes, worker: str, key: str) -> None:
+        """One payload received on ``worker``'s observation key ``key``: answered when it is an
+        observation of this run for that key's role, with finite numbers, of the episode's latest
         attempt; anything else is refused and counted."""
         with self.lock:
             try:
@@ -94,84 +103,94 @@ class _Dispatch:
             if type(message) is not Observation:
                 self.rejections.reject(key, "wrong message type for the key", type(message).__name__)
                 return
-            if message.run_id != self.run_id or key != keys.obs(self.run_id, message.episode_id, message.role):
-                self.rejections.reject(key, "names another run, episode or role than its key")
+            if message.run_id != self.run_id or key != keys.obs(self.run_id, worker, message.role):
+                self.rejections.reject(key, "names another run or role than its key")
                 return
             if where := non_finite_field(message):
                 self.rejections.reject(key, "a number that is not finite", where)
                 return
-            if not self._current(message):
+            try:
+                keys.check_chunk(message.episode_id, what="episode id")
+            except ValueError as exc:
+                self.rejections.reject(key, "an id that is not a name", exc)
+                return
+            if not self._current(worker, message):
                 return
             if self.inline:
                 started = time.monotonic()
-                publish_action(self.bus, self.run_id, message, decide(self.policy, message), started)
+                publish_action(self.bus, self.run_id, worker, message, decide(self.policy, message), started)
                 return
         with contextlib.suppress(RuntimeError):  # the loop is closed: the service is stopping
-            self.loop.call_soon_threadsafe(self.on_loop, message)
+            self.loop.call_soon_threadsafe(self.on_loop, worker, message)
 
-    def episode_over(self, episode_id: str) -> None:
-        """No world runs the episode any more (its liveliness token is gone: finished, or the world
-        died): the policy forgets it. Not a result on the bus, which anyone could publish."""
+    def slot_over(self, worker: str) -> None:
+        """The world serving ``worker``'s slot is gone (its liveliness token ended: it stopped, or
+        died): the policy forgets the slot's episode. Not a result on the bus, which anyone could
+        publish."""
         with self.lock:
-            self.attempts.pop(episode_id, None)
-            if self.inline:
-                end_episode(self.bus, self.policy, self.run_id, episode_id)
-                return
-        with contextlib.suppress(RuntimeError):
-            self.loop.call_soon_threadsafe(end_episode, self.bus, self.policy, self.run_id, episode_id)
+            previous = self.slots.pop(worker, None)
+            if previous is not None:
+                self._release(previous[0])
+
+    def _release(self, episode: str) -> None:
+        """A slot no longer runs ``episode``: the policy forgets it unless another slot runs it."""
+        if all(e != episode for e, _ in self.slots.values()):
+            self._end(episode)
+
+    def _end(self, episode: str) -> None:
+        if self.inline:
+            self.policy.end_episode(episode)
+        else:  # on the loop, like every other call of a non-inline policy, in order with the observations
+            with contextlib.suppress(RuntimeError):
+                self.loop.call_soon_threadsafe(self.policy.end_episode, episode)
 
 
-class _EpisodeSubscriptions:
-    """Subscribes the dispatch to each running episode's observation key exactly, while a world
-    holds that episode's liveliness token (``keys.episode_live``; tokens alive when the service
-    starts count, so a restarted service picks up the episodes in flight), and then says so with
-    its own token (``keys.episode_ready``), which the world waits for before the first observation.
-    zenoh delivers to an exact key expression faster than to ``ep/*/obs/<role>``: 10-20 us per
-    decision in situ (docs/ARCHITECTURE.md §6, "Decision round trip"). Token changes arrive on
-    zenoh's threads; the (un)subscribing is done on the asyncio loop, outside zenoh's callbacks."""
+class _SlotSubscriptions:
+    """Subscribes the dispatch to each world worker's observation key exactly, while the worker holds
+    its slot's liveliness token (``keys.slot_live``; tokens alive when the service starts count, so a
+    restarted service picks up the slots in flight), and then says so with its own token
+    (``keys.slot_ready``), which the world waits for before an episode's first observation. zenoh
+    delivers to an exact key expression faster than to ``slot/*/obs/<role>``: 10-20 us per decision
+    in situ (docs/ARCHITECTURE.md §6, "Decision round trip"). The declarations follow the worker
+    processes, never the episodes (docs/ARCHITECTURE.md §2). Token changes arrive on zenoh's
+    threads; the (un)subscribing is done on the asyncio loop, outside zenoh's callbacks."""
 
     def __init__(self, bus: Bus, run_id: str, role: Role, agent_id: str, dispatch: _Dispatch,
                  loop: asyncio.AbstractEventLoop) -> None:
         self.bus, self.run_id, self.role, self.agent_id = bus, run_id, role, agent_id
         self.dispatch, self.loop = dispatch, loop
-        self.holders: dict[str, set[str]] = {}  # episode -> the workers whose token for it is alive
-        self.handles: dict[str, tuple[Any, Any]] = {}  # episode -> (subscription, ready token)
+        self.handles: dict[str, tuple[Any, Any]] = {}  # worker -> (subscription, ready token)
 
     def put(self, sample: Sample) -> None:
         with contextlib.suppress(RuntimeError):  # the loop is closed: the service is stopping
             self.loop.call_soon_threadsafe(self.update, sample.key, sample.payload == b"+")
 
     def update(self, key: str, alive: bool) -> None:
-        episode, worker = keys.episode_of(key), key.rsplit("/", 1)[-1]
-        holders = self.holders.setdefault(episode, set())
-        if alive:
-            holders.add(worker)
-        else:
-            holders.discard(worker)
-        if holders and episode not in self.handles:
-            obs_key = keys.obs(self.run_id, episode, self.role)
+        worker = keys.slot_of(key)
+        if alive and worker not in self.handles:
+            obs_key = keys.obs(self.run_id, worker, self.role)
             try:
-                subscription = self.bus.subscribe_payloads(obs_key, functools.partial(self.dispatch.take, key=obs_key))
-                ready = self.bus.declare_token(keys.episode_ready(self.run_id, episode, self.role, self.agent_id))
+                subscription = self.bus.subscribe_payloads(
+                    obs_key, functools.partial(self.dispatch.take, worker=worker, key=obs_key))
+                ready = self.bus.declare_token(keys.slot_ready(self.run_id, worker, self.role, self.agent_id))
             except Exception:  # e.g. the session is closing; the next token change tries again
                 log.exception("could not subscribe to %s", obs_key)
-                holders.discard(worker)
                 return
-            self.handles[episode] = (subscription, ready)
-        elif not holders:
-            del self.holders[episode]
-            self._drop(episode)
+            self.handles[worker] = (subscription, ready)
+        elif not alive:
+            self._drop(worker)
 
-    def _drop(self, episode: str) -> None:
-        if episode in self.handles:
-            subscription, ready = self.handles.pop(episode)
+    def _drop(self, worker: str) -> None:
+        if worker in self.handles:
+            subscription, ready = self.handles.pop(worker)
             self.bus.undeclare_token(ready)
             self.bus.unsubscribe(subscription)
-            self.dispatch.episode_over(episode)
+            self.bus.forget(keys.slot_prefix(self.run_id, worker))
+            self.dispatch.slot_over(worker)
 
     def close(self) -> None:
-        for episode in list(self.handles):
-            self._drop(episode)
+        for worker in list(self.handles):
+            self._drop(worker)
 
 
 def decide(policy: Policy, obs: Observation) -> Action:
@@ -212,7 +231,7 @@ def _policy_failed(obs: Observation) -> Action:
     return action_for(obs, "WAIT", rationale="policy error (see agent log)")
 
 
-def publish_action(bus: Bus, run_id: str, obs: Observation, action: Action, started: float) -> None:
+def publish_action(bus: Bus, run_id: str, worker: str, obs: Observation, action: Action, started: float) -> None:
     """Stamp the policy's wall-clock latency (realtime mode charges it in simulated time), check the
     answer as the world will read it (structs are built without checks) and send it; one the world
     would refuse is logged and replaced by a legal WAIT."""
@@ -222,7 +241,7 @@ def publish_action(bus: Bus, run_id: str, obs: Observation, action: Action, star
     except Exception:
         action = _policy_failed(obs)
         payload = _stamped(action, latency)
-    bus.publish(keys.act(run_id, action.episode_id, action.role), payload)
+    bus.publish(keys.act(run_id, worker, action.role), payload)
 
 
 def _stamped(action: Action, latency_s: float) -> bytes:
@@ -234,11 +253,6 @@ def _stamped(action: Action, latency_s: float) -> bytes:
     return payload
 
 
-def end_episode(bus: Bus, policy: Policy, run_id: str, episode_id: str) -> None:
-    policy.end_episode(episode_id)
-    bus.forget(keys.episode_prefix(run_id, episode_id))
-
-
 async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, concurrency: int) -> int:
     loop = asyncio.get_running_loop()
     limit = asyncio.Semaphore(concurrency)
@@ -247,7 +261,7 @@ async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, 
     tasks: set[asyncio.Task] = set()
     fatal: list[FatalPolicyError] = []
 
-    async def handle(obs: Observation) -> None:
+    async def handle(worker: str, obs: Observation) -> None:
         async with limit:
             started = time.monotonic()  # the policy's latency, not the wait for a free slot
             try:
@@ -258,18 +272,18 @@ async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, 
                 fatal.append(exc)
                 stop.set()
                 return
-        publish_action(bus, run_id, obs, action, started)
+        publish_action(bus, run_id, worker, obs, action, started)
 
-    def on_loop(message: Observation) -> None:
-        """Start answering an observation."""
-        task = loop.create_task(handle(message))
+    def on_loop(worker: str, message: Observation) -> None:
+        """Start answering an observation of ``worker``'s slot."""
+        task = loop.create_task(handle(worker, message))
         tasks.add(task)
         task.add_done_callback(tasks.discard)
 
     agent_id = unique_id(policy.role)
     dispatch = _Dispatch(bus, policy, run_id, loop, on_loop)
-    episodes = _EpisodeSubscriptions(bus, run_id, policy.role, agent_id, dispatch, loop)
-    bus.watch_liveliness(keys.episode_live(run_id, "*", "*"), episodes)
+    slots = _SlotSubscriptions(bus, run_id, policy.role, agent_id, dispatch, loop)
+    bus.watch_liveliness(keys.slot_live(run_id, "*"), slots)
     bus.declare_token(keys.live(run_id, "agent", agent_id))
     announce("agent", agent_id, run_id)
     log.info("%s agent (%s) serving run %s, up to %d decisions at once%s", policy.role, policy.name, run_id,
@@ -278,7 +292,7 @@ async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, 
         while not stop.is_set():
             await asyncio.sleep(0.25)  # samples arrive through the dispatch; this only watches the stop flag
     finally:
-        episodes.close()
+        slots.close()
         dispatch.rejections.log_summary()
         for task in tasks:
             task.cancel()

@@ -2,17 +2,17 @@
 
     agos evaluator --connect tcp/HOST:PORT [--runs-dir runs]
 
-It listens to the results of every run (``agos/*/ep/*/result``), writes them to
-``<runs_dir>/<run>/results.sqlite`` and acknowledges each on ``.../ack``. When a run's
+It listens to the results of every run (``agos/*/slot/*/result``: each world worker's slot), writes
+them to ``<runs_dir>/<run>/results.sqlite`` and acknowledges each on the slot's ``.../ack``. When a run's
 manifest says ``finished`` it logs the run's results table. It declares its liveliness token under a
 run (what ``agos eval``'s presence check asks for) at start for its configured run (``--run``; ``agos
 eval`` tells the evaluator it starts), and for any other run on first hearing of it: a manifest, a lease
 notice (repeated every 5 s, so one started late joins within seconds) or a record.
 
 What it stores is checked first, because anything on an open router can publish there: the
-payload must be a record of this schema version, name the run and episode its key names, use
+payload must be a record of this schema version, name the run and worker its key names, use
 ids that are names (never paths), hold only finite numbers, and come from the worker that the
-orchestrator's newest lease notice (``.../ep/<ep>/lease``) names as the episode's current holder; an
+orchestrator's newest lease notice (``agos/<run>/ctl/lease``) names as the episode's current holder; an
 episode that was never leased (not in the run's split) has no holder. Anything else is refused
 (runtime/rejections.py), never stored, never acknowledged.
 """
@@ -81,9 +81,9 @@ class Evaluator:
             newly = self.store(message.run_id).add(message)
             log.info("%s %s/%s (%s, %s)", "stored" if newly else "duplicate", message.run_id, message.episode_id,
                      message.status, "success" if message.success else "failure")
-            self.bus.publish(keys.result_ack(message.run_id, message.episode_id),
+            self.bus.publish(keys.result_ack(message.run_id, message.worker_id),
                              ResultAck(run_id=message.run_id, episode_id=message.episode_id, newly_stored=newly),
-                             once=True)  # one key an episode: no publisher kept (runtime/bus.py)
+                             once=True)  # one key per worker slot, of many: no publisher kept (runtime/bus.py)
         elif isinstance(message, RunManifest) and message.status == "running":
             # Present for the run at once, but no file yet: a manifest alone (perhaps forged) must not
             # make a run directory look as if it held results.
@@ -106,9 +106,10 @@ class Evaluator:
             if message.run_id != about_run:
                 return "names another run than its key"
             if isinstance(message, (EpisodeRecord, LeaseNotice)):
-                if message.episode_id != keys.episode_of(key):
-                    return "names another episode than its key"
+                keys.check_chunk(message.episode_id, what="episode id")
                 keys.check_chunk(message.worker_id, what="worker id")
+            if isinstance(message, EpisodeRecord) and message.worker_id != keys.slot_of(key):
+                return "names another worker than its key"
         except ValueError:
             return "an id that is not a name"
         if non_finite_field(message):
@@ -133,7 +134,7 @@ def serve(bus: Bus, runs_dir: Path, stop: StopFlag, *, announce_run: str | None 
     evaluator = Evaluator(bus, runs_dir)
     inbox = Inbox()
     bus.subscribe(keys.result("*", "*"), inbox)
-    bus.subscribe(keys.lease("*", "*"), inbox)
+    bus.subscribe(keys.lease("*"), inbox)
     bus.subscribe(keys.manifest("*"), inbox)
     if announce_run is not None:
         evaluator.serve_run(announce_run)

@@ -11,8 +11,8 @@ What each identity may say (the issue's rules):
 - ``world`` (world workers, ``agos check agent``): observations, events, coordination states,
   messages, results and the visualisation stream; it hears actions, acknowledgements and the
   manifest; it asks for jobs and assets.
-- ``agent-uav`` / ``agent-ugv``: only that role's action key; they hear that role's observations
-  (an episode is forgotten when the world's token for it vanishes, not on a result).
+- ``agent-uav`` / ``agent-ugv``: only that role's action key of any slot; they hear that role's
+  observations, watch the slots' tokens and declare their ``ready`` tokens for that role only.
 - ``evaluator``: alone publishes acknowledgements; hears results, manifests and lease notices.
 - ``orchestrator`` (``agos eval``, the compose ``eval`` job): the manifest, lease notices and
   infrastructure failure records; serves jobs and assets; hears results, acknowledgements and events.
@@ -24,9 +24,11 @@ What each identity may say (the issue's rules):
   router relays was already checked there; the price is that ``router.key`` may say anything: it
   belongs on router hosts only.
 
-Which episodes a world may publish results for is not a key rule (a worker's episodes change
-with every lease): any ``world`` certificate may publish any episode's result, and the evaluator
-stores it only from the worker the orchestrator's lease notice names (evaluator/service.py).
+Which slot a world may publish on is not a key rule (worker ids are made at start, not certified):
+any ``world`` certificate may publish on any slot, and the evaluator stores a record only when it
+names the worker of its key's slot and that worker holds the episode's lease, as the orchestrator's
+lease notice names it (evaluator/service.py). The key space is bounded (runtime/keys.py), so these
+rules, generated from it, do not change with episodes either.
 
 How zenoh's rules read: a message *into* the router from a client is ``ingress``; one the router
 sends *out* to a client is ``egress``. Publishing is ``put`` ingress, and hearing it is ``put``
@@ -67,8 +69,8 @@ def _agent(role: str) -> Grants:
     return Grants(
         publish=(keys.act(ANY, ANY, role),),
         hear=(keys.obs(ANY, ANY, role),),
-        tokens=(keys.live(ANY, "agent", ANY), keys.episode_ready(ANY, ANY, role, ANY)),
-        watch=(keys.episode_live(ANY, ANY, ANY), *_health()),
+        tokens=(keys.live(ANY, "agent", ANY), keys.slot_ready(ANY, ANY, role, ANY)),
+        watch=(keys.slot_live(ANY, ANY), *_health()),
     )
 
 
@@ -80,19 +82,19 @@ IDENTITIES: dict[str, Grants] = {
                  keys.viz_all(ANY)),
         hear=(keys.act(ANY, ANY, ANY), keys.result_ack(ANY, ANY), keys.manifest(ANY)),
         query=(keys.jobs(ANY), keys.asset(ANY)),
-        tokens=(keys.live(ANY, "world", ANY), keys.episode_live(ANY, ANY, ANY)),
-        watch=(keys.episode_ready(ANY, ANY, ANY, ANY), *_health()),
+        tokens=(keys.live(ANY, "world", ANY), keys.slot_live(ANY, ANY)),
+        watch=(keys.slot_ready(ANY, ANY, ANY, ANY), *_health()),
     ),
     "agent-uav": _agent("uav"),
     "agent-ugv": _agent("ugv"),
     "evaluator": Grants(
         publish=(keys.result_ack(ANY, ANY),),
-        hear=(keys.result(ANY, ANY), keys.manifest(ANY), keys.lease(ANY, ANY)),
+        hear=(keys.result(ANY, ANY), keys.manifest(ANY), keys.lease(ANY)),
         tokens=(keys.live(ANY, "evaluator", ANY),),
         watch=_health(),
     ),
     "orchestrator": Grants(
-        publish=(keys.manifest(ANY), keys.result(ANY, ANY), keys.lease(ANY, ANY)),
+        publish=(keys.manifest(ANY), keys.result(ANY, ANY), keys.lease(ANY)),
         hear=(keys.result(ANY, ANY), keys.result_ack(ANY, ANY), keys.events(ANY, ANY)),
         serve=(keys.jobs(ANY), keys.asset(ANY)),
         tokens=(keys.live(ANY, "orchestrator", ANY),),

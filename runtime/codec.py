@@ -18,13 +18,46 @@ import cv2
 import msgspec
 import numpy as np
 
-from agos.runtime.schemas import WireMessage
+from agos.runtime.schemas import SCHEMA_VERSION, WireMessage
 
 T = TypeVar("T")
 
 
 class DecodeError(ValueError):
     """A payload that is not a valid agos message; the text names the field."""
+
+
+class WireVersionError(DecodeError):
+    """A live message of another wire schema version than this process's (``schemas.SCHEMA_VERSION``):
+    the text names both, and what to do."""
+
+    def __init__(self, version: object) -> None:
+        super().__init__(f"wire schema version {version!r}, this process speaks version {SCHEMA_VERSION}: "
+                         "run one agos version in every process of a run")
+        self.version = version
+
+
+class _Versioned(msgspec.Struct):
+    """Only the ``v`` of any map (other fields ignored): why a payload that failed to decode failed."""
+
+    v: object = None
+
+
+def _live(message: T) -> T:
+    """``message`` if it is of this process's schema version (anything without a ``v`` passes)."""
+    version = getattr(message, "v", SCHEMA_VERSION)
+    if version != SCHEMA_VERSION:
+        raise WireVersionError(version)
+    return message
+
+
+def _other_version(payload: bytes | bytearray | memoryview) -> WireVersionError | None:
+    """For a payload that did not decode: a :class:`WireVersionError` when it says another version."""
+    try:
+        version = msgspec.msgpack.decode(payload, type=_Versioned).v
+    except (ValueError, RecursionError):
+        return None
+    return WireVersionError(version) if version is not None and version != SCHEMA_VERSION else None
 
 
 def _plain(value: Any) -> Any:
@@ -63,19 +96,23 @@ def _decoder(kind: Any, syntax: str = "msgpack") -> Any:
 
 
 def decode(payload: bytes | bytearray | memoryview) -> WireMessage:
-    """Any agos payload as the message its ``type`` names."""
+    """Any agos payload from the bus as the message its ``type`` names; a message of another schema
+    version raises :class:`WireVersionError`."""
     try:
-        return _decoder(WireMessage).decode(payload)  # the union of the tagged structs: one C pass
+        message = _decoder(WireMessage).decode(payload)  # the union of the tagged structs: one C pass
     except (ValueError, RecursionError) as exc:  # msgspec's errors, a bad UTF-8 string, nesting too deep
-        raise _error(exc, "msgpack") from None
+        raise _other_version(payload) or _error(exc, "msgpack") from None
+    return _live(message)
 
 
 def decode_as(payload: bytes | bytearray | memoryview, kind: type[T]) -> T:
-    """A payload of a known message type (or any type msgspec reads) as that type."""
+    """A payload from the bus of a known message type (or any type msgspec reads) as that type; a
+    message of another schema version raises :class:`WireVersionError`."""
     try:
-        return _decoder(kind).decode(payload)
+        message = _decoder(kind).decode(payload)
     except (ValueError, RecursionError) as exc:
-        raise _error(exc, "msgpack") from None
+        raise _other_version(payload) or _error(exc, "msgpack") from None
+    return _live(message)
 
 
 def to_json(message: Any) -> bytes:
@@ -84,7 +121,8 @@ def to_json(message: Any) -> bytes:
 
 
 def from_json(data: bytes | str, kind: type[T]) -> T:
-    """JSON of a known message type as that type; :class:`DecodeError` names the field."""
+    """JSON of a known message type as that type; :class:`DecodeError` names the field. Stored
+    messages of every version in ``schemas.SchemaVersion`` read (older records, split files)."""
     try:
         return _decoder(kind, "json").decode(data)
     except (ValueError, RecursionError) as exc:

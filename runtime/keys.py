@@ -3,33 +3,42 @@
 No other module writes a key literal: every publisher, subscriber, queryable and liveliness
 token asks this module for its key, so the layout can be read (and changed) here alone.
 
+The key space is bounded: no key names an episode. A router keeps a node in its routing tree for
+every key a run ever used, and routes a sample on a key without a node of its own by scanning its
+siblings (docs/ARCHITECTURE.md §2, "Why no key names an episode"), so keys that named episodes
+made the router's work per episode grow with every episode the run had played. Keys name a
+process instead (a world worker's *slot*: its worker id), and the episode id and lease attempt
+travel in every payload; a receiver drops what is not its slot's current episode and attempt.
+
 Layout::
 
-    agos/<run>/ctl/manifest                  run description and status
-    agos/<run>/ctl/jobs                      queryable: claim the next episode
-    agos/<run>/ep/<ep>/obs/<role>            world -> agent observation
-    agos/<run>/ep/<ep>/act/<role>            agent -> world action
-    agos/<run>/ep/<ep>/coord/truth           authoritative coordination state
-    agos/<run>/ep/<ep>/coord/view/<role>     coordination state as <role> received it
-    agos/<run>/ep/<ep>/msg/<from>/<to>       inter-agent messages, as delivered
-    agos/<run>/ep/<ep>/events                step records
-    agos/<run>/ep/<ep>/result                the episode record
-    agos/<run>/ep/<ep>/ack                   evaluator -> world: the record is stored
-    agos/<run>/ep/<ep>/live/<worker>         liveliness: the episode runs on <worker> (agents subscribe to it)
-    agos/<run>/ep/<ep>/ready/<role>/<agent>  liveliness: <agent> has subscribed to the episode's obs/<role>
-    agos/<run>/live/<kind>/<id>              liveliness tokens
-    agos/<run>/viz/<ep>/events               visualisation (lossy): episode start, step records
-    agos/<run>/viz/<ep>/coord                visualisation (lossy): coordination truth
-    agos/<run>/viz/<ep>/frame/<role>         visualisation (lossy): a small JPEG of each of the role's views
-    agos/<run>/viz/<ep>/spec                 visualisation (lossy): the episode spec (region, target), at its start
-    agos/<run>/viz/<ep>/result               visualisation (reliable): a copy of the episode record, at its end
-    agos/<run>/viz/<ep>/full/<role>          visualisation (lossy): the role's views at full resolution, made
-                                             only while someone subscribes there (``agos record --full``)
-    agos/assets/<sha256>                     queryable: frozen town assets
-    agos/routers/<zid>                       liveliness: a router agos started is up (``agos health router``)
+    agos/<run>/ctl/manifest                      run description and status
+    agos/<run>/ctl/jobs                          queryable: claim the next episode
+    agos/<run>/ctl/lease                         orchestrator -> evaluator: who holds which episode
+    agos/<run>/slot/<worker>/live                liveliness: <worker> serves this slot (agents subscribe to it)
+    agos/<run>/slot/<worker>/ready/<role>/<agent>  liveliness: <agent> has subscribed to the slot's obs/<role>
+    agos/<run>/slot/<worker>/obs/<role>          world -> agent observation
+    agos/<run>/slot/<worker>/act/<role>          agent -> world action
+    agos/<run>/slot/<worker>/coord/truth         authoritative coordination state
+    agos/<run>/slot/<worker>/coord/view/<role>   coordination state as <role> received it
+    agos/<run>/slot/<worker>/msg/<from>/<to>     inter-agent messages, as delivered
+    agos/<run>/slot/<worker>/events              episode starts and step records
+    agos/<run>/slot/<worker>/result              the episode record (world, or the orchestrator's failure record)
+    agos/<run>/slot/<worker>/ack                 evaluator -> world, orchestrator: the record is stored
+    agos/<run>/live/<kind>/<id>                  liveliness tokens
+    agos/<run>/viz/<worker>/events               visualisation (lossy): episode start, step records
+    agos/<run>/viz/<worker>/coord                visualisation (lossy): coordination truth
+    agos/<run>/viz/<worker>/frame/<role>         visualisation (lossy): a small JPEG of each of the role's views
+    agos/<run>/viz/<worker>/spec                 visualisation (lossy): the episode spec (region, target), at its start
+    agos/<run>/viz/<worker>/result               visualisation (reliable): a copy of the episode record, at its end
+    agos/<run>/viz/<worker>/full/<role>          visualisation (lossy): the role's views at full resolution, made
+                                                 only while someone subscribes there (``agos record --full``)
+    agos/assets/<sha256>                         queryable: frozen town assets
+    agos/routers/<zid>                           liveliness: a router agos started is up (``agos health router``)
 
 Everything under ``viz/`` is published with congestion control DROP (runtime/bus.py): observers
-subscribe there, so a slow one loses frames instead of slowing the world.
+subscribe there, so a slow one loses frames instead of slowing the world. Every payload on a slot
+or viz key names its episode (``episode_id``): a viewer follows one episode by that field.
 """
 
 from __future__ import annotations
@@ -65,14 +74,12 @@ def _run(run: str) -> str:
 
 
 @functools.lru_cache(maxsize=4096)
-def _ep(run: str, episode: str) -> str:
-    ep = episode if episode == "*" else check_chunk(episode, what="episode id")
-    return f"{_run(run)}/ep/{ep}"
+def _slot(run: str, worker: str) -> str:
+    return f"{_run(run)}/slot/{worker if worker == '*' else check_chunk(worker, what='worker id')}"
 
 
-def episode_prefix(run: str, episode: str) -> str:
-    """What every key of one episode starts with (to forget its publishers when it is over)."""
-    return f"{_ep(run, episode)}/"
+def _name(ident: str, what: str) -> str:
+    return ident if ident == "*" else check_chunk(ident, what=what)
 
 
 def manifest(run: str) -> str:
@@ -83,58 +90,65 @@ def jobs(run: str) -> str:
     return f"{_run(run)}/ctl/jobs"
 
 
-def obs(run: str, episode: str, role: str) -> str:
-    return f"{_ep(run, episode)}/obs/{role}"
+def lease(run: str) -> str:
+    """Who holds which episode's current lease (orchestrator -> evaluator; the episode is in the payload)."""
+    return f"{_run(run)}/ctl/lease"
 
 
-def act(run: str, episode: str, role: str) -> str:
-    return f"{_ep(run, episode)}/act/{role}"
+def slot_prefix(run: str, worker: str) -> str:
+    """What every key of one world worker's slot starts with (to forget its publishers when it is gone)."""
+    return f"{_slot(run, worker)}/"
 
 
-def coord_truth(run: str, episode: str) -> str:
-    return f"{_ep(run, episode)}/coord/truth"
+def slot_live(run: str, worker: str) -> str:
+    """The liveliness token a world worker (or ``agos check agent``) declares for its session: agent
+    services subscribe to the slot's observation key exactly while one exists (agents/service.py)."""
+    return f"{_slot(run, worker)}/live"
 
 
-def coord_view(run: str, episode: str, role: str) -> str:
-    return f"{_ep(run, episode)}/coord/view/{role}"
+def slot_ready(run: str, worker: str, role: str, agent: str) -> str:
+    """The liveliness token an agent service declares once it has subscribed to ``worker``'s
+    observations for ``role``: what the world waits for before an episode's first observation (any
+    subscriber, an observer of ``agos/**`` for one, would not do)."""
+    return f"{_slot(run, worker)}/ready/{role}/{_name(agent, 'agent id')}"
 
 
-def message(run: str, episode: str, sender: str, receiver: str) -> str:
-    return f"{_ep(run, episode)}/msg/{sender}/{receiver}"
+def obs(run: str, worker: str, role: str) -> str:
+    return f"{_slot(run, worker)}/obs/{role}"
 
 
-def events(run: str, episode: str) -> str:
-    return f"{_ep(run, episode)}/events"
+def act(run: str, worker: str, role: str) -> str:
+    return f"{_slot(run, worker)}/act/{role}"
 
 
-def result(run: str, episode: str) -> str:
-    return f"{_ep(run, episode)}/result"
+def coord_truth(run: str, worker: str) -> str:
+    return f"{_slot(run, worker)}/coord/truth"
 
 
-def lease(run: str, episode: str) -> str:
-    """Who holds the episode's current lease (orchestrator -> evaluator)."""
-    return f"{_ep(run, episode)}/lease"
+def coord_view(run: str, worker: str, role: str) -> str:
+    return f"{_slot(run, worker)}/coord/view/{role}"
 
 
-def result_ack(run: str, episode: str) -> str:
-    return f"{_ep(run, episode)}/ack"
+def message(run: str, worker: str, sender: str, receiver: str) -> str:
+    return f"{_slot(run, worker)}/msg/{sender}/{receiver}"
 
 
-def episode_live(run: str, episode: str, worker: str) -> str:
-    """The liveliness token a world declares while it runs ``episode``: agent services subscribe to
-    that episode's observation key exactly while one exists (agents/service.py)."""
-    return f"{_ep(run, episode)}/live/{worker if worker == '*' else check_chunk(worker, what='worker id')}"
+def events(run: str, worker: str) -> str:
+    return f"{_slot(run, worker)}/events"
 
 
-def episode_ready(run: str, episode: str, role: str, agent: str) -> str:
-    """The liveliness token an agent service declares once it has subscribed to ``episode``'s
-    observations for ``role``: what the world waits for before the first one (any subscriber, an
-    observer of ``agos/**`` for one, would not do)."""
-    return f"{_ep(run, episode)}/ready/{role}/{agent if agent == '*' else check_chunk(agent, what='agent id')}"
+def result(run: str, worker: str) -> str:
+    """Records of the episodes leased to ``worker``: its own, and the orchestrator's failure records
+    for them (``worker`` is the record's ``worker_id``)."""
+    return f"{_slot(run, worker)}/result"
+
+
+def result_ack(run: str, worker: str) -> str:
+    return f"{_slot(run, worker)}/ack"
 
 
 def live(run: str, kind: LiveKind, ident: str) -> str:
-    return f"{_run(run)}/live/{kind}/{ident if ident == '*' else check_chunk(ident, what='id')}"
+    return f"{_run(run)}/live/{kind}/{_name(ident, 'id')}"
 
 
 def live_all(run: str = "*") -> str:
@@ -145,36 +159,36 @@ def live_all(run: str = "*") -> str:
 def router_live(ident: str) -> str:
     """The liveliness token ``agos router`` declares in its own session (not under a run: one router
     serves every run)."""
-    return f"{ROOT}/routers/{ident if ident == '*' else check_chunk(ident, what='router id')}"
+    return f"{ROOT}/routers/{_name(ident, 'router id')}"
 
 
-def _viz(run: str, episode: str) -> str:
-    return f"{_run(run)}/viz/{episode if episode == '*' else check_chunk(episode, what='episode id')}"
+def _viz(run: str, worker: str) -> str:
+    return f"{_run(run)}/viz/{_name(worker, 'worker id')}"
 
 
-def viz_events(run: str, episode: str) -> str:
-    return f"{_viz(run, episode)}/events"
+def viz_events(run: str, worker: str) -> str:
+    return f"{_viz(run, worker)}/events"
 
 
-def viz_coord(run: str, episode: str) -> str:
-    return f"{_viz(run, episode)}/coord"
+def viz_coord(run: str, worker: str) -> str:
+    return f"{_viz(run, worker)}/coord"
 
 
-def viz_frame(run: str, episode: str, role: str) -> str:
-    return f"{_viz(run, episode)}/frame/{role}"
+def viz_frame(run: str, worker: str, role: str) -> str:
+    return f"{_viz(run, worker)}/frame/{role}"
 
 
-def viz_spec(run: str, episode: str) -> str:
-    return f"{_viz(run, episode)}/spec"
+def viz_spec(run: str, worker: str) -> str:
+    return f"{_viz(run, worker)}/spec"
 
 
-def viz_result(run: str, episode: str) -> str:
-    return f"{_viz(run, episode)}/result"
+def viz_result(run: str, worker: str) -> str:
+    return f"{_viz(run, worker)}/result"
 
 
-def viz_full(run: str, episode: str, role: str) -> str:
+def viz_full(run: str, worker: str, role: str) -> str:
     """Full-resolution views: the world makes them only while something subscribes to this key."""
-    return f"{_viz(run, episode)}/full/{role}"
+    return f"{_viz(run, worker)}/full/{role}"
 
 
 def viz_light(run: str = "*", *, full: bool = False) -> tuple[str, ...]:
@@ -183,11 +197,6 @@ def viz_light(run: str = "*", *, full: bool = False) -> tuple[str, ...]:
     (``viz_all`` matches both, and a subscriber on ``full/<role>`` makes every world send them.)"""
     frames = viz_full(run, "*", "*") if full else viz_frame(run, "*", "*")
     return (viz_events(run, "*"), viz_coord(run, "*"), frames, viz_spec(run, "*"), viz_result(run, "*"))
-
-
-def viz_prefix(run: str, episode: str) -> str:
-    """What every visualisation key of one episode starts with."""
-    return f"{_viz(run, episode)}/"
 
 
 def viz_all(run: str = "*") -> str:
@@ -199,12 +208,18 @@ def asset(sha256: str) -> str:
     return f"{ROOT}/assets/{sha256 if sha256 == '*' else check_chunk(sha256, what='asset hash')}"
 
 
-def episode_of(key: str) -> str:
-    """The episode id inside a key under ``agos/<run>/ep/<ep>/...``."""
+def slot_of(key: str) -> str:
+    """The worker id of a key under ``agos/<run>/slot/<worker>/...`` or ``agos/<run>/viz/<worker>/...``."""
     parts = key.split("/")
-    if len(parts) < 4 or parts[0] != ROOT or parts[2] != "ep":
-        raise ValueError(f"key {key!r} is not an episode key")
+    if len(parts) < 5 or parts[0] != ROOT or parts[2] not in ("slot", "viz"):
+        raise ValueError(f"key {key!r} is not a slot key")
     return parts[3]
+
+
+def kind_of(key: str) -> str:
+    """What a slot or viz key carries: its part after ``<worker>/`` (``obs/uav``, ``frame/ugv``, ``result``)."""
+    slot_of(key)
+    return key.split("/", 4)[4]
 
 
 def run_of(key: str) -> str:

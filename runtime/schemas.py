@@ -21,10 +21,21 @@ from typing import Any, Final, Literal
 
 import msgspec
 
-SCHEMA_VERSION: Final = 1
-SchemaVersion = Literal[1]
-"""The only ``v`` a message may carry: a payload of another version is refused while decoding
-(``DecodeError`` at ``$.v``), never half-read. Bump both together."""
+SCHEMA_VERSION: Final = 2
+"""The version every live process writes and the only one it accepts from the bus
+(runtime/codec.py ``decode``: another is refused in one line naming both). Stored messages (records
+in results files and SQLite, specs in split files) of every version in :data:`SchemaVersion` still
+read (``from_json``).
+
+The rule for every change of the wire: bump this and add the new number to ``SchemaVersion``; a
+change of what a message holds also gives readers of older stored versions their upgrade (a default
+for a new field, say), tested with a payload of each older version (tests/test_codec.py).
+
+- 1: keys named episodes (``agos/<run>/ep/<ep>/...``).
+- 2: keys name world workers' slots (``agos/<run>/slot/<worker>/...``, ``viz/<worker>/...``) and lease
+  notices travel on ``ctl/lease``; the messages are those of version 1."""
+SchemaVersion = Literal[1, 2]
+"""Every ``v`` a stored message may carry."""
 
 Role = Literal["uav", "ugv"]
 Difficulty = Literal["easy", "mid", "hard"]

@@ -130,6 +130,10 @@ class RunSettings(_Section):
     before ``agos eval`` stores it as ``infra_error`` (not scored; ``--resume`` plays it again)."""
     infra_wait_s: float = Field(60.0, ge=0)
     """After such an outage, how long ``agos eval`` leases nothing before the paused episodes go again."""
+    reconnect_grace_s: float = Field(10.0, ge=0)
+    """How long the orchestrator keeps the leases of a world worker whose liveliness token vanished,
+    waiting for it to come back (a router restarted, a session that reconnected) before it leases them
+    again: a worker back within it keeps its episode, which stays attempt 1."""
 
 
 class VlmOptions(_Section):

@@ -46,8 +46,8 @@ class Serving:
         self.thread = threading.Thread(target=lambda: asyncio.run(serve_async(self.bus, policy, RUN, self.stop,
                                                                               concurrency=4)), daemon=True)
         self.thread.start()
-        self.token = self.bus.declare_token(keys.episode_live(RUN, "e1", "w1"))  # as a world running e1
-        assert wait_until(lambda: self.bus.wait_for_subscriber(keys.obs(RUN, "e1", "uav"), 0))
+        self.token = self.bus.declare_token(keys.slot_live(RUN, "w1"))  # as a world worker's slot
+        assert wait_until(lambda: self.bus.wait_for_subscriber(keys.obs(RUN, "w1", "uav"), 0))
 
     def __enter__(self) -> Serving:
         return self
@@ -60,7 +60,7 @@ class Serving:
 def test_inline_policy_is_answered_on_the_publishing_thread() -> None:
     with Serving(make_policy("standin-0ms", "uav")) as svc:
         assert svc.policy.inline
-        svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(_obs()))
+        svc.bus.publish(keys.obs(RUN, "w1", "uav"), encode(_obs()))
         sample = svc.actions.get(0)  # already there when publish returns: no hand-over to the loop
         assert sample is not None
         action = decode(sample.payload)
@@ -71,7 +71,7 @@ def test_inline_policy_is_answered_on_the_publishing_thread() -> None:
 def test_async_policies_are_answered_on_the_loop() -> None:
     with Serving(make_policy("standin-20ms", "uav")) as svc:
         assert not svc.policy.inline
-        svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(_obs()))
+        svc.bus.publish(keys.obs(RUN, "w1", "uav"), encode(_obs()))
         sample = svc.actions.get(5.0)
         assert sample is not None and decode(sample.payload).action == "MOVE_TO_UAV_WAYPOINT"
         assert decode(sample.payload).agent_wall_latency_s > 0
@@ -97,7 +97,7 @@ class Gated(Policy):
 def test_plain_policies_run_in_worker_threads() -> None:
     policy = Gated()
     with Serving(policy) as svc:
-        svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(_obs()))
+        svc.bus.publish(keys.obs(RUN, "w1", "uav"), encode(_obs()))
         assert svc.actions.get(0) is None  # publish returned while the policy still waits
         policy.gate.set()
         sample = svc.actions.get(5.0)
@@ -124,9 +124,9 @@ class Exploding(Policy):
 def test_policy_errors_cost_a_wait_and_episodes_end(inline: bool) -> None:
     policy = Exploding(inline)
     with Serving(policy) as svc:
-        svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(_obs(index=1)))
-        svc.bus.publish(keys.obs(RUN, "e1", "uav"), b"not msgpack")  # logged, ignored
-        svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(_obs(index=2)))
+        svc.bus.publish(keys.obs(RUN, "w1", "uav"), encode(_obs(index=1)))
+        svc.bus.publish(keys.obs(RUN, "w1", "uav"), b"not msgpack")  # logged, ignored
+        svc.bus.publish(keys.obs(RUN, "w1", "uav"), encode(_obs(index=2)))
         got = [decode(s.payload) for s in (svc.actions.get(5.0), svc.actions.get(5.0))]
         assert sorted((a.decision_index, a.action, a.rationale) for a in got) == [
             (1, "WAIT", "policy error (see agent log)"), (2, "WAIT", "fine")]
@@ -136,14 +136,14 @@ def test_policy_errors_cost_a_wait_and_episodes_end(inline: bool) -> None:
             final_distance_m=50.0, uav_budget=80, uav_first_visible_step=None, candidates=[], decisions_uav=2,
             decisions_ugv=0, sim_time_s=2.0, wall_time_s=0.1, worker_id="w", town_id="grid-s7", asset_sha256="ab" * 32,
             seed=1, renderer="tiny")
-        svc.bus.publish(keys.result(RUN, "e1"), encode(record))  # anyone may publish a result: it ends nothing
+        svc.bus.publish(keys.result(RUN, "w1"), encode(record))  # anyone may publish a result: it ends nothing
         time.sleep(0.2)
         assert policy.ended == []
-        svc.bus.undeclare_token(svc.token)  # the world is done with e1
-        deadline = time.monotonic() + 5
-        while not policy.ended and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert policy.ended == ["e1"]
+        svc.bus.publish(keys.obs(RUN, "w1", "uav"), encode(_obs("e2", index=2)))  # the slot's next episode
+        assert svc.actions.get(5.0) is not None
+        assert wait_until(lambda: policy.ended == ["e1"])
+        svc.bus.undeclare_token(svc.token)  # the world worker is gone
+        assert wait_until(lambda: policy.ended == ["e1", "e2"])
 
 
 class Mistyped(Policy):
@@ -166,46 +166,48 @@ class Mistyped(Policy):
 def test_mistyped_answers_cost_a_wait() -> None:
     with Serving(Mistyped("uav")) as svc:
         for index in (1, 2, 3):
-            svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(_obs(index=index)))
+            svc.bus.publish(keys.obs(RUN, "w1", "uav"), encode(_obs(index=index)))
         got = [decode(svc.actions.get(5.0).payload) for _ in range(3)]
         assert [(type(a), a.decision_index, a.action, a.rationale) for a in got] == [
             (Action, i, "WAIT", "policy error (see agent log)") for i in (1, 2, 3)]
 
 
-def test_observations_are_subscribed_exactly_while_a_world_holds_the_episode() -> None:
+def test_observations_are_subscribed_exactly_while_a_world_holds_its_slot() -> None:
     with Serving(make_policy("standin-0ms", "uav")) as svc:
-        exact = keys.obs(RUN, "e1", "uav")
-        assert [expr for expr, _ in svc.bus._subs if "/obs/" in expr] == [exact]  # no ep/*/obs wildcard
+        exact = keys.obs(RUN, "w1", "uav")
+        assert [expr for expr, _ in svc.bus._subs if "/obs/" in expr] == [exact]  # no slot/*/obs wildcard
         ready = Inbox()
-        svc.bus.watch_liveliness(keys.episode_ready(RUN, "*", "*", "*"), ready)
+        svc.bus.watch_liveliness(keys.slot_ready(RUN, "*", "*", "*"), ready)
         [(key, payload)] = [(s.key, s.payload) for s in ready.drain()]
-        assert payload == b"+" and key.startswith(keys.episode_ready(RUN, "e1", "uav", f"uav-{os.getpid()}-"))
-        assert not svc.bus.wait_for_subscriber(keys.obs(RUN, "e2", "uav"), 0)  # nobody runs e2
-        second = svc.bus.declare_token(keys.episode_live(RUN, "e1", "w2"))  # e1 re-leased to w2 meanwhile
+        assert payload == b"+" and key.startswith(keys.slot_ready(RUN, "w1", "uav", f"uav-{os.getpid()}-"))
+        assert not svc.bus.wait_for_subscriber(keys.obs(RUN, "w2", "uav"), 0)  # no worker w2
+        second = svc.bus.declare_token(keys.slot_live(RUN, "w2"))
         svc.bus.undeclare_token(svc.token)
-        svc.bus.declare_token(keys.episode_live(RUN, "e9", "w1"))  # handled after the two changes above
-        assert wait_until(lambda: svc.bus.wait_for_subscriber(keys.obs(RUN, "e9", "uav"), 0))
-        assert svc.bus.wait_for_subscriber(exact, 0)  # w2 still runs e1
-        svc.bus.publish(exact, encode(_obs()))
-        assert svc.actions.get(0) is not None
+        svc.bus.declare_token(keys.slot_live(RUN, "w9"))  # handled after the two changes above
+        assert wait_until(lambda: svc.bus.wait_for_subscriber(keys.obs(RUN, "w9", "uav"), 0))
+        assert not svc.bus.wait_for_subscriber(exact, 0)  # w1 is gone
+        svc.bus.publish(keys.obs(RUN, "w2", "uav"), encode(_obs()))
+        answer = svc.actions.get(0)
+        assert answer is not None and answer.key == keys.act(RUN, "w2", "uav")  # on the asking slot
         svc.bus.undeclare_token(second)
-        assert wait_until(lambda: not svc.bus.wait_for_subscriber(exact, 0))
-        assert [(s.key.split("/")[3], s.payload) for s in ready.drain()] == [("e9", b"+"), ("e1", b"-")]
+        assert wait_until(lambda: not svc.bus.wait_for_subscriber(keys.obs(RUN, "w2", "uav"), 0))
+        assert [(s.key.split("/")[3], s.payload) for s in ready.drain()] == [
+            ("w2", b"+"), ("w1", b"-"), ("w9", b"+"), ("w2", b"-")]
         svc.bus.publish(exact, encode(_obs(index=2)))
         assert svc.actions.get(0.1) is None
 
 
-def test_a_service_started_after_the_world_serves_the_episodes_in_flight() -> None:
+def test_a_service_started_after_the_world_serves_the_slots_in_flight() -> None:
     bus, stop = MemoryBus(), StopFlag()
-    bus.declare_token(keys.episode_live(RUN, "e7", "w1"))  # the world was there first
+    bus.declare_token(keys.slot_live(RUN, "w1"))  # the world was there first
     actions = Inbox()
-    bus.subscribe(keys.act(RUN, "e7", "uav"), actions)
+    bus.subscribe(keys.act(RUN, "w1", "uav"), actions)
     thread = threading.Thread(target=lambda: asyncio.run(serve_async(bus, make_policy("standin-0ms", "uav"), RUN, stop,
                                                                      concurrency=1)), daemon=True)
     thread.start()
     try:
-        assert wait_until(lambda: bus.wait_for_subscriber(keys.obs(RUN, "e7", "uav"), 0))
-        bus.publish(keys.obs(RUN, "e7", "uav"), encode(_obs("e7")))
+        assert wait_until(lambda: bus.wait_for_subscriber(keys.obs(RUN, "w1", "uav"), 0))
+        bus.publish(keys.obs(RUN, "w1", "uav"), encode(_obs("e7")))
         assert actions.get(1.0) is not None
     finally:
         stop.set()
@@ -239,7 +241,7 @@ def test_a_new_attempt_starts_afresh_and_late_observations_of_the_old_one_are_ig
         def ask(index: int, attempt: int) -> Action | None:
             obs = _obs(index=index)
             obs.attempt = attempt
-            svc.bus.publish(keys.obs(RUN, "e1", "uav"), encode(obs))
+            svc.bus.publish(keys.obs(RUN, "w1", "uav"), encode(obs))
             sample = svc.actions.get(2.0)
             return None if sample is None else decode(sample.payload)
 
@@ -248,3 +250,23 @@ def test_a_new_attempt_starts_afresh_and_late_observations_of_the_old_one_are_ig
         assert (first.waypoint_id, first.attempt, first.decision_index) == ("U1", 2, 1)  # memory of attempt 1 gone
         assert ask(4, 1) is None  # late, of the old attempt
         assert ask(2, 2).waypoint_id == "U2"
+
+
+def test_an_episode_re_leased_to_another_worker_starts_afresh_there() -> None:
+    """Attempt 2 on another worker's slot: the policy forgets attempt 1 (its world was thought dead),
+    and a late observation of attempt 1 on the old slot is not answered."""
+    with Serving(_Remembering(True)) as svc:
+        svc.bus.declare_token(keys.slot_live(RUN, "w2"))
+        assert wait_until(lambda: svc.bus.wait_for_subscriber(keys.obs(RUN, "w2", "uav"), 0))
+
+        def ask(worker: str, index: int, attempt: int) -> Action | None:
+            obs = _obs(index=index)
+            obs.attempt = attempt
+            svc.bus.publish(keys.obs(RUN, worker, "uav"), encode(obs))
+            sample = svc.actions.get(2.0)
+            return None if sample is None else decode(sample.payload)
+
+        assert [ask("w1", i, 1).waypoint_id for i in (1, 2)] == ["U1", "U2"]
+        assert ask("w2", 1, 2).waypoint_id == "U1"
+        assert ask("w1", 3, 1) is None
+        assert svc.policy.memory == {"e1": 1}

@@ -103,7 +103,7 @@ def test_the_gate_holds_episodes_back_and_the_run_stops_once_played_ones_are_sto
 def _result(r: EpisodeRecord) -> tuple[str, EpisodeRecord]:
     from agos.runtime import keys
 
-    return keys.result(r.run_id, r.episode_id), r
+    return keys.result(r.run_id, r.worker_id), r
 
 
 def _plan(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, **kw):

@@ -25,7 +25,7 @@ def test_memory_bus_delivers_encoded_messages() -> None:
     bus.publish(keys.result_ack("r", "e"), ResultAck(run_id="r", episode_id="e", newly_stored=True))
     bus.publish(keys.result("r", "e"), b"ignored")
     sample = inbox.get(0.1)
-    assert sample is not None and sample.key == "agos/r/ep/e/ack"
+    assert sample is not None and sample.key == "agos/r/slot/e/ack"
     assert decode(sample.payload) == ResultAck(run_id="r", episode_id="e", newly_stored=True)
     assert inbox.get(0.0) is None
 
@@ -44,19 +44,19 @@ def test_memory_bus_visualisation_stream() -> None:
 
 def test_memory_bus_liveliness_tokens() -> None:
     bus = MemoryBus()
-    first = bus.declare_token(keys.episode_live("r", "e1", "w1"))
+    first = bus.declare_token(keys.slot_live("r", "w1"))
     inbox = Inbox()
-    bus.watch_liveliness(keys.episode_live("r", "*", "*"), inbox)
-    assert inbox.drain() == [Sample("agos/r/ep/e1/live/w1", b"+")]  # history: alive before watching
+    bus.watch_liveliness(keys.slot_live("r", "*"), inbox)
+    assert inbox.drain() == [Sample("agos/r/slot/w1/live", b"+")]  # history: alive before watching
     # As zenoh 1.10 through a router: a second token on a key already alive is not announced, and
     # the key is reported gone when its last token goes.
-    second = bus.declare_token(keys.episode_live("r", "e1", "w1"))
+    second = bus.declare_token(keys.slot_live("r", "w1"))
     bus.declare_token(keys.live("r", "world", "w1"))  # not watched
     bus.undeclare_token(first)
     bus.undeclare_token(first)  # twice: nothing more
     assert inbox.drain() == []
     bus.undeclare_token(second)
-    assert inbox.drain() == [Sample("agos/r/ep/e1/live/w1", b"-")]
+    assert inbox.drain() == [Sample("agos/r/slot/w1/live", b"-")]
 
 
 def test_both_buses_have_every_method_of_the_protocol() -> None:
@@ -91,7 +91,7 @@ def test_memory_bus_unsubscribe_forget_and_close() -> None:
     inbox, payloads = Inbox(), list[bytes]()
     handle = bus.subscribe(keys.events("r", "*"), inbox)
     bus.subscribe_payloads(keys.events("r", "*"), payloads.append)
-    bus.forget(keys.episode_prefix("r", "e"))  # subscriptions outlive it
+    bus.forget(keys.slot_prefix("r", "e"))  # subscriptions outlive it
     bus.publish(keys.events("r", "e"), b"one")
     bus.unsubscribe(handle)
     bus.unsubscribe(handle)  # twice: nothing more

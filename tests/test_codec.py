@@ -152,7 +152,7 @@ def test_payloads_keep_their_size_and_content() -> None:
         old_order = {"v": plain.pop("v"), "type": plain.pop("type"), **plain}
         assert len(encode(make())) == len(msgpack.packb(old_order, use_bin_type=True)) == size
     assert msgpack.unpackb(encode(_action()), raw=False) == {
-        "type": "action", "v": 1, "run_id": "r1", "episode_id": "e1", "role": "ugv", "decision_index": 3, "attempt": 1,
+        "type": "action", "v": SCHEMA_VERSION, "run_id": "r1", "episode_id": "e1", "role": "ugv", "decision_index": 3, "attempt": 1,
         "action": "GO_TO_CANDIDATE", "waypoint_id": None, "cell": None, "candidate_id": "C002",
         "message": "heading there", "rationale": "closest", "agent_wall_latency_s": 0.25, "trace": None, "outage": None}
 
@@ -217,7 +217,7 @@ def test_payload_is_plain_msgpack_map() -> None:
 
     plain = msgpack.unpackb(encode(_observation()), raw=False, ext_hook=no_ext)
     assert isinstance(plain, dict)
-    assert plain["v"] == SCHEMA_VERSION == 1
+    assert plain["v"] == SCHEMA_VERSION == 2
     assert plain["type"] == "observation"
     assert plain["images"][0]["data"] == RAW
     assert isinstance(plain["images"][0]["data"], bytes)
@@ -227,7 +227,7 @@ def test_payload_is_plain_msgpack_map() -> None:
 
 
 def test_payload_built_without_structs_decodes() -> None:
-    payload = msgpack.packb({"v": 1, "type": "job_request", "worker_id": "w9"}, use_bin_type=True)
+    payload = msgpack.packb({"v": SCHEMA_VERSION, "type": "job_request", "worker_id": "w9"}, use_bin_type=True)
     request = decode(payload)
     assert type(request).__name__ == "JobRequest"
     assert request.worker_id == "w9"
@@ -275,12 +275,12 @@ def test_nested_wrong_type_is_named() -> None:
 
 def test_unknown_type_is_refused() -> None:
     with pytest.raises(DecodeError, match=r"field type: .*'teleport'"):
-        decode(msgpack.packb({"v": 1, "type": "teleport", "run_id": "r"}))
+        decode(msgpack.packb({"v": SCHEMA_VERSION, "type": "teleport", "run_id": "r"}))
 
 
 def test_missing_type_is_named() -> None:
     with pytest.raises(DecodeError, match=r"field type: .*missing required"):
-        decode(msgpack.packb({"v": 1, "run_id": "r"}))
+        decode(msgpack.packb({"v": SCHEMA_VERSION, "run_id": "r"}))
 
 
 def test_extra_field_rejected() -> None:
@@ -305,7 +305,7 @@ def test_non_msgpack_payload(payload: bytes) -> None:
 
 
 def test_too_deep_payload_is_refused() -> None:
-    head = msgpack.packb({"type": "job_grant", "v": 1, "episode": None})
+    head = msgpack.packb({"type": "job_grant", "v": SCHEMA_VERSION, "episode": None})
     deep = b"\x84" + head[1:] + b"\xa6config" + b"\x81\xa1a" * 3000 + b"\xc0"  # config: any map
     with pytest.raises(DecodeError, match="nested too deeply"):
         decode(deep)

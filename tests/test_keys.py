@@ -7,7 +7,7 @@ import pytest
 from agos.runtime import keys
 
 RUN = "run-7.a_b"
-EP = "grid-s7-easy-000-v1"
+W = "host-412-ab12"
 
 
 @pytest.mark.parametrize(
@@ -15,22 +15,24 @@ EP = "grid-s7-easy-000-v1"
     [
         (keys.manifest(RUN), "agos/run-7.a_b/ctl/manifest"),
         (keys.jobs(RUN), "agos/run-7.a_b/ctl/jobs"),
-        (keys.obs(RUN, EP, "uav"), "agos/run-7.a_b/ep/grid-s7-easy-000-v1/obs/uav"),
-        (keys.act(RUN, EP, "ugv"), "agos/run-7.a_b/ep/grid-s7-easy-000-v1/act/ugv"),
-        (keys.coord_truth(RUN, EP), "agos/run-7.a_b/ep/grid-s7-easy-000-v1/coord/truth"),
-        (keys.coord_view(RUN, EP, "uav"), "agos/run-7.a_b/ep/grid-s7-easy-000-v1/coord/view/uav"),
-        (keys.message(RUN, EP, "uav", "ugv"), "agos/run-7.a_b/ep/grid-s7-easy-000-v1/msg/uav/ugv"),
-        (keys.events(RUN, EP), "agos/run-7.a_b/ep/grid-s7-easy-000-v1/events"),
-        (keys.result(RUN, EP), "agos/run-7.a_b/ep/grid-s7-easy-000-v1/result"),
-        (keys.result_ack(RUN, EP), "agos/run-7.a_b/ep/grid-s7-easy-000-v1/ack"),
+        (keys.lease(RUN), "agos/run-7.a_b/ctl/lease"),
+        (keys.slot_live(RUN, W), "agos/run-7.a_b/slot/host-412-ab12/live"),
+        (keys.slot_ready(RUN, W, "uav", "uav-9-ff00"), "agos/run-7.a_b/slot/host-412-ab12/ready/uav/uav-9-ff00"),
+        (keys.obs(RUN, W, "uav"), "agos/run-7.a_b/slot/host-412-ab12/obs/uav"),
+        (keys.act(RUN, W, "ugv"), "agos/run-7.a_b/slot/host-412-ab12/act/ugv"),
+        (keys.coord_truth(RUN, W), "agos/run-7.a_b/slot/host-412-ab12/coord/truth"),
+        (keys.coord_view(RUN, W, "uav"), "agos/run-7.a_b/slot/host-412-ab12/coord/view/uav"),
+        (keys.message(RUN, W, "uav", "ugv"), "agos/run-7.a_b/slot/host-412-ab12/msg/uav/ugv"),
+        (keys.events(RUN, W), "agos/run-7.a_b/slot/host-412-ab12/events"),
+        (keys.result(RUN, W), "agos/run-7.a_b/slot/host-412-ab12/result"),
+        (keys.result_ack(RUN, W), "agos/run-7.a_b/slot/host-412-ab12/ack"),
+        (keys.slot_prefix(RUN, W), "agos/run-7.a_b/slot/host-412-ab12/"),
         (keys.live(RUN, "world", "w-01"), "agos/run-7.a_b/live/world/w-01"),
         (keys.live(RUN, "evaluator", "*"), "agos/run-7.a_b/live/evaluator/*"),
         (keys.asset("ab" * 32), "agos/assets/" + "ab" * 32),
-        (keys.viz_events(RUN, EP), "agos/run-7.a_b/viz/grid-s7-easy-000-v1/events"),
-        (keys.viz_coord(RUN, EP), "agos/run-7.a_b/viz/grid-s7-easy-000-v1/coord"),
-        (keys.viz_frame(RUN, EP, "ugv"), "agos/run-7.a_b/viz/grid-s7-easy-000-v1/frame/ugv"),
-        (keys.viz_prefix(RUN, EP), "agos/run-7.a_b/viz/grid-s7-easy-000-v1/"),
-        (keys.episode_prefix(RUN, EP), "agos/run-7.a_b/ep/grid-s7-easy-000-v1/"),
+        (keys.viz_events(RUN, W), "agos/run-7.a_b/viz/host-412-ab12/events"),
+        (keys.viz_coord(RUN, W), "agos/run-7.a_b/viz/host-412-ab12/coord"),
+        (keys.viz_frame(RUN, W, "ugv"), "agos/run-7.a_b/viz/host-412-ab12/frame/ugv"),
         (keys.viz_all(), "agos/*/viz/**"),
         (keys.viz_all(RUN), "agos/run-7.a_b/viz/**"),
     ],
@@ -41,8 +43,18 @@ def test_key_layout(key: str, expected: str) -> None:
 
 def test_wildcards_for_subscriptions() -> None:
     assert keys.manifest("*") == "agos/*/ctl/manifest"
-    assert keys.result(RUN, "*") == "agos/run-7.a_b/ep/*/result"
-    assert keys.events("*", "*") == "agos/*/ep/*/events"
+    assert keys.result(RUN, "*") == "agos/run-7.a_b/slot/*/result"
+    assert keys.events("*", "*") == "agos/*/slot/*/events"
+
+
+def test_no_key_names_an_episode() -> None:
+    """Every key builder takes processes' ids (run, worker, role, agent), never an episode's: the key space
+    a run uses is bounded by its processes (docs/ARCHITECTURE.md §2)."""
+    import inspect
+
+    for name, build in vars(keys).items():
+        if inspect.isfunction(build) and build.__module__ == keys.__name__:
+            assert not any("episode" in p for p in inspect.signature(build).parameters), name
 
 
 def test_roles_constant() -> None:
@@ -57,17 +69,17 @@ def test_invalid_run_id_raises(bad: str) -> None:
     with pytest.raises(ValueError, match="run id"):
         keys.manifest(bad)
     with pytest.raises(ValueError, match="run id"):
-        keys.obs(bad, EP, "uav")
+        keys.obs(bad, W, "uav")
 
 
 @pytest.mark.parametrize("bad", BAD_IDS)
-def test_invalid_episode_id_raises(bad: str) -> None:
-    for build in (keys.coord_truth, keys.events, keys.result, keys.result_ack):
-        with pytest.raises(ValueError, match="episode id"):
+def test_invalid_worker_id_raises(bad: str) -> None:
+    for build in (keys.coord_truth, keys.events, keys.result, keys.result_ack, keys.slot_live, keys.viz_spec):
+        with pytest.raises(ValueError, match="worker id"):
             build(RUN, bad)
-    with pytest.raises(ValueError, match="episode id"):
+    with pytest.raises(ValueError, match="worker id"):
         keys.act(RUN, bad, "ugv")
-    with pytest.raises(ValueError, match="episode id"):
+    with pytest.raises(ValueError, match="worker id"):
         keys.message(RUN, bad, "uav", "ugv")
 
 
@@ -83,27 +95,29 @@ def test_check_chunk_returns_value_and_names_what() -> None:
         keys.check_chunk("a b", what="thing")
 
 
-def test_episode_of_and_run_of_parse_built_keys() -> None:
+def test_slot_of_and_run_of_parse_built_keys() -> None:
     for key in (
-        keys.obs(RUN, EP, "uav"),
-        keys.coord_view(RUN, EP, "ugv"),
-        keys.message(RUN, EP, "ugv", "uav"),
-        keys.result_ack(RUN, EP),
+        keys.obs(RUN, W, "uav"),
+        keys.coord_view(RUN, W, "ugv"),
+        keys.message(RUN, W, "ugv", "uav"),
+        keys.result_ack(RUN, W),
+        keys.viz_frame(RUN, W, "uav"),
     ):
-        assert keys.episode_of(key) == EP
+        assert keys.slot_of(key) == W
         assert keys.run_of(key) == RUN
+    assert keys.kind_of(keys.viz_frame(RUN, W, "uav")) == "frame/uav"
+    assert keys.kind_of(keys.result(RUN, W)) == "result"
     assert keys.run_of(keys.manifest(RUN)) == RUN
     assert keys.run_of(keys.live(RUN, "orchestrator", "o1")) == RUN
-    assert keys.episode_of("agos/r/ep/e1") == "e1"
 
 
 @pytest.mark.parametrize(
     "key",
-    ["other/r/ep/e/result", "agos/r/ctl/manifest", "agos/r/ep", "agos", "", "agos/r/live/world/w1"],
+    ["other/r/slot/w/result", "agos/r/ctl/manifest", "agos/r/slot/w", "agos", "", "agos/r/live/world/w1"],
 )
-def test_episode_of_rejects_non_episode_keys(key: str) -> None:
-    with pytest.raises(ValueError, match="not an episode key"):
-        keys.episode_of(key)
+def test_slot_of_rejects_other_keys(key: str) -> None:
+    with pytest.raises(ValueError, match="not a slot key"):
+        keys.slot_of(key)
 
 
 @pytest.mark.parametrize("key", ["other/r/ctl/manifest", "agos", "", "AGOS/r/ctl/jobs", "zenoh/agos/r"])

@@ -27,17 +27,17 @@ def test_an_ack_that_overtakes_its_record_costs_one_repeat_not_a_re_lease() -> N
     orch.leases[spec.episode_id] = Lease(spec, "w1", 1, 0.0, 0.0)
     ack = ResultAck(run_id="r", episode_id=spec.episode_id, newly_stored=True)
 
-    orch._inbox.put(Sample(keys.result_ack("r", spec.episode_id), encode(ack)))
-    orch._inbox.put(Sample(keys.result("r", spec.episode_id), encode(record)))
+    orch._inbox.put(Sample(keys.result_ack("r", record.worker_id), encode(ack)))
+    orch._inbox.put(Sample(keys.result("r", record.worker_id), encode(record)))
     assert orch.pump(0.0) == [] and orch.unacknowledged() == [spec.episode_id]
 
     now[0] = LEASE_REPEAT_S + 0.1
     bus.publish.reset_mock()
     orch.pump(0.0)
-    republished = [c.args for c in bus.publish.call_args_list if c.args[0] == keys.result("r", spec.episode_id)]
-    assert republished == [(keys.result("r", spec.episode_id), orch.records[spec.episode_id])]
+    republished = [c.args for c in bus.publish.call_args_list if c.args[0] == keys.result("r", record.worker_id)]
+    assert republished == [(keys.result("r", record.worker_id), orch.records[spec.episode_id])]
 
-    orch._inbox.put(Sample(keys.result_ack("r", spec.episode_id), encode(ResultAck(
+    orch._inbox.put(Sample(keys.result_ack("r", record.worker_id), encode(ResultAck(
         run_id="r", episode_id=spec.episode_id, newly_stored=False))))
     assert [r.episode_id for r in orch.pump(0.0)] == [spec.episode_id]
     assert orch.finished and orch.releases == 0

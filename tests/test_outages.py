@@ -22,7 +22,7 @@ from agos.runtime.bus import Inbox, MemoryBus, Sample, _MemoryQuery
 from agos.runtime.codec import decode, encode
 from agos.runtime.process import StopFlag
 from agos.runtime.schemas import Action, CoordinationState, JobGrant, JobRequest, Observation, Pose
-from agos.world.sim.worker import BusDecisionSource, ModelOutage
+from agos.world.sim.worker import BusDecisionSource, ModelOutage, WorkerSlot
 from tests.test_run_converges import RUN, Bench
 
 from support.episodes import minimal_spec
@@ -56,18 +56,18 @@ def test_an_outage_answer_ends_the_world_attempt_without_a_decision() -> None:
     """The world takes the outage answer to the decision it asked (its attempt) and raises ModelOutage
     at once: nothing is applied, the UGV's answer is not waited for, and the worker gives the attempt back."""
     bus = MemoryBus()
-    source = BusDecisionSource(bus, "r", "e1", worker_id="w1", timeout_s=30.0, stop=StopFlag(), agent_wait_s=0.2)
+    source = BusDecisionSource(WorkerSlot(bus, "r", "w1"), "e1", timeout_s=30.0, stop=StopFlag(), agent_wait_s=0.2)
     for role in ("uav", "ugv"):
-        bus.declare_token(keys.episode_ready("r", "e1", role, f"{role}-1"))
+        bus.declare_token(keys.slot_ready("r", "w1", role, f"{role}-1"))
 
     class DownAgent(Inbox):
         def put(self, sample: Sample) -> None:
             obs = decode(sample.payload)
-            bus.publish(keys.act("r", "e1", "uav"), encode(Action(
+            bus.publish(keys.act("r", "w1", "uav"), encode(Action(
                 run_id="r", episode_id="e1", role="uav", decision_index=obs.decision_index, attempt=obs.attempt,
                 action="WAIT", outage="http://x/v1: no answer after 2 attempts (HTTP 500)")))
 
-    bus.subscribe(keys.obs("r", "e1", "uav"), DownAgent())
+    bus.subscribe(keys.obs("r", "w1", "uav"), DownAgent())
     with pytest.raises(ModelOutage) as raised:
         source.decide({"uav": _obs("uav"), "ugv": _obs("ugv")})  # the UGV never answers: not waited for 30 s
     assert str(raised.value) == "UAV agent: http://x/v1: no answer after 2 attempts (HTTP 500)"

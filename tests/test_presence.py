@@ -74,9 +74,9 @@ def test_an_evaluator_that_missed_the_manifest_joins_the_run_at_its_next_lease_n
         evaluator = Evaluator(bus, tmp_path)
         assert not who_is_here(bus, RUN).evaluator
         notice = LeaseNotice(run_id=RUN, episode_id="e1", worker_id="w0", attempt=1)
-        evaluator.handle(keys.lease(RUN, "e1"), encode(notice))
+        evaluator.handle(keys.lease(RUN), encode(notice))
         assert who_is_here(bus, RUN).evaluator
-        evaluator.handle(keys.lease("other", "e1"), encode(LeaseNotice(run_id="r2", episode_id="e1", worker_id="w0",
+        evaluator.handle(keys.lease("other"), encode(LeaseNotice(run_id="r2", episode_id="e1", worker_id="w0",
                                                                         attempt=1)))  # names another run than its key
         assert not who_is_here(bus, "r2").evaluator and not who_is_here(bus, "other").evaluator
         evaluator.close()

@@ -50,15 +50,17 @@ class Bench:
         self.evaluator = evaluator or Evaluator(self.bus, tmp)
         self.heard = Inbox()
         if evaluator is None:
-            for expr in (keys.result("*", "*"), keys.lease("*", "*"), keys.manifest("*")):
+            for expr in (keys.result("*", "*"), keys.lease("*"), keys.manifest("*")):
                 self.bus.subscribe(expr, self.heard)
         self.orch = Orchestrator(self.bus, RUN, episodes, policies=POLICIES, resumed=resumed, clock=lambda: self.now)
         self.stored: list[EpisodeRecord] = []
         self.tokens: dict[str, object] = {}
 
     def exit(self, worker: str) -> None:
-        """``worker`` exits: its liveliness token goes."""
+        """``worker`` exits: its liveliness token goes (and does not come back within the grace)."""
         self.bus.undeclare_token(self.tokens.pop(worker))
+        self.turn(0.0)
+        self.turn(self.orch.reconnect_grace_s)
         self.turn(0.0)
 
     def job(self, worker: str) -> JobGrant:
@@ -78,7 +80,7 @@ class Bench:
         grant = self.job(worker)
         assert grant.episode is not None, grant
         record = self.record(grant.episode.episode_id, worker, **fields)
-        self.bus.publish(keys.result(RUN, record.episode_id), record)
+        self.bus.publish(keys.result(RUN, record.worker_id), record)
         return record
 
     @staticmethod
@@ -124,13 +126,13 @@ def test_replayed_records_and_lease_notices_of_stored_episodes_change_nothing(tm
     assert bench.orch.stored == {first.episode_id}
     notice = LeaseNotice(run_id=RUN, episode_id=first.episode_id, worker_id="w1", attempt=1)
     for _ in range(3):
-        bench.bus.publish(keys.result(RUN, first.episode_id), first)
-        bench.bus.publish(keys.lease(RUN, first.episode_id), notice)
+        bench.bus.publish(keys.result(RUN, first.worker_id), first)
+        bench.bus.publish(keys.lease(RUN), notice)
     second = bench.play("w1")
-    bench.bus.publish(keys.result(RUN, second.episode_id), second)  # a duplicate before the ack
+    bench.bus.publish(keys.result(RUN, second.worker_id), second)  # a duplicate before the ack
     bench.until_finished()
     for _ in range(3):
-        bench.bus.publish(keys.result(RUN, second.episode_id), second)
+        bench.bus.publish(keys.result(RUN, second.worker_id), second)
     bench.turn(LEASE_REPEAT_S)
     published = len(bench.bus.published)
     bench.turn(3 * LEASE_REPEAT_S)
@@ -152,7 +154,7 @@ def test_a_finished_episode_waiting_for_its_ack_is_not_leased_again(tmp_path: Pa
     assert bench.orch.releases == 0 and bench.orch.unacknowledged() == [first.episode_id]
     assert bench.job("w2").episode.episode_id == "e2"  # type: ignore[union-attr]
     del bench.evaluator.handle  # it is back: the orchestrator's repeat of the record is stored
-    bench.bus.publish(keys.result(RUN, "e2"), bench.record("e2", "w2"))
+    bench.bus.publish(keys.result(RUN, "w2"), bench.record("e2", "w2"))
     bench.until_finished()
     assert [(r.episode_id, r.worker_id) for r in bench.rows()] == [("e1", "w1"), ("e2", "w2")]
     assert bench.orch.releases == 0
@@ -193,12 +195,12 @@ def test_the_newest_lease_notice_names_the_holder(tmp_path: Path, before: str) -
     bus = MemoryBus()
     evaluator = Evaluator(bus, tmp_path)
     heard = Inbox()
-    for expr in (keys.result("*", "*"), keys.lease("*", "*"), keys.manifest("*")):
+    for expr in (keys.result("*", "*"), keys.lease("*"), keys.manifest("*")):
         bus.subscribe(expr, heard)
     attempt, holder = (3, "w-old") if before.startswith("an earlier") else (99, "forger")
-    bus.publish(keys.lease(RUN, "e1"), LeaseNotice(run_id=RUN, episode_id="e1", worker_id=holder, attempt=attempt))
+    bus.publish(keys.lease(RUN), LeaseNotice(run_id=RUN, episode_id="e1", worker_id=holder, attempt=attempt))
     if holder == "w-old":
-        bus.publish(keys.result(RUN, "e1"), failure_record(RUN, minimal_spec("e1"), status="world_crashed",
+        bus.publish(keys.result(RUN, holder), failure_record(RUN, minimal_spec("e1"), status="world_crashed",
                                                            worker_id=holder, error="gave up after 3 attempts",
                                                            config=EpisodeConfig()))
     for sample in heard.drain():
@@ -240,3 +242,21 @@ def test_records_an_evaluator_on_the_bus_never_stores_stop_the_run(tmp_path: Pat
     assert halt is not None and halt.code == 3, out.getvalue()
     assert "no evaluator stored the records of e1 (3 checks" in halt.line
     assert "see the log of the evaluator serving it and resume with `agos eval --resume" in halt.line
+
+
+def test_a_worker_back_within_the_grace_keeps_its_lease(tmp_path: Path) -> None:
+    """A worker's token that vanishes and comes back within ``reconnect_grace_s`` (a router restarted, a
+    session that reconnected) keeps its episode: stored as attempt 1, nothing re-leased."""
+    bench = Bench(tmp_path, [minimal_spec("e1"), minimal_spec("e2")])
+    grant = bench.job("w1")
+    assert grant.episode is not None and grant.attempt == 1
+    bench.bus.undeclare_token(bench.tokens.pop("w1"))
+    bench.turn(bench.orch.reconnect_grace_s / 2)
+    assert bench.job("w2").episode.episode_id == "e2"  # type: ignore[union-attr]
+    bench.tokens["w1"] = bench.bus.declare_token(keys.live(RUN, "world", "w1"))  # back
+    bench.turn(bench.orch.reconnect_grace_s)
+    bench.bus.publish(keys.result(RUN, "w1"), bench.record("e1", "w1"))
+    bench.bus.publish(keys.result(RUN, "w2"), bench.record("e2", "w2"))
+    bench.until_finished()
+    assert bench.orch.releases == 0 and not bench.orch.pending
+    assert [(r.episode_id, r.worker_id) for r in bench.rows()] == [("e1", "w1"), ("e2", "w2")]

@@ -288,14 +288,14 @@ def test_a_miss_stops_the_agent_service_with_exit_4_and_answers_nothing(caplog) 
                                                                                   concurrency=2))), daemon=True)
     thread.start()
     try:
-        bus.declare_token(keys.episode_live("r", "e1", "w1"))
-        assert wait_until(lambda: bus.wait_for_subscriber(keys.obs("r", "e1", "uav"), 0))
+        bus.declare_token(keys.slot_live("r", "w1"))
+        assert wait_until(lambda: bus.wait_for_subscriber(keys.obs("r", "w1", "uav"), 0))
         obs = Observation(run_id="r", episode_id="e1", role="uav", decision_index=3, sim_time_s=0.0,
                           pose=Pose(position_world_m=(0.0, 0.0, 80.0), yaw_rad=0.0), mode="aerial", images=[],
                           references=[], legal_actions=["WAIT"], waypoint_options=[],
                           region_world_m=(0.0, 0.0, 10.0, 10.0),
                           coordination=CoordinationState(run_id="r", episode_id="e1", sim_time_s=0.0))
-        bus.publish(keys.obs("r", "e1", "uav"), encode(obs))
+        bus.publish(keys.obs("r", "w1", "uav"), encode(obs))
         thread.join(10)
     finally:
         stop.set()

@@ -30,7 +30,7 @@ from agos.agents.contract import Policy
 from agos.agents.human.board import DecisionBoard, PageBoard
 from agos.agents.human.server import ConsoleServer
 from agos.agents.human.spectator import SpectatorBoard
-from agos.agents.service import _Dispatch, _EpisodeSubscriptions, publish_action
+from agos.agents.service import _Dispatch, _SlotSubscriptions, publish_action
 from agos.runtime import keys
 from agos.runtime.bus import Bus, ZenohBus
 from agos.runtime.codec import encode
@@ -64,28 +64,28 @@ async def serve_async(bus: Bus, board: DecisionBoard, run_id: str, stop: StopFla
     loop = asyncio.get_running_loop()
     tasks: set[asyncio.Task[None]] = set()
 
-    async def handle(obs: Observation, future: Any, started: float) -> None:
+    async def handle(worker: str, obs: Observation, future: Any, started: float) -> None:
         try:
             action = await asyncio.wrap_future(future)
         except asyncio.CancelledError:  # the world moved on, or the episode ended
             return
-        publish_action(bus, run_id, obs, action, started)  # stamps the person's latency, checks, sends
+        publish_action(bus, run_id, worker, obs, action, started)  # stamps the person's latency, checks, sends
 
-    def on_loop(obs: Observation) -> None:
+    def on_loop(worker: str, obs: Observation) -> None:
         asked = board.ask(obs)
         if asked.kind == "new":
-            task = loop.create_task(handle(obs, asked.future, time.monotonic()))
+            task = loop.create_task(handle(worker, obs, asked.future, time.monotonic()))
             tasks.add(task)
             task.add_done_callback(tasks.discard)
         elif asked.kind == "decided" and asked.action is not None:  # the world asks again: send it again
-            bus.publish(keys.act(run_id, obs.episode_id, obs.role), encode(asked.action))
+            bus.publish(keys.act(run_id, worker, obs.role), encode(asked.action))
 
     subscriptions = []
     for role in board.roles:
         agent_id = unique_id(role)
         dispatch = _Dispatch(bus, HumanPolicy(role, board), run_id, loop, on_loop)
-        episodes = _EpisodeSubscriptions(bus, run_id, role, agent_id, dispatch, loop)
-        bus.watch_liveliness(keys.episode_live(run_id, "*", "*"), episodes)
+        episodes = _SlotSubscriptions(bus, run_id, role, agent_id, dispatch, loop)
+        bus.watch_liveliness(keys.slot_live(run_id, "*"), episodes)
         bus.declare_token(keys.live(run_id, "agent", agent_id))
         announce("agent", agent_id, run_id)
         subscriptions.append((episodes, dispatch))

@@ -114,7 +114,7 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policies: dict[st
     from agos.env import Env
     from agos.world.episodes.sampling import generate_episodes
     from agos.world.sim.scene import Scene
-    from agos.world.sim.worker import BusDecisionSource, BusSink, MissingAgent, ModelOutage
+    from agos.world.sim.worker import BusDecisionSource, BusSink, MissingAgent, ModelOutage, WorkerSlot
     from agos.world.towns.asset import open_town
 
     console = console or Console(soft_wrap=True)  # paths and commands it prints are never cut at the width
@@ -132,9 +132,11 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policies: dict[st
         spec = msgspec.structs.replace(spec, episode_id=f"check-{spec.episode_id}")
         console.print(f"checking the agents of run {run_id!r} on {cfg.zenoh.connect}: episode {spec.episode_id}, "
                       f"{budget} decisions (waiting up to {cfg.run.agent_wait_s:.0f} s for the agent services)")
-        source = BusDecisionSource(bus, run_id, spec.episode_id, worker_id=f"check-{os.getpid()}",
-                                   timeout_s=config.decision_timeout_s, stop=stop, agent_wait_s=cfg.run.agent_wait_s)
-        sink = StepChecks(BusSink(bus, run_id, spec.episode_id), v)
+        worker_id = f"check-{os.getpid()}"
+        slot = WorkerSlot(bus, run_id, worker_id)
+        source = BusDecisionSource(slot, spec.episode_id, timeout_s=config.decision_timeout_s, stop=stop,
+                                   agent_wait_s=cfg.run.agent_wait_s)
+        sink = StepChecks(BusSink(bus, run_id, worker_id), v)
         try:
             with Env(spec, config, illegal="wait", run_id=run_id, worker_id="check", scene=scene, town=town,
                      sink=sink) as env:  # the world's own fallbacks: the checks count illegal answers
@@ -149,7 +151,7 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policies: dict[st
             v.check("finished", False, f"the model endpoint gave no answer: {exc}")
             console.print(f"[red]the model endpoint gave no answer: {exc}", highlight=False)
         finally:
-            source.close()
+            slot.close()
         if record is not None:
             v.check("finished", record.status == "finished", f"episode status {record.status}")
     _report(console, v, record)

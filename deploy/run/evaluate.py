@@ -329,7 +329,8 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
         bus = ZenohBus.from_settings(own)
         orch = Orchestrator(bus, plan.run_id, plan.episodes, policies=plan.policies, config=plan.config,
                             already_stored=done_before, resumed=plan.resumed, stuck_after_s=stuck_after_s,
-                            max_infra_attempts=cfg.run.max_infra_attempts, infra_wait_s=cfg.run.infra_wait_s)
+                            max_infra_attempts=cfg.run.max_infra_attempts, infra_wait_s=cfg.run.infra_wait_s,
+                            reconnect_grace_s=cfg.run.reconnect_grace_s)
         orch.publish_manifest("running")
         if done_before:
             console.print(f"resuming {plan.run_dir}: {len(orch.stored)} of {orch.total} episodes already finished; "

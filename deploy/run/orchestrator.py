@@ -5,9 +5,11 @@ tracks which episodes are stored.
   number and the run's whole episode configuration (runtime/episode_config.py); ``None`` while others are still running; or
   ``run_finished``. Only a worker whose liveliness token is up gets an episode: a stray client
   asking for jobs cannot take episodes away from the workers.
-* Every lease is announced on ``agos/<run>/ep/<ep>/lease`` (and again every ``LEASE_REPEAT_S``
+* Every lease is announced on ``agos/<run>/ctl/lease`` (and again every ``LEASE_REPEAT_S``
   while it lasts): the evaluator stores a result only from the worker named there.
-* A worker whose liveliness token (``agos/<run>/live/world/<id>``) vanishes, or whose episode
+* A worker whose liveliness token (``agos/<run>/live/world/<id>``) vanishes and does not come back
+  within ``reconnect_grace_s`` (a router restarted, or this orchestrator's own session reconnected:
+  every token then vanishes and comes back), or whose episode
   shows no step event for ``stuck_after_s`` of wall time, loses its leases: those episodes go back
   to the front of the queue with attempt + 1. After ``max_attempts`` the orchestrator submits an
   infrastructure-failure record itself (``world_crashed``), so the run still ends. A lease whose
@@ -90,7 +92,7 @@ class Orchestrator:
                  config: EpisodeConfig | None = None,
                  stuck_after_s: float = STUCK_AFTER_S, max_attempts: int = 3, already_stored: set[str] | None = None,
                  resumed: bool = False, max_infra_attempts: int = MAX_INFRA_ATTEMPTS, infra_wait_s: float = INFRA_WAIT_S,
-                 clock=time.monotonic) -> None:
+                 reconnect_grace_s: float = 10.0, clock=time.monotonic) -> None:
         self.bus, self.run_id = bus, run_id
         self.policies = policies
         self.config = config or EpisodeConfig()
@@ -119,6 +121,9 @@ class Orchestrator:
         self.last_stored_s: float | None = None
         self.live_workers: set[str] = set()
         """World workers whose liveliness token is up: the only ones that get episodes."""
+        self.reconnect_grace_s = reconnect_grace_s
+        self.vanished: dict[str, float] = {}
+        """World workers whose token vanished -> when (clock): their leases are kept ``reconnect_grace_s``."""
         self.gave_up: dict[str, EpisodeRecord] = {}
         """Infrastructure-failure records this orchestrator submitted, until acknowledged."""
         self.outages: Counter[str] = Counter()
@@ -141,7 +146,7 @@ class Orchestrator:
         # Imported towns travel by hash: workers without the file ask agos/assets/<sha256>.
         self._asset_queries = bus.serve(keys.asset("*"))
         self._inbox = Inbox()
-        bus.subscribe(keys.result(run_id, "*"), self._inbox)
+        bus.subscribe(keys.result(run_id, "*"), self._inbox)  # every worker's slot
         bus.subscribe(keys.result_ack(run_id, "*"), self._inbox)
         bus.subscribe(keys.events(run_id, "*"), self._inbox)
         self._live = Inbox()
@@ -179,10 +184,13 @@ class Orchestrator:
                 except DecodeError as exc:
                     self.rejections.reject(s.key, "unreadable", exc)
                     continue
-                if not isinstance(event, (StepEvent, EpisodeStarted)) or event.episode_id != keys.episode_of(s.key):
-                    self.rejections.reject(s.key, "not an event of the episode its key names")
+                if not isinstance(event, (StepEvent, EpisodeStarted)) or event.episode_id not in self.episode_ids:
+                    self.rejections.reject(s.key, "not an event of an episode of this run")
                     continue
                 lease = self.leases.get(event.episode_id)
+                if lease is not None and lease.worker != keys.slot_of(s.key):
+                    self.rejections.reject(s.key, "not from the episode's lease holder")
+                    continue
                 if lease is not None:
                     lease.last_progress = now
                 self.decisions += isinstance(event, StepEvent)
@@ -195,15 +203,16 @@ class Orchestrator:
             except DecodeError as exc:
                 self.rejections.reject(s.key, "unreadable", exc)
                 continue
-            # A message counts only for an episode of this run's split, named alike by its key and its
-            # payload: anything else on these keys is a mistake or a forgery.
-            about = keys.episode_of(s.key)
-            if getattr(message, "episode_id", None) != about or getattr(message, "run_id", None) != self.run_id \
-                    or about not in self.episode_ids:
-                self.rejections.reject(s.key, "not an episode of this run named alike by key and payload")
+            # A message counts only for an episode of this run's split, a record only on the slot of the
+            # worker it names: anything else on these keys is a mistake or a forgery.
+            if getattr(message, "run_id", None) != self.run_id or getattr(message, "episode_id", None) \
+                    not in self.episode_ids:
+                self.rejections.reject(s.key, "not an episode of this run")
                 continue
             if isinstance(message, EpisodeRecord):
-                if not self._from_holder(message):
+                if message.worker_id != keys.slot_of(s.key):
+                    self.rejections.reject(s.key, "names another worker than its key")
+                elif not self._from_holder(message):
                     self.rejections.reject(s.key, "not from the lease holder")
                 elif non_finite_field(message):  # the evaluator refuses it too: it must not count here
                     self.rejections.reject(s.key, "a number that is not finite")
@@ -225,9 +234,16 @@ class Orchestrator:
             worker = s.key.rsplit("/", 1)[-1]
             if s.payload == b"+":
                 self.live_workers.add(worker)
+                if self.vanished.pop(worker, None) is not None:
+                    log.info("world worker %s is back; it keeps its leases", worker)
             else:
                 self.live_workers.discard(worker)
-                self._release_worker(worker, "its liveliness token vanished")
+                self.vanished[worker] = now
+        for worker, since in list(self.vanished.items()):
+            if now - since >= self.reconnect_grace_s:
+                del self.vanished[worker]
+                self._release_worker(worker, f"its liveliness token vanished (not back within "
+                                             f"{self.reconnect_grace_s:g} s)")
         for episode_id, lease in list(self.leases.items()):
             if now - lease.last_progress > self.stuck_after_s and episode_id not in self.records:
                 self._release(episode_id, f"no progress for {self.stuck_after_s:.0f} s on {lease.worker}")
@@ -239,8 +255,8 @@ class Orchestrator:
             # a holder's record whose ack came first (a small ack can overtake a large record on another
             # key) and was refused above, so the evaluator acknowledges it once more, in order.
             unacked = {e: self.records[e] for e in self.unacknowledged()} | self.gave_up
-            for episode_id, record in unacked.items():
-                self.bus.publish(keys.result(self.run_id, episode_id), record, once=True)
+            for record in unacked.values():
+                self.bus.publish(keys.result(self.run_id, record.worker_id), record, once=True)
         self._answer_queries()
         return newly
 
@@ -258,9 +274,8 @@ class Orchestrator:
         return (lease is not None and record.worker_id == lease.worker) or record == given_up
 
     def _announce(self, lease: Lease) -> None:
-        # Keys of one episode: published without a publisher kept for each (runtime/bus.py, ``once``).
-        self.bus.publish(keys.lease(self.run_id, lease.spec.episode_id), LeaseNotice(
-            run_id=self.run_id, episode_id=lease.spec.episode_id, worker_id=lease.worker, attempt=lease.attempt), once=True)
+        self.bus.publish(keys.lease(self.run_id), LeaseNotice(
+            run_id=self.run_id, episode_id=lease.spec.episode_id, worker_id=lease.worker, attempt=lease.attempt))
 
     def _release_worker(self, worker: str, why: str) -> None:
         """Take back ``worker``'s leases but those whose record is in (played: only storage is awaited)."""
@@ -277,7 +292,7 @@ class Orchestrator:
             record = self.gave_up[episode_id] = failure_record(
                 self.run_id, lease.spec, status=status, worker_id=lease.worker,
                 error=f"gave up after {lease.attempt} attempts: {why}", config=self.config)
-            self.bus.publish(keys.result(self.run_id, episode_id), record, once=True)
+            self.bus.publish(keys.result(self.run_id, lease.worker), record, once=True)  # another's slot
             return
         log.warning("re-leasing %s (attempt %d): %s", episode_id, lease.attempt + 1, why)
         self.pending.appendleft((lease.spec, lease.attempt + 1))
@@ -298,7 +313,7 @@ class Orchestrator:
             record = self.gave_up[episode_id] = failure_record(
                 self.run_id, lease.spec, status="infra_error", worker_id=lease.worker,
                 error=f"the model endpoint gave no answer in {lost} attempts: {why}", config=self.config)
-            self.bus.publish(keys.result(self.run_id, episode_id), record, once=True)
+            self.bus.publish(keys.result(self.run_id, lease.worker), record, once=True)  # another's slot
             self.notices.append(f"{episode_id}: stored as infra_error after {lost} attempts without an answer from the "
                                 f"model endpoint (not scored; --resume plays it again){self._waiting_text('; ')}")
             return

@@ -2,15 +2,18 @@
 
     agos world --connect tcp/HOST:PORT --run RUN
 
-Observations go to ``.../obs/<role>`` and actions are awaited on ``.../act/<role>`` (a
-wall-clock deadline turns a missing action into a logged WAIT). The record is published on
-``.../result`` until the evaluator acknowledges it on ``.../ack``.
+A worker holds one *slot* of the run's key space for its whole session (``agos/<run>/slot/<worker>/``,
+runtime/keys.py): whatever episode it runs, observations go to ``.../obs/<role>``, actions are awaited
+on ``.../act/<role>`` (a wall-clock deadline turns a missing action into a logged WAIT), and the record
+is published on ``.../result`` until the evaluator acknowledges it on ``.../ack``. The episode and the
+attempt travel in every payload; what names another is refused.
 """
 
 from __future__ import annotations
 
 import logging
 import resource
+import threading
 import time
 import traceback
 
@@ -59,26 +62,94 @@ itself: an interrupted episode is never submitted, so nothing is lost, and ``ago
 
 
 class BusSink:
-    """Publishes the runner's reports on the episode's keys, and mirrors steps and the
-    coordination truth on the visualisation stream (lossy, only while watched)."""
+    """Publishes the runner's reports on the worker's slot, and mirrors steps and the coordination
+    truth on the visualisation stream (lossy, only while watched). The payloads name their episode."""
 
-    def __init__(self, bus: Bus, run_id: str, episode_id: str) -> None:
-        self.bus, self.run_id, self.episode_id = bus, run_id, episode_id
+    def __init__(self, bus: Bus, run_id: str, worker_id: str) -> None:
+        self.bus, self.run_id, self.worker_id = bus, run_id, worker_id
+        self.events_key, self.viz_events_key = keys.events(run_id, worker_id), keys.viz_events(run_id, worker_id)
+        self.truth_key, self.viz_coord_key = keys.coord_truth(run_id, worker_id), keys.viz_coord(run_id, worker_id)
+        self.view_keys = {role: keys.coord_view(run_id, worker_id, role) for role in keys.ROLES}
 
     def step(self, event: StepEvent) -> None:
         payload = encode(event)
-        self.bus.publish(keys.events(self.run_id, self.episode_id), payload)
-        self.bus.publish_viz(keys.viz_events(self.run_id, self.episode_id), payload)
+        self.bus.publish(self.events_key, payload)
+        self.bus.publish_viz(self.viz_events_key, payload)
 
     def coordination(self, truth: CoordinationState, views: dict[Role, CoordinationState]) -> None:
         payload = encode(truth)
-        self.bus.publish(keys.coord_truth(self.run_id, self.episode_id), payload)
-        self.bus.publish_viz(keys.viz_coord(self.run_id, self.episode_id), payload)
+        self.bus.publish(self.truth_key, payload)
+        self.bus.publish_viz(self.viz_coord_key, payload)
         for role, view in views.items():
-            self.bus.publish(keys.coord_view(self.run_id, self.episode_id, role), view)
+            self.bus.publish(self.view_keys[role], view)
 
     def message(self, message: AgentMessage) -> None:
-        self.bus.publish(keys.message(self.run_id, self.episode_id, message.sender, message.receiver), message)
+        self.bus.publish(keys.message(self.run_id, self.worker_id, message.sender, message.receiver), message)
+
+
+class AgentPresence:
+    """Which agent services have subscribed to a slot's observations, by role: kept from their ``ready``
+    tokens (``keys.slot_ready``) for the slot's whole life. ``losses[role]`` counts the times the last
+    agent of ``role`` went away: an episode served by a role whose count moved since has lost its memory."""
+
+    def __init__(self) -> None:
+        self._changed = threading.Condition()
+        self.ready: dict[str, set[str]] = {role: set() for role in keys.ROLES}
+        self.losses: dict[str, int] = dict.fromkeys(keys.ROLES, 0)
+
+    def put(self, change: Sample) -> None:
+        """One change of a ``ready`` token, ``.../ready/<role>/<agent>``: ``+`` or ``-`` (zenoh's thread)."""
+        role, agent = change.key.rsplit("/", 2)[-2:]
+        with self._changed:
+            if role not in self.ready:
+                return
+            if change.payload == b"+":
+                self.ready[role].add(agent)
+            elif agent in self.ready[role]:
+                self.ready[role].discard(agent)
+                self.losses[role] += not self.ready[role]
+            self._changed.notify_all()
+
+    def wait_for(self, roles: list[Role], timeout_s: float, stop: StopFlag) -> list[Role]:
+        """Wait up to ``timeout_s`` until an agent of each role is ready; the roles still missing."""
+        deadline = time.monotonic() + timeout_s
+        with self._changed:
+            while (missing := [role for role in roles if not self.ready[role]]) and not stop.is_set():
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    break
+                self._changed.wait(min(remaining, 0.5))
+            return missing
+
+
+class WorkerSlot:
+    """What a world worker declares once for its session (runtime/keys.py: no key names an episode):
+    the action and acknowledgement subscriptions, the agents' ``ready`` watch, the observation and
+    visualisation keys, and last the slot's liveliness token, on which agent services subscribe to
+    its observations. Episodes come and go on it; :meth:`close` when the worker stops."""
+
+    def __init__(self, bus: Bus, run_id: str, worker_id: str) -> None:
+        self.bus, self.run_id, self.worker_id = bus, run_id, worker_id
+        self.actions, self.acks, self.agents = Inbox(), Inbox(), AgentPresence()
+        # One exact subscription per role, not ``act/*``: zenoh delivers to an exact key expression
+        # more cheaply, 6-15 us per decision in situ (docs/ARCHITECTURE.md §6, "Decision round trip").
+        self.act_keys = {role: keys.act(run_id, worker_id, role) for role in keys.ROLES}
+        self._handles = [bus.subscribe(key, self.actions) for key in self.act_keys.values()]
+        self._handles.append(bus.subscribe(keys.result_ack(run_id, worker_id), self.acks))
+        self._handles.append(bus.watch_liveliness(keys.slot_ready(run_id, worker_id, "*", "*"), self.agents))
+        self.obs_keys = {role: keys.obs(run_id, worker_id, role) for role in keys.ROLES}
+        self.viz_keys = {role: keys.viz_frame(run_id, worker_id, role) for role in keys.ROLES}
+        # Full-resolution views go out only while something subscribes to them (agos record --full);
+        # asked now, so that the matching flag is current by the first decision.
+        self.full_keys = {role: keys.viz_full(run_id, worker_id, role) for role in keys.ROLES}
+        for key in self.full_keys.values():
+            bus.watched(key)
+        self._token = bus.declare_token(keys.slot_live(run_id, worker_id))
+
+    def close(self) -> None:
+        self.bus.undeclare_token(self._token)
+        for handle in self._handles:
+            self.bus.unsubscribe(handle)
 
 
 class MissingAgent(RuntimeError):
@@ -112,83 +183,49 @@ class ModelOutage(RuntimeError):
 
 
 class BusDecisionSource:
-    """Asks the agent services for decisions over zenoh (lockstep: the sim clock waits)."""
+    """Asks the agent services for one episode's decisions over the worker's slot (lockstep: the sim
+    clock waits)."""
 
-    def __init__(self, bus: Bus, run_id: str, episode_id: str, *, worker_id: str, timeout_s: float,
-                 stop: StopFlag, agent_wait_s: float = 30.0, frames: FrameStream | None = None, attempt: int = 1,
+    def __init__(self, slot: WorkerSlot, episode_id: str, *, timeout_s: float, stop: StopFlag,
+                 agent_wait_s: float = 30.0, frames: FrameStream | None = None, attempt: int = 1,
                  rejections: Rejections | None = None) -> None:
         """``attempt``: the lease's attempt number, stamped on every observation. An action counts only
         when it answers the decision asked of its role in this attempt and names this run, episode and
-        the role of its key, with finite numbers; anything else (a late answer meant for a world that
-        died, a stray or forged publisher) is refused and counted in ``rejections``."""
-        self.bus, self.run_id, self.episode_id, self.attempt = bus, run_id, episode_id, attempt
+        the role of its key, with finite numbers; anything else (a late answer meant for an earlier
+        episode of the slot, or for a world that died, a stray or forged publisher) is refused and
+        counted in ``rejections``."""
+        self.slot, self.bus, self.run_id, self.episode_id = slot, slot.bus, slot.run_id, episode_id
+        self.attempt = attempt
         self.rejections = rejections or Rejections(log)
         self.timeout_s, self.stop, self.agent_wait_s = timeout_s, stop, agent_wait_s
         self.frames = frames  # thumbnails for observers (runtime/viz.py)
-        self.inbox = Inbox()
-        # One exact subscription per role, not ``act/*``: zenoh delivers to an exact key expression
-        # more cheaply, 6-15 us per decision in situ (docs/ARCHITECTURE.md §6, "Decision round trip").
-        self._handles = [bus.subscribe(keys.act(run_id, episode_id, role), self.inbox) for role in keys.ROLES]
+        self.inbox = slot.actions
         self.buffers = {role: bytearray() for role in keys.ROLES}  # each role's last observation, reused
-        self.obs_keys = {role: keys.obs(run_id, episode_id, role) for role in keys.ROLES}
-        self.viz_keys = {role: keys.viz_frame(run_id, episode_id, role) for role in keys.ROLES}
-        # Full-resolution views go out only while something subscribes to them (agos record --full);
-        # asked now, so that the matching flag is current by the first decision.
-        self.full_keys = {role: keys.viz_full(run_id, episode_id, role) for role in keys.ROLES}
-        for key in self.full_keys.values():
-            bus.watched(key)
-        self._ready: dict[str, set[str]] = {role: set() for role in keys.ROLES}  # role -> agents subscribed
-        self._served: set[str] = set()  # roles whose agents answered this episode
-        self._ready_changes = Inbox()
-        self._handles.append(bus.watch_liveliness(keys.episode_ready(run_id, episode_id, "*", "*"), self._ready_changes))
-        # While this token lives, agent services subscribe to this episode's observation keys
-        # exactly, not through ``ep/*/obs/<role>``: 10-20 us less per decision in situ
-        # (docs/ARCHITECTURE.md §6, "Decision round trip"); each says so with its ``ready`` token,
-        # which the first decision waits for. Declared last: nothing to withdraw if a step above raised.
-        self._token = bus.declare_token(keys.episode_live(run_id, episode_id, worker_id))
+        self._losses_seen: dict[str, int] = {}  # role -> the slot's count of lost agents when it was first asked
 
     def close(self) -> None:
-        self.bus.undeclare_token(self._token)
-        for handle in self._handles:
-            self.bus.unsubscribe(handle)
+        """Nothing to undeclare: the slot outlives the episode."""
 
     def _check_agents(self, observations: dict[Role, Observation]) -> None:
         """At an episode's first decisions: wait up to ``agent_wait_s`` until an agent service of each
-        role has subscribed to this episode (its ``ready`` token); raise :class:`MissingAgent` naming
+        role has subscribed to this slot (its ``ready`` token); raise :class:`MissingAgent` naming
         the roles nobody serves."""
         first = [role for role, obs in observations.items() if obs.decision_index == 1]
         if not first:  # every later decision: nothing to wait for
             return
-        deadline = time.monotonic() + self.agent_wait_s
-        for queued in self._ready_changes.drain():
-            self._note_ready(queued)
-        while missing := [role for role in first if not self._ready[role]]:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise MissingAgent(missing, self.run_id, self.agent_wait_s)
-            change = self._ready_changes.get(timeout_s=min(remaining, 0.5))
-            if change is not None:
-                self._note_ready(change)
-        self._served.update(first)
+        if (missing := self.slot.agents.wait_for(first, self.agent_wait_s, self.stop)) and not self.stop.is_set():
+            raise MissingAgent(missing, self.run_id, self.agent_wait_s)
+        for role in first:
+            self._losses_seen[role] = self.slot.agents.losses[role]
 
     def _watch_agents(self) -> None:
         """Raise :class:`AgentVanished` when, since the episode's first decision, every agent service of
         a role has withdrawn its ``ready`` token (died, or lost its session): a service started in its
         place would answer without the memory the episode so far built up."""
-        vanished = set()
-        for change in self._ready_changes.drain():
-            self._note_ready(change)
-            role = change.key.rsplit("/", 2)[-2]
-            if change.payload == b"-" and role in self._served and not self._ready[role]:
-                vanished.add(role)
+        losses = self.slot.agents.losses
+        vanished = [role for role, seen in self._losses_seen.items() if losses[role] != seen]
         if vanished:
             raise AgentVanished(sorted(vanished))  # type: ignore[arg-type]
-
-    def _note_ready(self, change: Sample) -> None:
-        """One change of an ``episode_ready`` token: ``.../ready/<role>/<agent>``, ``+`` or ``-``."""
-        role, agent = change.key.rsplit("/", 2)[-2:]
-        if role in self._ready:
-            (self._ready[role].add if change.payload == b"+" else self._ready[role].discard)(agent)
 
     def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
         """The ``Action`` structs the agents answered (type-checked while read, applied as they are),
@@ -200,12 +237,12 @@ class BusDecisionSource:
             obs.attempt = self.attempt
             obs.decision_timeout_s = self.timeout_s
             encode_into(obs, self.buffers[role])  # zenoh copies it on put; kept for a resend
-            self.bus.publish(self.obs_keys[role], self.buffers[role])
+            self.bus.publish(self.slot.obs_keys[role], self.buffers[role])
             if self.frames is not None:
-                self.frames.offer(self.viz_keys[role], obs)
-            if self.bus.watched(self.full_keys[role]):
+                self.frames.offer(self.slot.viz_keys[role], obs)
+            if self.bus.watched(self.slot.full_keys[role]):
                 for frame in full_frames(obs):
-                    self.bus.publish_viz(self.full_keys[role], frame)
+                    self.bus.publish_viz(self.slot.full_keys[role], frame)
         pending = {role: obs.decision_index for role, obs in observations.items()}
         actions: dict[Role, Action | None] = dict.fromkeys(observations)
         deadline = time.monotonic() + self.timeout_s
@@ -216,7 +253,7 @@ class BusDecisionSource:
             if time.monotonic() >= resend_at and pending:
                 for role in pending:
                     log.info("%s: re-requesting %s decision %d", self.episode_id, role, pending[role])
-                    self.bus.publish(self.obs_keys[role], self.buffers[role])
+                    self.bus.publish(self.slot.obs_keys[role], self.buffers[role])
                 resend_at = time.monotonic() + RESEND_S
             if sample is None:
                 if time.monotonic() >= deadline:
@@ -243,8 +280,10 @@ class BusDecisionSource:
 
     def _refusal(self, key: str, action: Action, pending: dict[Role, int]) -> str:
         """Why ``action`` heard on ``key`` does not answer a pending decision ('' when it does)."""
-        if (action.run_id, action.episode_id) != (self.run_id, self.episode_id) or not key.endswith(f"/{action.role}"):
-            return "names another run, episode or role than its key"
+        if action.run_id != self.run_id or key != self.slot.act_keys[action.role]:
+            return "names another run or role than its key"
+        if action.episode_id != self.episode_id:
+            return "for another episode than the slot's"
         if action.attempt != self.attempt:
             return "for another attempt of the episode"
         if pending.get(action.role) != action.decision_index:
@@ -265,6 +304,8 @@ class WorldWorker:
         """An episode this worker could not finish, why, and whether a model endpoint's outage was why."""
         self.frames = FrameStream(bus)
         self.rejections = Rejections(log)
+        self.slot = WorkerSlot(bus, self.run_id, worker_id)
+        self.sink = BusSink(bus, self.run_id, worker_id)
 
     def serve(self) -> int:
         self.bus.declare_token(keys.live(self.run_id, "world", self.worker_id))
@@ -304,6 +345,7 @@ class WorldWorker:
             self.run_episode(grant.episode, grant)
         for _, scene in self._scenes.values():
             scene.close()
+        self.slot.close()
         self.frames.close()
         self.rejections.log_summary()
         usage = resource.getrusage(resource.RUSAGE_SELF)  # read by bench/bench_eval.py
@@ -370,16 +412,14 @@ class WorldWorker:
             started_msg = encode(EpisodeStarted(
                 run_id=self.run_id, episode_id=spec.episode_id, difficulty=spec.difficulty,
                 worker_id=self.worker_id, town_id=town.town_id, asset_sha256=town.sha256))
-            self.bus.publish(keys.events(self.run_id, spec.episode_id), started_msg)
-            self.bus.publish_viz(keys.viz_events(self.run_id, spec.episode_id), started_msg)
-            self.bus.publish_viz(keys.viz_spec(self.run_id, spec.episode_id), spec)
-            source = BusDecisionSource(self.bus, self.run_id, spec.episode_id, worker_id=self.worker_id,
-                                       timeout_s=config.decision_timeout_s, stop=self.stop,
-                                       agent_wait_s=self.cfg.run.agent_wait_s, frames=self.frames,
+            self.bus.publish(self.sink.events_key, started_msg)
+            self.bus.publish_viz(self.sink.viz_events_key, started_msg)
+            self.bus.publish_viz(keys.viz_spec(self.run_id, self.worker_id), spec)
+            source = BusDecisionSource(self.slot, spec.episode_id, timeout_s=config.decision_timeout_s,
+                                       stop=self.stop, agent_wait_s=self.cfg.run.agent_wait_s, frames=self.frames,
                                        attempt=grant.attempt, rejections=self.rejections)
             runner = EpisodeRunner(scene, town, spec, run_id=self.run_id, worker_id=self.worker_id,
-                                   config=config,
-                                   sink=BusSink(self.bus, self.run_id, spec.episode_id))
+                                   config=config, sink=self.sink)
             record = runner.run(source)
             if self.stop.is_set():
                 log.info("episode %s interrupted; not submitted", spec.episode_id)
@@ -404,12 +444,9 @@ class WorldWorker:
         finally:
             if source is not None:
                 source.close()
-            self.frames.forget(keys.viz_prefix(self.run_id, spec.episode_id))
-            self.bus.forget(keys.episode_prefix(self.run_id, spec.episode_id))
-            self.bus.forget(keys.viz_prefix(self.run_id, spec.episode_id))
         # The viewers' copy of the record travels like control traffic (one small message an episode):
         # on the lossy stream a full-resolution recording lost it under load, and the file its outcome.
-        self.bus.publish(keys.viz_result(self.run_id, spec.episode_id), record, once=True)
+        self.bus.publish(keys.viz_result(self.run_id, self.worker_id), record)
         self.submit(record)
         log.info("episode %s: %s (%s) in %.1f s", spec.episode_id, record.termination,
                  "success" if record.success else "failure", time.monotonic() - started)
@@ -420,23 +457,23 @@ class WorldWorker:
                               config=config, wall_time_s=time.monotonic() - started)
 
     def submit(self, record: EpisodeRecord) -> bool:
-        """Publish the record until the evaluator acknowledges it (it stores idempotently)."""
-        inbox = Inbox()
-        handle = self.bus.subscribe(keys.result_ack(self.run_id, record.episode_id), inbox)
-        try:
-            for attempt in range(1, SUBMIT_ATTEMPTS + 1):
-                self.bus.publish(keys.result(self.run_id, record.episode_id), record, once=True)
-                sample = inbox.get(timeout_s=ACK_WAIT_S)
+        """Publish the record until the evaluator acknowledges it (it stores idempotently). Acks of the
+        slot's earlier records (a duplicate submission's) are passed over."""
+        self.slot.acks.drain()
+        key = keys.result(self.run_id, self.worker_id)
+        for attempt in range(1, SUBMIT_ATTEMPTS + 1):
+            self.bus.publish(key, record)
+            deadline = time.monotonic() + ACK_WAIT_S
+            while (remaining := deadline - time.monotonic()) > 0:
+                sample = self.slot.acks.get(timeout_s=remaining)
                 ack = None if sample is None else self._read(sample.payload, sample.key)
                 if isinstance(ack, ResultAck) and (ack.run_id, ack.episode_id) == (record.run_id, record.episode_id):
                     return True
-                if self.stop.is_set():
-                    break
-                log.warning("no ack for %s (attempt %d); resubmitting", record.episode_id, attempt)
-            log.error("record %s was never acknowledged", record.episode_id)
-            return False
-        finally:
-            self.bus.unsubscribe(handle)
+            if self.stop.is_set():
+                break
+            log.warning("no ack for %s (attempt %d); resubmitting", record.episode_id, attempt)
+        log.error("record %s was never acknowledged", record.episode_id)
+        return False
 
 
 def main(cfg: AgosConfig, *, worker_id: str | None = None) -> int:
