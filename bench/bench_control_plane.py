@@ -5,9 +5,10 @@ and the orchestrator as ``agos eval --connect`` (the real processes, unchanged),
 world workers. A simulated worker is :class:`~agos.world.sim.worker.WorldWorker` itself with one
 method replaced: ``serve`` (its liveliness token, presence file, manifest watch, job requests, the
 1 s back-off, give-backs, the end of the run) and ``submit`` (the record published until its ack) are
-the real code, and so are the per-episode declarations of ``BusDecisionSource`` (the episode's
-liveliness token, the action subscriptions, the agents' ``ready`` watch) and ``BusSink`` (step
-events on the reliable and the lossy stream). Only ``run_episode`` renders nothing and asks no agent:
+the real code, and so are the worker's slot (``WorkerSlot``, declared once for its session: the
+action and ack subscriptions, the agents' ``ready`` watch, the slot's liveliness token; no key names an
+episode, runtime/keys.py), each episode's ``BusDecisionSource`` on it and ``BusSink`` (step events on
+the reliable and the lossy stream). Only ``run_episode`` renders nothing and asks no agent:
 it announces the episode started, publishes one step event every ``--decision-s`` for ``--episode-s``
 and submits a valid ``finished`` record of ``--record-decisions`` decisions a role (step log, ledger,
 the run's configuration and provenance), which the evaluator checks and stores like any other.
@@ -33,9 +34,21 @@ records/s stored with none lost, the orchestrator and the evaluator each <= 1 co
     .venv/bin/python bench/bench_control_plane.py                      # N = 10, 100, 1000
     .venv/bin/python bench/bench_control_plane.py --workers 1000 --episodes-per-worker 8
     .venv/bin/python bench/bench_control_plane.py --quick              # N = 5 (make bench, its test)
+    .venv/bin/python bench/bench_control_plane.py --soak               # N = 20, 20,000 episodes
+    .venv/bin/python bench/bench_control_plane.py --soak --quick       # N = 20, 2,000 episodes (make bench)
 
 Prints one line per N (``control plane N=1000: lease p50 12 ms p99 340 ms, 250 records/s, lost 0``),
 then the tables. ``--json``: also one machine-readable line per figure (bench/figures.py).
+
+``--soak``: does the control plane's cost per episode stay flat over a long run through one router
+(issue 38)? N = 20 workers, 1,000 episodes each (``--quick``: 100) of ``SOAK_EPISODE_S`` with a step
+event every ``SOAK_DECISION_S``. The run is cut in quarters by stored records (the first from the
+first stored record, so start-up is left out); per quarter it prints the CPU per stored record (ms)
+of the router, the orchestrator, the evaluator (and the worker hosts, for information) and the
+router's RSS at the quarter's end. Goals: each CPU figure's last quarter <= 1.2x its first; the
+router's RSS grows <= 10 % from the first quarter's end to the last's. PASS/FAIL per goal; the exit
+status is 1 when one is missed. Any other run that stored ``QUARTERS_MIN_RECORDS`` (1,000) records is
+shown by quarter too, its goals printed (no figures, no effect on the exit status).
 """
 
 from __future__ import annotations
@@ -72,6 +85,19 @@ RUN_LIMIT_S = 600.0
 """``agos eval`` still running this long after its start is interrupted (its unstored episodes are lost;
 ``--limit-s``)."""
 TICK = os.sysconf("SC_CLK_TCK")
+SOAK_WORKERS = 20
+SOAK_EPISODES_PER_WORKER = 1000
+"""``--soak``: 20,000 episodes; ``--soak --quick``: ``SOAK_QUICK_EPISODES_PER_WORKER`` a worker (2,000)."""
+SOAK_QUICK_EPISODES_PER_WORKER = 100
+SOAK_EPISODE_S = 0.2
+SOAK_DECISION_S = 0.1
+SOAK_LIMIT_S = 3600.0
+SOAK_ROLES = ("router", "orchestrator", "evaluator")
+"""The processes whose CPU per stored record must stay flat (the worker hosts' is printed beside them)."""
+GOAL_SOAK_CPU_RATIO = 1.2
+GOAL_SOAK_RSS_GROWTH = 0.10
+QUARTERS_MIN_RECORDS = 1000
+"""A run without ``--soak`` that stored this many records is also shown by quarter (its goals printed)."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -239,7 +265,7 @@ def _sim_worker_class() -> type:
         StepEvent,
     )
     from agos.world.sim import worker as world_worker
-    from agos.world.sim.worker import BusDecisionSource, BusSink, WorldWorker
+    from agos.world.sim.worker import BusDecisionSource, WorldWorker
 
     # A worker process writes its presence file once (runtime/health.py, a temporary file named by its
     # pid); here many workers share a process, so they write it one at a time.
@@ -273,18 +299,19 @@ def _sim_worker_class() -> type:
             self.bus.close()
 
         def run_episode(self, spec: EpisodeSpec, grant: JobGrant) -> None:
+            # As WorldWorker.run_episode: the slot (self.slot) and the sink (self.sink) were declared once
+            # for the worker's session; an episode declares nothing and forgets nothing.
             started = time.monotonic()
             config = read_config(grant.config, where="job grant")
             started_msg = encode(EpisodeStarted(run_id=self.run_id, episode_id=spec.episode_id, difficulty=spec.difficulty,
                                                 worker_id=self.worker_id, town_id=spec.town.town_id,
                                                 asset_sha256=spec.asset_sha256))
-            self.bus.publish(keys.events(self.run_id, spec.episode_id), started_msg)
-            self.bus.publish_viz(keys.viz_events(self.run_id, spec.episode_id), started_msg)
-            self.bus.publish_viz(keys.viz_spec(self.run_id, spec.episode_id), spec)
-            source = BusDecisionSource(self.bus, self.run_id, spec.episode_id, worker_id=self.worker_id,
-                                       timeout_s=config.decision_timeout_s, stop=self.stop, frames=self.frames,
+            self.bus.publish(self.sink.events_key, started_msg)
+            self.bus.publish_viz(self.sink.viz_events_key, started_msg)
+            self.bus.publish_viz(keys.viz_spec(self.run_id, self.worker_id), spec)
+            source = BusDecisionSource(self.slot, spec.episode_id, timeout_s=config.decision_timeout_s, stop=self.stop,
+                                       agent_wait_s=self.cfg.run.agent_wait_s, frames=self.frames,
                                        attempt=grant.attempt, rejections=self.rejections)
-            sink = BusSink(self.bus, self.run_id, spec.episode_id)
             steps = max(1, round(self.plan.episode_s / self.plan.decision_s)) if self.plan.decision_s > 0 else 0
             wait_s = self.plan.episode_s / max(1, steps)
             try:
@@ -292,21 +319,18 @@ def _sim_worker_class() -> type:
                     if self.stop.wait(wait_s):
                         return  # interrupted: never submitted, as a real worker
                     role: Role = "uav" if step % 2 == 0 else "ugv"
-                    sink.step(StepEvent(run_id=self.run_id, episode_id=spec.episode_id, role=role,
-                                        decision_index=step // 2 + 1, episode_step=step + 1, sim_time_s=2.0 * step,
-                                        requested=None, applied="WAIT", pose_after=Pose(position_world_m=(0.0, 0.0, 0.0),
-                                                                                         yaw_rad=0.0)))
+                    self.sink.step(StepEvent(run_id=self.run_id, episode_id=spec.episode_id, role=role,
+                                             decision_index=step // 2 + 1, episode_step=step + 1, sim_time_s=2.0 * step,
+                                             requested=None, applied="WAIT",
+                                             pose_after=Pose(position_world_m=(0.0, 0.0, 0.0), yaw_rad=0.0)))
                 if steps == 0 and self.stop.wait(self.plan.episode_s):
                     return
             finally:
                 source.close()
-                self.frames.forget(keys.viz_prefix(self.run_id, spec.episode_id))
-                self.bus.forget(keys.episode_prefix(self.run_id, spec.episode_id))
-                self.bus.forget(keys.viz_prefix(self.run_id, spec.episode_id))
             record = synthetic_record(self.run_id, spec, self.worker_id, config, self.plan.record_decisions,
                                       time.monotonic() - started)
             self.played += 1
-            self.bus.publish(keys.viz_result(self.run_id, spec.episode_id), record, once=True)
+            self.bus.publish(keys.viz_result(self.run_id, self.worker_id), record)
             if self.submit(record):
                 self.acked += 1
             else:
@@ -495,6 +519,8 @@ class Result:
     wall_s: float = 0.0
     eval_rc: int | None = None
     load: tuple[float, float] = (0.0, 0.0)
+    samples: list[Sample] = field(default_factory=list, repr=False)
+    """The monitor's samples of the run (also in its ``samples.json``)."""
 
     def lease_ms(self, q: float, which: str = "all") -> float:
         pick = {"all": lambda f: True, "first": lambda f: f, "later": lambda f: not f}[which]
@@ -616,7 +642,7 @@ def measure(n: int, args: argparse.Namespace, work: Path, console: Console) -> R
             result.resubmits += data["resubmits"]
             result.unacked += data["unacked"]
             result.crashed += data["crashed"]
-    samples = monitor.samples if monitor else []
+    samples = result.samples = monitor.samples if monitor else []
     (here / "samples.json").write_text(json.dumps([s.__dict__ for s in samples]))  # rows, CPU and RSS every 0.5 s
     summarize(result, samples, runs / run_id, run_id, args)
     return result
@@ -671,7 +697,7 @@ def saturation(r: Result, cores: int) -> str:
     return f"below {100 * share:.0f} % of the workers' ideal rate with no core full (lease round trips, back-off)"
 
 
-def report(results: list[Result], args: argparse.Namespace, console: Console, work: Path) -> None:
+def report(results: list[Result], args: argparse.Namespace, console: Console, work: Path, figures: Figures) -> None:
     cores = len(os.sched_getaffinity(0))
     for r in results:
         console.print(r.line(), highlight=False)
@@ -703,7 +729,8 @@ def report(results: list[Result], args: argparse.Namespace, console: Console, wo
     for r in results:
         console.print(f"N={r.n}: saturates: {saturation(r, cores)}", highlight=False)
     console.print(f"work: {work}", highlight=False)
-    figures = Figures(args.json)
+    if args.soak:  # its own figures (soak_report)
+        return
     big = results[-1]
     tag = f"control plane N={big.n}"
     figures.add(f"{tag}: lease p99", big.lease_ms(0.99), f"{big.lease_ms(0.99):.0f} ms", f"<= {1000 * GOAL_LEASE_P99_S:.0f} ms",
@@ -719,6 +746,98 @@ def report(results: list[Result], args: argparse.Namespace, console: Console, wo
                     f"<= {GOAL_CORES:g}", c <= GOAL_CORES)
 
 
+@dataclass
+class Quarter:
+    """One quarter of a run by stored records: from the sample where ``rows[0]`` were stored to the one
+    where ``rows[1]`` were."""
+
+    rows: tuple[int, int]
+    seconds: float
+    ms_per_record: dict[str, float]
+    """role -> CPU ms of its processes per record stored in the quarter."""
+    rss_mb: dict[str, float]
+    """role -> RSS at the quarter's end."""
+
+
+def quarters(samples: list[Sample]) -> list[Quarter]:
+    """The run in four quarters of the records stored (by the monitor's row counts): the first from the
+    first sample with a stored record (start-up, the split's reading and the sessions' declarations
+    left out), each to the first sample at or past its share of the count. The count is the one just
+    before the run's last records: the 0.5 s in which the last ones land hold the end of the run (the
+    evaluator's and orchestrator's closing work, 0.2-0.3 CPU s each, a third of a quarter's in a
+    2,000-episode soak), not the work per record. [] when there are too few samples to cut (a run
+    that stored nearly nothing)."""
+    last = max((s.rows for s in samples), default=0)
+    done = next((i for i, s in enumerate(samples) if s.rows >= last), 0)
+    if done > 0 and samples[done - 1].rows > 0:
+        samples = samples[:done]
+    end = max((s.rows for s in samples), default=0)
+    a = next((s for s in samples if s.rows > 0), None)
+    if a is None or end - a.rows < 8:
+        return []
+    out = []
+    for k in range(1, 5):
+        b = next(s for s in samples if s.rows >= max(a.rows + 1, math.ceil(k * end / 4)))
+        if b.rows <= a.rows:
+            return []
+        out.append(Quarter((a.rows, b.rows), b.t - a.t,
+                           {role: 1000 * (b.procs[role][0] - a.procs[role][0]) / (b.rows - a.rows) for role in ROLES},
+                           {role: b.procs[role][1] for role in ROLES}))
+        a = b
+    return out
+
+
+def soak_report(r: Result, args: argparse.Namespace, console: Console, figures: Figures) -> bool:
+    """The per-quarter table and the soak's goals, PASS/FAIL each (figures only with ``--soak``); True
+    when every goal is met."""
+    qs = quarters(r.samples)
+    title = (f"{'Soak' if args.soak else 'By quarter'}: N={r.n}, {r.episodes:,} episodes of {args.episode_s:g} s (a step "
+             f"event every {args.decision_s:g} s) through one router; CPU ms per stored record by quarter of the run")
+    if len(qs) < 4:
+        console.print(f"[red]{title}: too few records stored to cut the run in quarters ({r.stored})", highlight=False)
+        return False
+    t = Table(title=title)
+    for col in ("quarter", "records", "wall", "records/s", *(f"{role} ms/rec" for role in (*SOAK_ROLES, "worker hosts")),
+                "router RSS MB (end)"):
+        t.add_column(col, justify="right")
+    for k, q in enumerate(qs, 1):
+        t.add_row(f"Q{k}", f"{q.rows[0]:,}-{q.rows[1]:,}", f"{q.seconds:.0f} s", f"{(q.rows[1] - q.rows[0]) / q.seconds:.1f}"
+                  if q.seconds > 0 else "-", *(f"{q.ms_per_record[role]:.2f}" for role in (*SOAK_ROLES, "worker hosts")),
+                  f"{q.rss_mb['router']:.1f}")
+    console.print(t)
+    g = Table(title="Soak goals: the last quarter against the first")
+    for col in ("figure", "Q1", "Q4", "Q4 / Q1", "goal", "result"):
+        g.add_column(col, justify="left" if col == "figure" else "right")
+    ok = True
+    tag = f"soak N={r.n} x {r.episodes:,} episodes"
+    if not args.soak:
+        figures = Figures(False)  # the goals are printed, the figures are the soak's
+    first, last = qs[0], qs[-1]
+    for role in SOAK_ROLES:
+        ratio = last.ms_per_record[role] / first.ms_per_record[role] if first.ms_per_record[role] > 0 else float("inf")
+        met = ratio <= GOAL_SOAK_CPU_RATIO
+        ok &= met
+        g.add_row(f"{role} CPU per record", f"{first.ms_per_record[role]:.2f} ms", f"{last.ms_per_record[role]:.2f} ms",
+                  f"{ratio:.2f}x", f"<= {GOAL_SOAK_CPU_RATIO:g}x", "PASS" if met else "[red]FAIL")
+        figures.add(f"{tag}: {role} CPU per record, last / first quarter", ratio,
+                    f"{ratio:.2f}x ({last.ms_per_record[role]:.2f} vs {first.ms_per_record[role]:.2f} ms)",
+                    f"<= {GOAL_SOAK_CPU_RATIO:g}x", met)
+    growth = last.rss_mb["router"] / first.rss_mb["router"] - 1 if first.rss_mb["router"] > 0 else float("inf")
+    met = growth <= GOAL_SOAK_RSS_GROWTH
+    ok &= met
+    g.add_row("router RSS, end of Q1 to end of Q4", f"{first.rss_mb['router']:.1f} MB", f"{last.rss_mb['router']:.1f} MB",
+              f"{100 * growth:+.1f} %", f"<= +{100 * GOAL_SOAK_RSS_GROWTH:.0f} %", "PASS" if met else "[red]FAIL")
+    figures.add(f"{tag}: router RSS growth, end of Q1 to end of Q4", growth,
+                f"{100 * growth:+.1f} % ({first.rss_mb['router']:.1f} -> {last.rss_mb['router']:.1f} MB)",
+                f"<= +{100 * GOAL_SOAK_RSS_GROWTH:.0f} %", met)
+    figures.add(f"{tag}: lost episodes", r.lost, str(r.lost), "0", r.lost == 0)
+    console.print(g)
+    what = "soak" if args.soak else f"N={r.n} by quarter"
+    console.print(f"{what}: {'PASS' if ok else 'FAIL'}; load average {os.getloadavg()[0]:.1f} at the end "
+                  f"({r.load[0]:.1f} at the start), other load {r.other_cores:.2f} cores", highlight=False)
+    return ok
+
+
 def run(args: argparse.Namespace) -> int:
     console = Console(width=200)
     work = Path(tempfile.mkdtemp(prefix="agos-bench-cp-")) if args.work is None else args.work
@@ -731,12 +850,17 @@ def run(args: argparse.Namespace) -> int:
         results.append(measure(n, args, work, console))
         if results[-1].eval_rc:
             console.print(f"[red]N={n}: agos eval exited {results[-1].eval_rc}; see {work}", highlight=False)
-    report(results, args, console, work)
+    figures = Figures(args.json)
+    report(results, args, console, work, figures)
+    soak_ok = True
+    for r in results:  # by quarter wherever the run is long enough to cut; goals gate only the soak
+        if args.soak or r.stored >= QUARTERS_MIN_RECORDS:
+            soak_ok &= soak_report(r, args, console, figures) or not args.soak
     for r in results:
         if r.crashed:
             console.print(f"[red]N={r.n}: {r.crashed} simulated workers crashed (their host logs say why)", highlight=False)
     bad = [r for r in results if r.lost or r.invalid or r.eval_rc or r.crashed or r.failed_sessions]
-    return 1 if bad else 0
+    return 1 if bad or not soak_ok else 0
 
 
 def main() -> int:
@@ -744,24 +868,41 @@ def main() -> int:
     parser.add_argument("--workers", type=int, action="append", help="N simulated world workers (repeat; default 10, "
                                                                        "100, 1000; --quick 5)")
     parser.add_argument("--episodes-per-worker", type=int, help="episodes in the split per worker (default 4; --quick 2)")
-    parser.add_argument("--episode-s", type=float, help="seconds a simulated episode lasts (default 2; --quick 0.3)")
-    parser.add_argument("--decision-s", type=float, default=1.0,
+    parser.add_argument("--episode-s", type=float, help="seconds a simulated episode lasts (default 2; --quick 0.3; "
+                                                                  f"--soak {SOAK_EPISODE_S:g})")
+    parser.add_argument("--decision-s", type=float,
                         help="a step event every this many seconds of an episode (default 1, a decision at model speed; "
-                             "0: none)")
+                             f"--soak {SOAK_DECISION_S:g}; 0: none)")
     parser.add_argument("--record-decisions", type=int, default=40, help="decisions a role in each record (default 40)")
     parser.add_argument("--hosts", type=int, help=f"worker host processes (default one per {WORKERS_PER_HOST} workers)")
     parser.add_argument("--work", type=Path, help="directory for the runs and logs (default: a new temp dir)")
-    parser.add_argument("--limit-s", type=float, default=RUN_LIMIT_S,
-                        help=f"interrupt agos eval after this long (default {RUN_LIMIT_S:.0f} s); what it did not store is lost")
-    parser.add_argument("--quick", action="store_true", help="N = 5, 2 episodes a worker of 0.3 s")
+    parser.add_argument("--limit-s", type=float,
+                        help=f"interrupt agos eval after this long (default {RUN_LIMIT_S:.0f} s, --soak {SOAK_LIMIT_S:.0f} s); "
+                             "what it did not store is lost")
+    parser.add_argument("--quick", action="store_true", help="N = 5, 2 episodes a worker of 0.3 s (with --soak: "
+                                                             f"{SOAK_QUICK_EPISODES_PER_WORKER} episodes a worker)")
+    parser.add_argument("--soak", action="store_true",
+                        help=f"N = {SOAK_WORKERS}, {SOAK_EPISODES_PER_WORKER} episodes a worker of {SOAK_EPISODE_S:g} s, a step "
+                             f"event every {SOAK_DECISION_S:g} s: CPU per stored record and router RSS by quarter of the run")
     parser.add_argument("--json", action="store_true", help="also print each figure as a BENCH-FIGURE line")
     parser.add_argument("--host", type=Path, help=argparse.SUPPRESS)  # internal: run one worker host
     args = parser.parse_args()
     if args.host is not None:
         return host_main(args.host)
+    if args.soak:
+        args.workers = args.workers or [SOAK_WORKERS]
+        args.episodes_per_worker = args.episodes_per_worker or (
+            SOAK_QUICK_EPISODES_PER_WORKER if args.quick else SOAK_EPISODES_PER_WORKER)
+        args.episode_s = args.episode_s if args.episode_s is not None else SOAK_EPISODE_S
+        args.decision_s = args.decision_s if args.decision_s is not None else SOAK_DECISION_S
+        args.limit_s = args.limit_s or SOAK_LIMIT_S
+        if len(args.workers) != 1:
+            parser.error("--soak runs one N")
     args.workers = args.workers or ([5] if args.quick else [10, 100, 1000])
     args.episodes_per_worker = args.episodes_per_worker or (2 if args.quick else 4)
     args.episode_s = args.episode_s if args.episode_s is not None else (0.3 if args.quick else 2.0)
+    args.decision_s = args.decision_s if args.decision_s is not None else 1.0
+    args.limit_s = args.limit_s or RUN_LIMIT_S
     if min(args.workers) < 1 or args.episodes_per_worker < 1 or args.episode_s < 0 or args.decision_s < 0 \
             or args.record_decisions < 0:
         parser.error("--workers and --episodes-per-worker >= 1; --episode-s, --decision-s, --record-decisions >= 0")

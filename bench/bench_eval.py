@@ -126,7 +126,7 @@ def model_floor(rounds: list[int], latency_s: float, concurrent: int) -> tuple[f
 
 
 class EventLog:
-    """Every sample on the run's ``ep/*/events`` with its arrival time (zenoh's thread appends)."""
+    """Every sample on the run's ``slot/*/events`` with its arrival time (zenoh's thread appends)."""
 
     def __init__(self, t0: float) -> None:
         self.t0 = t0

@@ -50,7 +50,7 @@ from agos.deploy.run.launcher import wait_listening
 from agos.runtime.bus import ZenohBus, zenoh_config
 
 AGOS = [sys.executable, "-m", "agos.deploy.cli"]
-KEY = "agos/bench/ep/e/obs/uav"
+KEY = "agos/bench/slot/w0/obs/uav"  # the shape of a world slot's observation key (runtime/keys.py)
 OBSERVATION_BYTES = 244_000
 """An observation as the issue sizes it (two encoded views and the references of one decision)."""
 PATHS = ("raw zenoh (peer to peer)", "one router", "3-router mesh")

@@ -2,7 +2,7 @@
 
 Per observation of a real heuristic episode on grid-s7 (UAV nadir view, UGV forward view, UGV six
 views): the ``watched()`` check alone when nobody asks, and ``full_frames()`` + ``publish_viz`` (what
-``BusDecisionSource.decide`` does) while a subscriber on ``viz/<ep>/full/<role>`` asks, through a
+``BusDecisionSource.decide`` does) while a subscriber on ``viz/<worker>/full/<role>`` asks, through a
 real router on loopback. 200 observations of each kind, back to back (DROP may lose some of those
 bursts at the subscriber: the count received is printed).
 
@@ -80,7 +80,7 @@ def main() -> None:
     try:
         assert wait_listening("127.0.0.1", port, 15)
         with ZenohBus.connect(f"tcp/127.0.0.1:{port}") as world:
-            key = keys.viz_full("bench", "e0", "uav")
+            key = keys.viz_full("bench", "w0", "uav")
             world.watched(key)
             time.sleep(0.5)
             for name, sample in kinds.items():

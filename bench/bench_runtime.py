@@ -1,10 +1,11 @@
 """Runtime benchmarks (issue 5); every figure is a ratio against a baseline from the same run.
 
 1. Decision round trip (``--only breakdown``: the same with timers inside both processes, to see
-   where the time beyond the ping-pong goes): the world's own code (``BusDecisionSource.decide``) encodes an
-   observation with real encoded images, an agent service (a separate process, zero-latency
-   stand-in policy) decodes it and answers, the world decodes the answer into the ``Action`` it
-   applies — against a raw zenoh ping-pong of the same bytes through the same router. Goal <= 1.3x.
+   where the time beyond the ping-pong goes): the world's own code (``BusDecisionSource.decide`` on a
+   ``WorkerSlot``) encodes an observation with real encoded images, an agent service (a separate
+   process, zero-latency stand-in policy, subscribed to the slot once its token appeared) decodes it
+   and answers, the world decodes the answer into the ``Action`` it applies — against a raw zenoh
+   ping-pong of the same bytes through the same router, on a slot's ``obs``/``act`` keys too. Goal <= 1.3x.
 2. Slow observers: world ticks (the decision, then the step event and coordination state on the
    control and visualisation keys, a frame offered to viewers) for a fixed time with and without
    an observer that spends 20 ms on every sample: the agos Observer (ring buffer, visualisation
@@ -47,15 +48,23 @@ from agos.runtime.codec import decode, encode
 from agos.runtime.process import StopFlag
 from agos.runtime.schemas import Observation, StepEvent
 from agos.runtime.viz import FrameStream
-from agos.world.sim.worker import BusDecisionSource, BusSink
+from agos.world.sim.worker import BusDecisionSource, BusSink, WorkerSlot
 
 AGOS = [sys.executable, "-m", "agos.deploy.cli"]
+RUN = "bench"
+RAW_SLOT = "raw"
+"""The raw ping-pong's keys are a slot's observation and action keys (``agos/bench/slot/raw/obs/uav`` and
+``.../act/uav``), of the same shape and depth as the world's: no slot token, so no agent service
+subscribes to them."""
 ECHO = """
 import sys, time, zenoh
+from agos.runtime import keys
 from agos.runtime.bus import zenoh_config
 s = zenoh.open(zenoh_config(connect=[sys.argv[1]]))
-pub = s.declare_publisher("bench/pong", congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE)
-sub = s.declare_subscriber("bench/ping", lambda sample: pub.put(sample.payload))
+run, slot = sys.argv[2], sys.argv[3]
+pub = s.declare_publisher(keys.act(run, slot, "uav"), congestion_control=zenoh.CongestionControl.BLOCK,
+                          reliability=zenoh.Reliability.RELIABLE)
+sub = s.declare_subscriber(keys.obs(run, slot, "uav"), lambda sample: pub.put(sample.payload))
 while True:
     time.sleep(1)
 """
@@ -131,14 +140,15 @@ def sample_observation() -> Observation:
 
 
 class World:
-    """One episode's decisions made by the world worker's own code (world/sim/worker.py)."""
+    """One episode's decisions made by the world worker's own code (world/sim/worker.py): the worker's
+    slot (declared once, as for a worker's session), the episode's decision source on it, its sink."""
 
-    def __init__(self, bus: ZenohBus, obs: Observation, episode: str = "e0") -> None:
+    def __init__(self, bus: ZenohBus, obs: Observation, episode: str = "e0", worker: str = "w0") -> None:
         self.obs = msgspec.structs.replace(obs, episode_id=episode)
         self.frames = FrameStream(bus)
-        self.source = BusDecisionSource(bus, "bench", episode, worker_id="bench", timeout_s=5.0, stop=StopFlag(),
-                                        frames=self.frames)
-        self.sink = BusSink(bus, "bench", episode)
+        self.slot = WorkerSlot(bus, RUN, worker)
+        self.source = BusDecisionSource(self.slot, episode, timeout_s=5.0, stop=StopFlag(), frames=self.frames)
+        self.sink = BusSink(bus, RUN, worker)
         self.index = 0
 
     def _next(self) -> Observation:
@@ -170,7 +180,7 @@ class World:
             t0 = time.perf_counter()
             action = self.source.decide({"uav": obs})["uav"]
             decisions += time.perf_counter() - t0
-            self.sink.step(StepEvent(run_id="bench", episode_id=obs.episode_id, role="uav",
+            self.sink.step(StepEvent(run_id=RUN, episode_id=obs.episode_id, role="uav",
                                      decision_index=obs.decision_index, episode_step=obs.decision_index,
                                      sim_time_s=obs.sim_time_s, requested=action, applied="WAIT", pose_after=obs.pose))
             self.sink.coordination(obs.coordination, {"uav": obs.coordination, "ugv": obs.coordination})
@@ -179,23 +189,26 @@ class World:
 
     def close(self) -> None:
         self.source.close()
+        self.slot.close()
         self.frames.close()
 
 
 class PingPong:
-    """The raw zenoh ping-pong: ``payload`` to the echo process and its copy back. Subscribed once
-    for the whole measurement, so no (un)declaration's route update runs into a timed batch."""
+    """The raw zenoh ping-pong: ``payload`` to the echo process and its copy back, on keys of the
+    world's shape (``RAW_SLOT``). Subscribed once for the whole measurement, so no (un)declaration's
+    route update runs into a timed batch."""
 
     def __init__(self, bus: ZenohBus, payload: bytes) -> None:
         self.bus, self.payload, self.inbox = bus, payload, Inbox()
-        self.handle = bus.subscribe("bench/pong", self.inbox)
-        bus.wait_for_subscriber("bench/ping", 10.0)
+        self.ping = keys.obs(RUN, RAW_SLOT, "uav")
+        self.handle = bus.subscribe(keys.act(RUN, RAW_SLOT, "uav"), self.inbox)
+        bus.wait_for_subscriber(self.ping, 10.0)
 
     def round_trips(self, n: int) -> list[float]:
         times = []
         for _ in range(n):
             start = time.perf_counter()
-            self.bus.publish("bench/ping", self.payload)
+            self.bus.publish(self.ping, self.payload)
             assert self.inbox.get(5.0) is not None
             times.append(time.perf_counter() - start)
         return times
@@ -256,20 +269,20 @@ def concurrency_rate(endpoint: str, obs: Observation, episodes: int = 32, second
         small = msgspec.structs.replace(obs, images=obs.images[:1], references=obs.references[:1])
 
         def loop(k: int) -> None:
-            inbox = Inbox()
-            bus.subscribe(keys.act("bench", f"c{k}", "uav"), inbox)
-            key = keys.obs("bench", f"c{k}", "uav")
-            bus.declare_token(keys.episode_live("bench", f"c{k}", "bench"))  # as a world running episode c<k>
-            assert bus.wait_for_subscriber(key, 10.0), f"no agent subscribed to {key}"
+            slot = WorkerSlot(bus, RUN, f"c{k}")  # as world worker c<k>: its slot, declared for its session
+            if slot.agents.wait_for(["uav"], 10.0, StopFlag()):
+                raise RuntimeError(f"no agent service subscribed to slot c{k}")
+            key = slot.obs_keys["uav"]
             index = 0
             while time.monotonic() < stop:
                 index += 1
-                bus.publish(key, encode(msgspec.structs.replace(small, episode_id=f"c{k}", decision_index=index)))
+                bus.publish(key, encode(msgspec.structs.replace(small, episode_id=f"e{k}", decision_index=index)))
                 while time.monotonic() < stop + 2:
-                    sample = inbox.get(1.0)
+                    sample = slot.actions.get(1.0)
                     if sample is not None and decode(sample.payload).decision_index == index:
                         counts[k] += 1
                         break
+            slot.close()
 
         threads = [threading.Thread(target=loop, args=(k,)) for k in range(episodes)]
         start = time.monotonic()
@@ -328,8 +341,12 @@ def toggle(observer: subprocess.Popen, world: World, state: str) -> None:
 PARTS = ("roundtrip", "breakdown", "observer", "qos", "concurrency", "throughput")
 
 
+def echo() -> list[str]:
+    return [sys.executable, "-c", ECHO, "{EP}", RUN, RAW_SLOT]
+
+
 def agent(policy: str, concurrency: int) -> list[str]:
-    return [*AGOS, "agent", "--role", "uav", "--policy", policy, "--connect", "{EP}", "--run", "bench",
+    return [*AGOS, "agent", "--role", "uav", "--policy", policy, "--connect", "{EP}", "--run", RUN,
             "--concurrency", str(concurrency)]
 
 
@@ -376,7 +393,7 @@ def main() -> None:
 
 
 def round_trip(obs: Observation, payload: bytes, figures: Figures) -> None:
-    with (Cluster([sys.executable, "-c", ECHO, "{EP}"], agent("standin-0ms", 64)) as cluster,
+    with (Cluster(echo(), agent("standin-0ms", 64)) as cluster,
           ZenohBus.connect(cluster.endpoint) as bus):
         world, ping = World(bus, obs), PingPong(bus, payload)
         t_ping, t_rt, ratios = paired_ratios(ping.round_trips, world.round_trips)
@@ -420,7 +437,7 @@ def round_trip_breakdown(obs: Observation, payload: bytes) -> None:
         with tempfile.TemporaryDirectory() as tmp:
             report = Path(tmp) / "agent.json"
             timed_agent = [sys.executable, "-c", TIMED_AGENT, "{EP}", str(report), str(Path(__file__).parent)]
-            with Cluster([sys.executable, "-c", ECHO, "{EP}"], timed_agent) as cluster, ZenohBus.connect(cluster.endpoint) as bus:
+            with Cluster(echo(), timed_agent) as cluster, ZenohBus.connect(cluster.endpoint) as bus:
                 world, ping = World(bus, obs), PingPong(bus, payload)
                 t_ping, t_rt, _ = paired_ratios(ping.round_trips, world.round_trips)
                 time.sleep(1.0)  # the agent writes its medians every 0.5 s

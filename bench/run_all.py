@@ -61,6 +61,7 @@ def benches() -> list[Bench]:
         Bench("dataset", "bench_dataset.py", ["--quick", "--workers", "1", "--no-breakdown"], 600),
         Bench("env", "bench_env.py", ["--quick"], 420),  # agos.Env vs the engine; 2 subprocess envs vs 1
         Bench("control-plane", "bench_control_plane.py", ["--quick"], 180),  # orchestrator, evaluator, router vs N workers
+        Bench("control-plane-soak", "bench_control_plane.py", ["--soak", "--quick"], 300),  # 2,000 episodes: cost flat?
         Bench("cues", "bench_cues.py", ["--check"], 600, gate=True),  # the look-alike table still true
     ]
 
