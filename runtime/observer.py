@@ -9,6 +9,9 @@ a subscriber that stops reading back-pressures the router and slows every proces
 Observer never works in the zenoh callback either way: samples go to a bounded ring buffer
 (zenoh's ``RingChannel``, oldest dropped when full) and are processed on the observer's own
 thread.
+
+Keys of the stream name world workers (``agos/<run>/viz/<worker>/...``), not episodes: each payload
+names its episode (``episode_id``), and ``agos watch --episode EP`` follows one episode by that field.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import zenoh
 from agos.runtime import keys
 from agos.runtime.bus import connect_retry_s, open_session, session_config
 from agos.runtime.settings import ZenohSettings
+from agos.runtime.viz import episode_of_payload
 
 
 class Observer:
@@ -67,34 +71,46 @@ def _seconds(value: object) -> str:
 
 
 def describe(key: str, payload: bytes) -> str:
-    """One line for a sample: its key, the message's type and version, what tells it apart (role,
-    decision, action, simulated time), its size."""
+    """One line for a sample: its key, the message's type and version, the episode it names, what
+    tells it apart (role, decision, action, simulated time), its size."""
     try:
         data = msgspec.msgpack.decode(payload)
     except (ValueError, RecursionError):  # msgspec.DecodeError, a string that is not UTF-8, too deep
         return f"{key}  <{len(payload)} bytes, not msgpack>"
     if not isinstance(data, dict):
         return f"{key}  <{type(data).__name__}>"
-    extra = ""
+    extra = f" ep={data['episode_id']}" if isinstance(data.get("episode_id"), str) else ""
     if data.get("type") == "step":
-        extra = f" {data.get('role')}#{data.get('decision_index')} {data.get('applied')} t={_seconds(data.get('sim_time_s'))}"
+        extra += f" {data.get('role')}#{data.get('decision_index')} {data.get('applied')} t={_seconds(data.get('sim_time_s'))}"
     elif data.get("type") == "episode_record":
-        extra = f" {data.get('termination')} success={data.get('success')}"
+        extra += f" {data.get('termination')} success={data.get('success')}"
     elif data.get("type") == "viz_frame":
-        extra = f" {data.get('role')}#{data.get('decision_index')} t={_seconds(data.get('sim_time_s'))}"
+        extra += f" {data.get('role')}#{data.get('decision_index')} t={_seconds(data.get('sim_time_s'))}"
     elif data.get("type") == "coordination_state":
-        extra = f" t={_seconds(data.get('sim_time_s'))} candidates={len(data.get('candidates') or [])}"
+        extra += f" t={_seconds(data.get('sim_time_s'))} candidates={len(data.get('candidates') or [])}"
     return f"{key}  v{data.get('v')} {data.get('type')}{extra}  ({len(payload)} B)"
 
 
-def main(endpoint: str | ZenohSettings, key_expr: str | None = None) -> int:
-    """``agos watch``: print every sample of the visualisation stream (or of ``key_expr``)."""
+def printer(episode: str | None = None) -> Callable[[str, bytes], None]:
+    """What ``agos watch`` does with a sample: print its line; with ``episode``, only if its payload
+    names that episode (keys name world workers, whose episodes follow each other on the same keys)."""
+
+    def show(key: str, payload: bytes) -> None:
+        if episode is None or episode_of_payload(payload) == episode:
+            print(describe(key, payload), flush=True)
+
+    return show
+
+
+def main(endpoint: str | ZenohSettings, key_expr: str | None = None, episode: str | None = None) -> int:
+    """``agos watch``: print every sample of the visualisation stream (or of ``key_expr``), or only
+    those of ``episode``."""
     import signal
 
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    observer = Observer(endpoint, lambda key, payload: print(describe(key, payload), flush=True), key_expr=key_expr)
+    observer = Observer(endpoint, printer(episode), key_expr=key_expr)
     try:
         while not stop.wait(0.2):
             pass

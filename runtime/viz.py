@@ -1,6 +1,8 @@
 """The visualisation stream: what observers watch, published so that they can never slow the world.
 
-The world worker mirrors what a viewer needs under ``agos/<run>/viz/<ep>/`` (runtime/keys.py):
+The world worker mirrors what a viewer needs under ``agos/<run>/viz/<worker>/`` (runtime/keys.py: the
+key names the world worker's slot, never the episode; every payload names its episode in
+``episode_id``, and one slot carries its worker's episodes one after the other):
 ``events`` (``EpisodeStarted`` and every ``StepEvent``: applied action, pose, oracle flags),
 ``coord`` (the coordination truth: candidates, poses, budget), ``frame/<role>`` (one
 :class:`VizFrame` per RGB view of an observation: a JPEG of at most ``THUMB_PX`` pixels a side, a few
@@ -8,8 +10,12 @@ KB), ``spec`` (the episode spec, at its start) and ``result`` (a copy of the rec
 ``full/<role>`` carries the views at full resolution (:func:`full_frames`), made only while
 something subscribes to that key (``agos record --full``). All of it goes out with congestion
 control DROP, express and low priority (``ZenohBus.publish_viz``): a slow or stuck observer loses
-samples, the world never waits for it. Control traffic (``ep/<ep>/...``) stays reliable with BLOCK for those that must not miss
-anything (evaluator, orchestrator, agents).
+samples, the world never waits for it. Control traffic (``slot/<worker>/...``) stays reliable with BLOCK for
+those that must not miss anything (evaluator, orchestrator, agents).
+
+A viewer follows one episode by the payload's ``episode_id`` (:func:`episode_of_payload` reads just
+that field), not by the key: a frame of the worker's next episode may arrive on the same key right
+after the previous episode's record.
 
 Frames are made on a background thread from the latest observation only (:class:`FrameStream`;
 OpenCV releases the GIL), and only while someone subscribes to them, so even an attached viewer
@@ -23,6 +29,7 @@ import threading
 from typing import TYPE_CHECKING, Any
 
 import cv2
+import msgspec
 import numpy as np
 
 from agos.runtime.codec import decode
@@ -44,6 +51,25 @@ def decode_viz(payload: bytes) -> Any:
     return decode(payload)
 
 
+class _Episode(msgspec.Struct):
+    """Only the ``episode_id`` of a message (every other field skipped unread)."""
+
+    episode_id: str | None = None
+
+
+_EPISODE = msgspec.msgpack.Decoder(_Episode)
+
+
+def episode_of_payload(payload: bytes | bytearray | memoryview) -> str | None:
+    """The ``episode_id`` a payload names, without decoding the rest of it (an image's bytes are
+    skipped): None for a payload that names none, or is not a msgpack map. Not a check of the
+    message: what it returns may still be no valid id (``keys.check_chunk``)."""
+    try:
+        return _EPISODE.decode(payload).episode_id
+    except (ValueError, RecursionError):  # not msgpack, not a map, an episode_id that is not a string
+        return None
+
+
 def thumbnail(obs: Observation, size_px: int = THUMB_PX) -> VizFrame | None:
     """The observation's first RGB view (UAV nadir, UGV forward or first of six), scaled down."""
     frame = next((f for f in obs.images if f.kind == "rgb"), None)
@@ -57,7 +83,7 @@ def thumbnails(obs: Observation, size_px: int = THUMB_PX) -> list[VizFrame]:
 
 
 def full_frames(obs: Observation) -> list[VizFrame]:
-    """Every RGB view of the observation as the agent got it (``viz/<ep>/full/<role>``): no decoding,
+    """Every RGB view of the observation as the agent got it (``viz/<worker>/full/<role>``): no decoding,
     the frames share the observation's bytes."""
     return [_viz_frame(obs, f) for f in obs.images if f.kind == "rgb"]
 
@@ -87,7 +113,7 @@ def _thumbnail(obs: Observation, frame: ImageFrame, size_px: int) -> VizFrame | 
 
 
 class FrameStream:
-    """Publishes thumbnails of observations on ``viz/<ep>/frame/<role>`` from a background thread.
+    """Publishes thumbnails of observations on ``viz/<worker>/frame/<role>`` from a background thread.
 
     :meth:`offer` costs the caller a subscription check and a dict store: nothing when nobody
     watches; otherwise only the latest observation per key waits, older ones are skipped, and
@@ -115,7 +141,7 @@ class FrameStream:
             self._cond.notify()
 
     def forget(self, key_prefix: str) -> None:
-        """Drop what waits under ``key_prefix`` and wait for a frame in flight (an episode is over)."""
+        """Drop what waits under ``key_prefix`` and wait for a frame in flight (a slot is given up)."""
         with self._cond:
             for key in [k for k in self._pending if k.startswith(key_prefix)]:
                 del self._pending[key]

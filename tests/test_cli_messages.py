@@ -54,17 +54,38 @@ def test_watch_help_says_what_it_prints_by_default(agos) -> None:
     text = " ".join(out.stdout.split())
     assert out.returncode == 0 and "print the visualisation stream of every run, one line a message" in text
     assert "--key 'agos/**' prints every message instead" in text
+    assert "--episode EP only the messages of one episode" in text
     listed = " ".join(agos("--help").stdout.split())
     assert "print the runs' visualisation stream" in listed and "every message under agos/**" not in listed
 
 
 def test_watch_prints_times_to_the_hundredth() -> None:
-    step = {"type": "step", "v": 1, "role": "ugv", "decision_index": 7, "applied": "STOP_OBSERVE",
+    step = {"type": "step", "v": 2, "role": "ugv", "decision_index": 7, "applied": "STOP_OBSERVE",
             "sim_time_s": 47.27230898491565}
-    line = describe("agos/r/viz/e/events", msgspec.msgpack.encode(step))
+    line = describe("agos/r/viz/w/events", msgspec.msgpack.encode(step))
     assert " ugv#7 STOP_OBSERVE t=47.27 " in line and "47.272" not in line
-    coord = {"type": "coordination_state", "v": 1, "sim_time_s": 3.0, "candidates": [{}, {}]}
-    assert "t=3.00 candidates=2" in describe("agos/r/viz/e/coord", msgspec.msgpack.encode(coord))
+    coord = {"type": "coordination_state", "v": 2, "sim_time_s": 3.0, "candidates": [{}, {}]}
+    assert "t=3.00 candidates=2" in describe("agos/r/viz/w/coord", msgspec.msgpack.encode(coord))
+
+
+def test_watch_names_each_messages_episode_and_follows_one_by_it(capsys) -> None:
+    """Keys name world workers, not episodes: ``agos watch --episode EP`` keeps what names EP in its payload."""
+    from agos.runtime.observer import printer
+
+    def step(episode: str) -> bytes:
+        return msgspec.msgpack.encode({"type": "step", "v": 2, "episode_id": episode, "role": "uav", "decision_index": 1,
+                                       "applied": "WAIT", "sim_time_s": 1.0})
+
+    assert "v2 step ep=e1 uav#1 WAIT t=1.00 " in describe("agos/r/viz/w/events", step("e1"))
+    samples = [("agos/r/viz/w/events", step("e1")), ("agos/r/viz/w/events", step("e2")),
+               ("agos/r/viz/w/events", b"\x93garbage"), ("agos/r/ctl/manifest", msgspec.msgpack.encode({"v": 2}))]
+    for episode, kept in ((None, 4), ("e2", 1)):
+        show = printer(episode)
+        for key, payload in samples:
+            show(key, payload)
+        lines = capsys.readouterr().out.splitlines()
+        assert len(lines) == kept, lines
+    assert "ep=e2" in lines[0]
 
 
 def test_the_outputs_of_the_readmes_commands_are_ignored() -> None:

@@ -17,6 +17,7 @@ from collections import Counter, defaultdict
 from pathlib import Path
 
 import cv2
+import msgspec
 import numpy as np
 import pytest
 from rerun.chunk import RrdReader
@@ -176,7 +177,8 @@ def test_a_stuck_recorder_changes_no_record_and_holds_nothing_up(tmp_path: Path,
 
 # ----- the recorder without processes ------------------------------------------------------------
 
-RUN, EP = "r", "grid-s7-mid-000-v1"
+RUN, EP, WORKER = "r", "grid-s7-mid-000-v1", "w"
+EP2 = "grid-s7-mid-001-v1"
 
 
 def _jpeg(side_px: int) -> bytes:
@@ -185,10 +187,11 @@ def _jpeg(side_px: int) -> bytes:
     return data.tobytes()
 
 
-def _stream() -> list[tuple[str, object]]:
-    """One short episode as the world publishes it on the visualisation stream: UAV move and annotate,
-    UGV to the candidate, STOP_OBSERVE, CONFIRM (frames of the STOP_OBSERVE decision arrive first)."""
-    spec = EpisodeSpec(episode_id=EP, town=TownRef(generator="nowhere", seed=0, town_id="none"), asset_sha256="ab" * 32,
+def _stream(episode: str = EP) -> list[tuple[str, object]]:
+    """One short episode as the world worker ``WORKER`` publishes it on its slot's visualisation keys:
+    UAV move and annotate, UGV to the candidate, STOP_OBSERVE, CONFIRM (frames of the STOP_OBSERVE
+    decision arrive first)."""
+    spec = EpisodeSpec(episode_id=episode, town=TownRef(generator="nowhere", seed=0, town_id="none"), asset_sha256="ab" * 32,
                        difficulty="mid", region_world_m=(0.0, 0.0, 100.0, 100.0),
                        target=VehicleSpec(model="sedan", colour="red", position_world_m=(50.0, 50.0, 0.0), yaw_rad=0.0),
                        uav_start_waypoint="U0_0", ugv_start_waypoint="R1", active_uav_waypoints=["U0_0"], seed=1)
@@ -197,43 +200,43 @@ def _stream() -> list[tuple[str, object]]:
             ("ugv", 1, "GO_TO_CANDIDATE", (50.0, 30.0)), ("ugv", 2, "STOP_OBSERVE", (50.0, 30.0)),
             ("ugv", 3, "CONFIRM", (50.0, 30.0))]
     out: list[tuple[str, object]] = [
-        (keys.viz_events(RUN, EP), EpisodeStarted(run_id=RUN, episode_id=EP, difficulty="mid", worker_id="w",
-                                                  town_id="none", asset_sha256="ab" * 32)),
-        (keys.viz_spec(RUN, EP), spec)]
+        (keys.viz_events(RUN, WORKER), EpisodeStarted(run_id=RUN, episode_id=episode, difficulty="mid",
+                                                      worker_id=WORKER, town_id="none", asset_sha256="ab" * 32)),
+        (keys.viz_spec(RUN, WORKER), spec)]
     log: list[LoggedStep] = []
     for step, (role, index, action, xy) in enumerate(plan, start=1):
         t = 10.0 * step
         pose = Pose(position_world_m=(*xy, 80.0 if role == "uav" else 0.0), yaw_rad=0.0)
         names = ["front_left", "front", "front_right", "back_left", "back", "back_right"] if index == 3 else \
             ["nadir" if role == "uav" else "forward"]
-        frames = [VizFrame(run_id=RUN, episode_id=EP, role=role, decision_index=index, sim_time_s=t, pose=pose,
+        frames = [VizFrame(run_id=RUN, episode_id=episode, role=role, decision_index=index, sim_time_s=t, pose=pose,
                            image=ImageFrame(name=n, kind="rgb", encoding="jpeg", data=_jpeg(160))) for n in names]
-        event = StepEvent(run_id=RUN, episode_id=EP, role=role, decision_index=index, episode_step=step,
-                          sim_time_s=t, requested=Action(run_id=RUN, episode_id=EP, role=role, decision_index=index,
+        event = StepEvent(run_id=RUN, episode_id=episode, role=role, decision_index=index, episode_step=step,
+                          sim_time_s=t, requested=Action(run_id=RUN, episode_id=episode, role=role, decision_index=index,
                                                          action=action, cell="C3" if role == "uav" else None),
                           applied=action, pose_after=pose, candidate_id="C001" if step >= 2 else None)
-        frame_key = keys.viz_frame(RUN, EP, role)
+        frame_key = keys.viz_frame(RUN, WORKER, role)
         if index == 3:  # frames after their step event
-            out += [(keys.viz_events(RUN, EP), event)] + [(frame_key, f) for f in frames]
+            out += [(keys.viz_events(RUN, WORKER), event)] + [(frame_key, f) for f in frames]
         else:
-            out += [(frame_key, f) for f in frames] + [(keys.viz_events(RUN, EP), event)]
+            out += [(frame_key, f) for f in frames] + [(keys.viz_events(RUN, WORKER), event)]
         if step >= 2:
             status = {2: "pending", 3: "arrived", 4: "arrived", 5: "confirmed"}[step]
-            out.append((keys.viz_coord(RUN, EP), CoordinationState(
-                run_id=RUN, episode_id=EP, sim_time_s=t, decisions_used=step,
+            out.append((keys.viz_coord(RUN, WORKER), CoordinationState(
+                run_id=RUN, episode_id=episode, sim_time_s=t, decisions_used=step,
                 candidates=[Candidate(candidate_id="C001", cell="C3", polygon_world_m=polygon, center_world_m=(50.0, 50.0),
                                       status=status, created_sim_time_s=20.0)])))
         log.append(LoggedStep(role=role, decision_index=index, sim_time_s=t, applied=action, position_world_m=xy,
                               road_path_world_m=[(50.0, 0.0), (50.0, 30.0)] if step == 3 else [],
                               candidate_polygon_world_m=polygon if step == 2 else []))
-    record = EpisodeRecord(run_id=RUN, episode_id=EP, difficulty="mid", status="finished", termination="confirmed",
+    record = EpisodeRecord(run_id=RUN, episode_id=episode, difficulty="mid", status="finished", termination="confirmed",
                            success=True, ground_observed=True, n_confirm=1, ugv_path_length_m=30.0, shortest_path_length_m=30.0,
                            final_distance_m=20.0, uav_budget=80, uav_first_visible_step=1, candidates=[], decisions_uav=2,
-                           decisions_ugv=3, sim_time_s=50.0, wall_time_s=1.0, worker_id="w", town_id="none",
+                           decisions_ugv=3, sim_time_s=50.0, wall_time_s=1.0, worker_id=WORKER, town_id="none",
                            asset_sha256="ab" * 32, seed=1, renderer="tiny", step_log=log,
                            ledger=[LedgerEntry(seq=1, kind="sync", sender="uav", receiver="ugv", sent_s=20.0, size_bytes=90,
                                                delivered=False, drop_reason="loss")])
-    return out + [(keys.viz_result(RUN, EP), record)]
+    return out + [(keys.viz_result(RUN, WORKER), record)]
 
 
 def test_the_recorder_writes_the_stream_of_an_episode(tmp_path: Path) -> None:
@@ -271,24 +274,100 @@ def test_a_step_event_lost_on_the_stream_comes_from_the_record(tmp_path: Path) -
     assert rrd.decisions["/ugv/forward"] == [3, 4]
 
 
+def test_one_slot_carries_two_episodes_in_a_row_into_two_files(tmp_path: Path) -> None:
+    """Keys name the world worker, not the episode: the worker's next episode follows on the same keys,
+    its first frame right after the previous record, and the previous episode's last frames (the six
+    views of its CONFIRM, from the world's frame thread) arrive after both. Each sample goes to the
+    episode its payload names: two files, each as if it had been alone."""
+    first, second = _stream(EP), _stream(EP2)
+    late = [(k, m) for k, m in first if isinstance(m, VizFrame) and m.role == "ugv" and m.decision_index == 3]
+    assert len(late) == 6 and {k for k, _ in first} == {k for k, _ in second}  # the same keys
+    stream = [item for item in first if item not in late] + second[2:3] + late + second[:2] + second[3:]
+    assert isinstance(second[2][1], VizFrame)  # B's first frame arrives before its start and spec
+    bus = MemoryBus()
+    recorder = Recorder(bus, RUN, tmp_path)
+    for key, message in stream:
+        bus.publish_viz(key, message)
+    while (sample := recorder.inbox.get(timeout_s=0)) is not None:
+        recorder.handle(sample)
+    assert set(recorder.closing) == set(recorder.open) == {EP, EP2} and not recorder.rejections.total
+    recorder.finish()
+    assert sorted(p.name for p in tmp_path.glob("*.rrd")) == [f"{EP}.rrd", f"{EP2}.rrd"]
+    for episode in (EP, EP2):
+        seen = recorder.finished[episode]
+        assert seen["record"] and seen["steps"] == 5 and seen["frames"] == {"uav": 2, "ugv": 2 + 6}, (episode, seen)
+        rrd = Rrd(tmp_path / f"{episode}.rrd")
+        assert rrd.decisions["/uav/nadir"] == [1, 2]
+        assert rrd.decisions["/ugv/forward"] == [3, 4] and rrd.decisions["/ugv/six/back"] == [5]
+        assert rrd.rows["/log/steps"] == 5 + 2 and rrd.rows["/outcome"] == 1
+
+
 def test_the_recorder_refuses_what_is_not_its_run(tmp_path: Path) -> None:
     bus = MemoryBus()
     recorder = Recorder(bus, RUN, tmp_path)
-    recorder.handle(Sample(keys.viz_events(RUN, EP), b"\x93garbage"))
-    stranger = EpisodeStarted(run_id="other", episode_id=EP, difficulty="mid", worker_id="w", town_id="t", asset_sha256="")
-    recorder.handle(Sample(keys.viz_events(RUN, EP), encode(stranger)))
+    recorder.handle(Sample(keys.viz_events(RUN, WORKER), b"\x93garbage"))
+    stranger = EpisodeStarted(run_id="other", episode_id=EP, difficulty="mid", worker_id=WORKER, town_id="t",
+                              asset_sha256="")
+    recorder.handle(Sample(keys.viz_events(RUN, WORKER), encode(stranger)))
     assert recorder.rejections.total == 2 and not recorder.open
 
 
+@pytest.mark.parametrize("episode", ["..", "../x", "-rf", "", "a/b", "x" * 129])
+def test_the_recorder_refuses_a_payload_that_names_no_valid_episode(tmp_path: Path, episode: str) -> None:
+    """The episode id comes from the payload and names the file: one that is no valid id is refused."""
+    bus = MemoryBus()
+    recorder = Recorder(bus, RUN, tmp_path / "out")
+    started = EpisodeStarted(run_id=RUN, episode_id=episode, difficulty="mid", worker_id=WORKER, town_id="t",
+                             asset_sha256="")
+    recorder.handle(Sample(keys.viz_events(RUN, WORKER), encode(started)))
+    assert recorder.rejections.counts == {("events", "names no valid episode"): 1} and not recorder.open
+    assert [p.name for p in tmp_path.iterdir()] == ["out"] and not list((tmp_path / "out").iterdir())
+
+
+def test_the_recorder_refuses_a_message_that_names_no_episode(tmp_path: Path) -> None:
+    from agos.runtime.schemas import RunManifest
+
+    recorder = Recorder(MemoryBus(), RUN, tmp_path)
+    manifest = RunManifest(run_id=RUN, status="running", policies={}, n_episodes=1, created_utc="now")
+    recorder.handle(Sample(keys.viz_events(RUN, WORKER), encode(manifest)))
+    assert recorder.rejections.counts == {("events", "a RunManifest where none is expected"): 1} and not recorder.open
+
+
+def _payload(episode: object, pad_bytes: int) -> bytes:
+    """A payload that names ``episode``, ``pad_bytes`` more than its smallest."""
+    return msgspec.msgpack.encode({"episode_id": episode, "pad": bytes(pad_bytes)})
+
+
 def test_a_full_queue_drops_and_counts_instead_of_blocking() -> None:
+    """Counted by the episode the dropped payload names (the key names the worker only) and kind."""
     inbox = BoundedInbox(max_samples=3, max_bytes=1000)
-    for k in range(5):
-        inbox.put(Sample(keys.viz_frame(RUN, EP, "uav"), bytes(10 + k)))
-    inbox.put(Sample(keys.viz_events(RUN, "other-ep"), bytes(10)))
-    assert inbox.dropped == {(EP, "frame"): 2, ("other-ep", "events"): 1}
+    frames = [_payload(EP, k) for k in range(5)]
+    for payload in frames:
+        inbox.put(Sample(keys.viz_frame(RUN, WORKER, "uav"), payload))
+    inbox.put(Sample(keys.viz_events(RUN, WORKER), _payload(EP2, 0)))
+    inbox.put(Sample(keys.viz_events(RUN, WORKER), _payload("../x", 0)))  # no valid id: no episode's
+    inbox.put(Sample(keys.viz_events(RUN, WORKER), b"\x93garbage"))
+    assert inbox.dropped == {(EP, "frame"): 2, (EP2, "events"): 1, ("?", "events"): 2}
     assert inbox.get(0) is not None
-    inbox.put(Sample(keys.viz_coord(RUN, EP), bytes(2000)))  # alone larger than the byte bound
-    assert inbox.dropped[(EP, "coord")] == 1 and inbox.queued_bytes == 11 + 12
+    inbox.put(Sample(keys.viz_coord(RUN, WORKER), _payload(EP2, 1000)))  # alone larger than the byte bound
+    assert inbox.dropped[(EP2, "coord")] == 1 and inbox.queued_bytes == len(frames[1]) + len(frames[2])
+
+
+def test_what_the_queue_dropped_is_told_per_episode_of_one_slot(tmp_path: Path) -> None:
+    """The queue has room for the first episode and three samples of the worker's next: the drops are
+    the second episode's, in its file's summary and recorder.json, none the first's."""
+    first, second = _stream(EP), _stream(EP2)
+    recorder = Recorder(MemoryBus(), RUN, tmp_path, inbox=BoundedInbox(max_samples=len(first) + 3))
+    for key, message in first + second:
+        recorder.bus.publish_viz(key, message)
+    while (sample := recorder.inbox.get(timeout_s=0)) is not None:
+        recorder.handle(sample)
+    recorder.finish()
+    recorder._status("stopped")
+    assert recorder.finished[EP]["dropped_by_queue"] == 0 and recorder.finished[EP]["record"]
+    assert recorder.finished[EP2]["dropped_by_queue"] == len(second) - 3 and not recorder.finished[EP2]["record"]
+    status = json.loads((tmp_path / "recorder.json").read_text())
+    assert sum(status["dropped_by_queue"].values()) == len(second) - 3 and status["episodes"].keys() == {EP, EP2}
 
 
 # ----- what the world sends for recorders ----------------------------------------------------------
@@ -311,22 +390,23 @@ def test_every_view_gets_a_thumbnail_and_full_frames_share_the_observations_byte
 
 def test_the_world_sends_full_frames_only_while_someone_asks(observations) -> None:
     from agos.runtime.process import StopFlag
-    from agos.world.sim.worker import BusDecisionSource
+    from agos.world.sim.worker import BusDecisionSource, WorkerSlot
 
     later = [o for o in observations if o.decision_index > 1]  # no waiting for agents' ready tokens
     obs = {"uav": next(o for o in later if o.role == "uav"), "ugv": next(o for o in later if o.mode == "stop_6view")}
     bus = MemoryBus()
-    source = BusDecisionSource(bus, obs["uav"].run_id, obs["uav"].episode_id, worker_id="w", timeout_s=0.01,
-                               stop=StopFlag())
+    run = obs["uav"].run_id
+    slot = WorkerSlot(bus, run, WORKER)
+    source = BusDecisionSource(slot, obs["uav"].episode_id, timeout_s=0.01, stop=StopFlag())
 
     def full_sent() -> list[str]:
-        return [k for k, _ in bus.published if k.startswith(keys.viz_full(obs["uav"].run_id, obs["uav"].episode_id, ""))]
+        return [k for k, _ in bus.published if k.startswith(keys.viz_full(run, WORKER, ""))]
 
     source.decide(obs)
     assert full_sent() == []  # nobody asks: nothing made, nothing sent (agos watch subscribes to viz_light)
     assert not any("/full/" in k for k in keys.viz_light()) and keys.viz_light(full=True)[2].endswith("/full/*")
     bus.subscribe(keys.viz_full("*", "*", "*"), Inbox())
     source.decide(obs)
-    assert sorted(full_sent()) == sorted([keys.viz_full(obs["uav"].run_id, obs["uav"].episode_id, "uav")]
-                                         + 6 * [keys.viz_full(obs["uav"].run_id, obs["uav"].episode_id, "ugv")])
+    assert sorted(full_sent()) == sorted([keys.viz_full(run, WORKER, "uav")] + 6 * [keys.viz_full(run, WORKER, "ugv")])
     source.close()
+    slot.close()

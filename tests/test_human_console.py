@@ -164,3 +164,39 @@ def test_human_runs_are_found_by_run_json_or_by_their_traces(tmp_path: Path) -> 
     db.commit()
     db.close()
     assert is_human_run(copied)
+
+
+def test_the_spectator_follows_episodes_by_their_payload_on_one_workers_keys() -> None:
+    """Keys name the world worker: its next episode follows on the same keys, and a late frame of the
+    one before still lands on that one. Another run's samples are left out when a run is given."""
+    from agos.agents.human.spectator import SpectatorBoard
+    from agos.runtime import keys
+    from agos.runtime.codec import encode
+    from agos.runtime.schemas import EpisodeRecord, EpisodeStarted, VizFrame
+
+    def frame(episode: str, index: int) -> bytes:
+        image = ImageFrame(name="nadir", kind="rgb", encoding="jpeg", data=encode_jpeg(np.full((8, 8, 3), index, np.uint8)))
+        return encode(VizFrame(run_id="r", episode_id=episode, role="uav", decision_index=index, sim_time_s=1.0 * index,
+                               pose=Pose(position_world_m=(0.0, 0.0, 80.0), yaw_rad=0.0), image=image))
+
+    def started(episode: str, run: str = "r") -> bytes:
+        return encode(EpisodeStarted(run_id=run, episode_id=episode, difficulty="easy", worker_id="w", town_id="t",
+                                     asset_sha256=""))
+
+    record = encode(EpisodeRecord(run_id="r", episode_id="ep-a", difficulty="easy", status="finished",
+                                  termination="confirmed", success=True, ground_observed=True, n_confirm=1,
+                                  ugv_path_length_m=1.0, shortest_path_length_m=1.0, final_distance_m=2.0, uav_budget=10,
+                                  uav_first_visible_step=1, candidates=[], decisions_uav=1, decisions_ugv=1,
+                                  sim_time_s=5.0, wall_time_s=1.0, worker_id="w", town_id="t", asset_sha256="", seed=1,
+                                  renderer="tiny"))
+    board = SpectatorBoard("r")
+    events, frames = keys.viz_events("r", "w"), keys.viz_frame("r", "w", "uav")
+    for key, payload in [(events, started("ep-a")), (frames, frame("ep-a", 1)), (keys.viz_result("r", "w"), record),
+                         (events, started("ep-b")), (frames, frame("ep-b", 1)), (frames, frame("ep-a", 2)),
+                         (keys.viz_events("other", "w"), started("ep-c", "other"))]:
+        board.take(key, payload)
+    shown_episodes = {ep["episode_id"]: ep for ep in board.snapshot()["episodes"]}
+    assert shown_episodes.keys() == {"ep-a", "ep-b"} and board.unreadable == 0
+    assert shown_episodes["ep-a"]["outcome"]["termination"] == "confirmed" and shown_episodes["ep-b"]["outcome"] is None
+    assert shown_episodes["ep-a"]["frames"]["uav"]["decision_index"] == 2
+    assert shown_episodes["ep-b"]["frames"]["uav"]["decision_index"] == 1

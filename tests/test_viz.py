@@ -10,7 +10,7 @@ from agos.runtime import keys
 from agos.runtime.bus import Inbox, MemoryBus
 from agos.runtime.codec import decode_image, encode, encode_jpeg, encode_png
 from agos.runtime.schemas import CameraIntrinsics, CoordinationState, ImageFrame, Observation, Pose
-from agos.runtime.viz import THUMB_PX, FrameStream, VizFrame, decode_viz, thumbnail
+from agos.runtime.viz import THUMB_PX, FrameStream, VizFrame, decode_viz, episode_of_payload, thumbnail
 
 
 def _obs(encoding: str = "jpeg", size: int = 512) -> Observation:
@@ -50,10 +50,20 @@ def test_decode_viz_reads_other_messages() -> None:
     assert decode_viz(encode(state)) == state
 
 
+def test_episode_of_payload_reads_the_episode_alone() -> None:
+    """Keys name world workers, not episodes: a viewer follows an episode by the payload's field."""
+    frame = thumbnail(_obs())
+    assert frame is not None and episode_of_payload(encode(frame)) == "e"
+    assert episode_of_payload(encode(CoordinationState(run_id="r", episode_id="e2", sim_time_s=1.0))) == "e2"
+    assert episode_of_payload(msgspec.msgpack.encode({"type": "run_manifest", "run_id": "r"})) is None
+    for bad in (b"\x93garbage", b"", msgspec.msgpack.encode([1, 2]), msgspec.msgpack.encode({"episode_id": 7})):
+        assert episode_of_payload(bad) is None
+
+
 def test_frame_stream_makes_frames_only_for_someone() -> None:
     bus = MemoryBus()
     stream = FrameStream(bus, min_interval_s=0.0)
-    key = keys.viz_frame("r", "e", "uav")
+    key = keys.viz_frame("r", "w", "uav")
     stream.offer(key, _obs())  # nobody watches: nothing made, no thread
     assert stream._thread is None and not bus.published
     inbox = Inbox()
@@ -62,5 +72,5 @@ def test_frame_stream_makes_frames_only_for_someone() -> None:
     sample = inbox.get(5.0)
     assert sample is not None and sample.key == key
     assert isinstance(decode_viz(sample.payload), VizFrame)
-    stream.forget(keys.viz_prefix("r", "e"))
+    stream.forget(key)
     stream.close()

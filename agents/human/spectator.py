@@ -5,9 +5,11 @@ only ``agos/<run>/viz/**``, what the ``observer`` identity of a secured bus may 
 per episode, what a viewer needs: the episode's start, its region when the world sends its spec,
 the latest thumbnails of each role's views, the applied decisions and both trajectories (from
 the step events), the coordination truth (candidates, messages, budget) and the outcome when the
-world sends the record. It never publishes anything; :meth:`submit` refuses every action. The
-target's ground-truth position is not passed to the page: what a spectator sees can be shown
-without giving the search away.
+world sends the record. Keys name world workers (``viz/<worker>/...``), not episodes, and one
+worker's keys carry its episodes one after the other: a sample goes to the episode its payload names
+(``run_id`` or the key's run, ``episode_id``), never to one read off the key. It never publishes
+anything; :meth:`submit` refuses every action. The target's ground-truth position is not passed to
+the page: what a spectator sees can be shown without giving the search away.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from collections import OrderedDict, deque
 from typing import Any
 
 from agos.agents.human.board import PageBoard, Verdict
+from agos.runtime import keys
 from agos.runtime.codec import DecodeError, decode
 from agos.runtime.schemas import (
     CoordinationState,
@@ -84,8 +87,10 @@ class SpectatorBoard(PageBoard):
 
     @staticmethod
     def _run_of(key: str) -> str:
-        parts = key.split("/")
-        return parts[1] if len(parts) > 1 else ""
+        try:
+            return keys.run_of(key)
+        except ValueError:
+            return ""
 
     def _episode(self, run_id: str, episode_id: str) -> dict[str, Any]:
         key = (run_id, episode_id)

@@ -23,17 +23,20 @@ from agos.runtime.settings import AgosConfig
 def _add_watch(sub: Any) -> None:
     what = ("print the visualisation stream of every run, one line a message (steps, coordination, frames, episode "
             "specs and records; not the full-resolution frames): a read-only observer. --key 'agos/**' prints "
-            "every message instead")
+            "every message instead; --episode EP only the messages of one episode")
     watch = sub.add_parser("watch", help="print the runs' visualisation stream (a read-only observer)", description=what)
     watch.add_argument("--connect", help="zenoh router endpoint (default tcp/127.0.0.1:7447, or from settings)")
     watch.add_argument("--config", type=Path)
     watch.add_argument("--key", help="key expression to watch instead of the visualisation stream, e.g. 'agos/**'")
+    watch.add_argument("--episode", metavar="EP",
+                       help="print only the messages that name this episode (their episode_id: keys name world "
+                            "workers, whose episodes follow each other on the same keys)")
 
 
 def _watch(args: argparse.Namespace, cfg: AgosConfig) -> int:
     from agos.runtime import observer
 
-    return observer.main(cfg.zenoh, args.key)
+    return observer.main(cfg.zenoh, args.key, args.episode)
 
 
 def _add_router(sub: Any) -> None:

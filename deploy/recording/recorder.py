@@ -13,12 +13,18 @@ happen on the recorder's own thread (:class:`EpisodeRecording`, deploy/recording
 that falls behind therefore loses visualisation samples, and says how many at exit, in its log and
 in ``DIR/recorder.json``; it never slows the run.
 
-``--full`` subscribes to ``viz/<ep>/full/<role>`` instead of the thumbnails (``frame/<role>``), which
+``--full`` subscribes to ``viz/*/full/<role>`` instead of the thumbnails (``frame/<role>``), which
 makes the worlds send every view at full resolution (runtime/viz.py); without it the recording holds
 the stream's thumbnails.
 
+Keys name world workers (``viz/<worker>/...``), not episodes, and one worker's keys carry its episodes
+one after the other: every sample goes to the recording of the episode its payload names
+(``episode_id``), so a late frame of one episode and the first samples of the worker's next one, on
+the same key, each land in their own file. A payload that names another run, or no valid episode id
+(``keys.check_chunk``: the id is a file name), is refused and counted.
+
 An episode's file is finished ``LATE_S`` seconds after the copy of its record arrives on
-``viz/<ep>/result`` (frames are made on the world's frame thread and may arrive after it); at exit
+``viz/<worker>/result`` (frames are made on the world's frame thread and may arrive after it); at exit
 (SIGTERM, SIGINT) the recorder goes on until every open file is finished that way, for at most
 ``DRAIN_S`` seconds (``agos eval`` stops the recorder once the evaluator has stored the last
 record, and that copy travels at a higher priority than the stream's, so it can overtake it); then
@@ -51,6 +57,7 @@ from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging,
 from agos.runtime.rejections import Rejections
 from agos.runtime.schemas import CoordinationState, EpisodeRecord, EpisodeSpec, EpisodeStarted, StepEvent, VizFrame
 from agos.runtime.settings import AgosConfig
+from agos.runtime.viz import episode_of_payload
 
 log = logging.getLogger("agos.record")
 QUEUE_SAMPLES = 4096
@@ -62,15 +69,30 @@ STALL_ENV = "AGOS_FAULT_RECORDER_STALL_S"
 """The fault-injection variable (see the module docstring)."""
 
 
-def _kind(key: str) -> tuple[str, str]:
-    """(episode, kind) of ``agos/<run>/viz/<ep>/<kind>[/<role>]``."""
-    parts = key.split("/")
-    return (parts[3], parts[4]) if len(parts) > 4 else ("?", "?")
+def _kind(key: str) -> str:
+    """What a key of the stream carries, without the role: ``events``, ``coord``, ``frame``, ``full``,
+    ``spec`` or ``result`` (``?`` for a key that is no viz key)."""
+    try:
+        return keys.kind_of(key).split("/", 1)[0]
+    except ValueError:
+        return "?"
+
+
+def _dropped_of(sample: Sample) -> tuple[str, str]:
+    """(episode, kind) of a sample the queue drops: the episode its payload names (``?`` when it names
+    none that could be a recording's), read without decoding the rest of it."""
+    episode = episode_of_payload(sample.payload)
+    try:
+        episode = keys.check_chunk(episode or "", what="episode id")
+    except ValueError:
+        episode = "?"
+    return episode, _kind(sample.key)
 
 
 class BoundedInbox(Inbox):
     """An inbox that never blocks its producer (zenoh's callback thread): a sample that would take
-    it past ``max_samples`` or ``max_bytes`` is dropped and counted by (episode, kind)."""
+    it past ``max_samples`` or ``max_bytes`` is dropped and counted by (episode, kind), the episode
+    its payload names (keys name world workers, not episodes; only a dropped sample is read for it)."""
 
     def __init__(self, max_samples: int = QUEUE_SAMPLES, max_bytes: int = QUEUE_BYTES) -> None:
         super().__init__()
@@ -81,10 +103,14 @@ class BoundedInbox(Inbox):
 
     def put(self, sample: Sample) -> None:
         with self._lock:
-            if self._queue.qsize() >= self.max_samples or self.queued_bytes + len(sample.payload) > self.max_bytes:
-                self.dropped[_kind(sample.key)] += 1
-                return
-            self.queued_bytes += len(sample.payload)
+            full = self._queue.qsize() >= self.max_samples or self.queued_bytes + len(sample.payload) > self.max_bytes
+            if not full:
+                self.queued_bytes += len(sample.payload)
+        if full:
+            counted = _dropped_of(sample)  # its payload read outside the lock
+            with self._lock:
+                self.dropped[counted] += 1
+            return
         self._queue.put(sample)
 
     def get(self, timeout_s: float | None = None) -> Sample | None:
@@ -164,17 +190,26 @@ class Recorder:
             log.warning("fault injection %s: %s after %.1f s of the stall", STALL_ENV,
                         "stopped while stuck" if stopped else "the handler goes on", time.monotonic() - started)
             self.stall_s = 0.0
-        episode, kind = _kind(sample.key)
         try:
             message = decode(sample.payload)
         except DecodeError as exc:
             self.rejections.reject(sample.key, "unreadable", exc)
             return
-        if getattr(message, "run_id", self.run_id) != self.run_id or getattr(message, "episode_id", episode) != episode:
-            self.rejections.reject(sample.key, "names another run or episode than its key")
+        # The payload says which episode (keys name the world worker, whose episodes follow each other).
+        episode = getattr(message, "episode_id", None)
+        if not isinstance(episode, str):
+            self.rejections.reject(sample.key, f"a {type(message).__name__} where none is expected")
+            return
+        if getattr(message, "run_id", self.run_id) != self.run_id:
+            self.rejections.reject(sample.key, "names another run than its key")
             return
         try:
-            self._dispatch(episode, kind, message, sample.key)
+            keys.check_chunk(episode, what="episode id")  # a file name: nothing outside out_dir
+        except ValueError as exc:
+            self.rejections.reject(sample.key, "names no valid episode", exc)
+            return
+        try:
+            self._dispatch(episode, _kind(sample.key), message, sample.key)
         except Exception as exc:  # one bad sample (or a bug) costs that sample, never the other recordings
             log.debug("sample on %s not recorded", sample.key, exc_info=True)
             self.rejections.reject(sample.key, "could not be recorded", f"{type(exc).__name__}: {exc}")
@@ -205,8 +240,7 @@ class Recorder:
             self.rejections.reject(key, f"a {type(message).__name__} where none is expected")
 
     def _recording(self, episode: str) -> EpisodeRecording:
-        if episode not in self.open:
-            keys.check_chunk(episode, what="episode id")  # a file name: nothing outside out_dir
+        if episode not in self.open:  # handle() has checked the id (a file name: nothing outside out_dir)
             self.open[episode] = EpisodeRecording(self.out_dir, self.run_id, episode, full=self.full,
                                                   map_source=self.map_source)
         return self.open[episode]
