@@ -62,6 +62,8 @@ class _Dispatch:
         self.inline = policy.inline
         self.lock = threading.Lock()
         self.slots: dict[str, tuple[str, int]] = {}  # worker -> the (episode, attempt) its slot runs now
+        self.asked: dict[str, tuple[str, int, int]] = {}  # worker -> the latest decision (episode, attempt, index)
+        self.answers: dict[str, bytes] = {}  # worker -> the answer sent to it, once sent
         self.rejections = Rejections(log)
 
     def _current(self, worker: str, obs: Observation) -> bool:
@@ -114,14 +116,35 @@ class _Dispatch:
             except ValueError as exc:
                 self.rejections.reject(key, "an id that is not a name", exc)
                 return
-            if not self._current(worker, message):
+            if not self._current(worker, message) or self._asked_again(worker, message):
                 return
             if self.inline:
                 started = time.monotonic()
-                publish_action(self.bus, self.run_id, worker, message, decide(self.policy, message), started)
+                self.send(worker, message, decide(self.policy, message), started)
                 return
         with contextlib.suppress(RuntimeError):  # the loop is closed: the service is stopping
             self.loop.call_soon_threadsafe(self.on_loop, worker, message)
+
+    def _asked_again(self, worker: str, obs: Observation) -> bool:
+        """Whether ``obs`` asks again for the decision ``worker`` asked last (the world re-publishes an
+        observation it had no answer to: the answer was lost, say while a router restarted). The
+        policy is not asked twice: the answer already sent goes again, or, still being made, will go."""
+        decision = (obs.episode_id, obs.attempt, obs.decision_index)
+        if self.asked.get(worker) != decision:
+            self.asked[worker] = decision
+            self.answers.pop(worker, None)
+            return False
+        if (payload := self.answers.get(worker)) is not None:
+            self.bus.publish(keys.act(self.run_id, worker, obs.role), payload)
+        return True
+
+    def send(self, worker: str, obs: Observation, action: Action, started: float) -> None:
+        """Send the policy's ``action`` answering ``obs`` (:func:`publish_action`) and keep it for a
+        repeated question."""
+        payload = publish_action(self.bus, self.run_id, worker, obs, action, started)
+        with contextlib.nullcontext() if self.inline else self.lock:  # inline: the caller holds it
+            if self.asked.get(worker) == (obs.episode_id, obs.attempt, obs.decision_index):
+                self.answers[worker] = payload
 
     def slot_over(self, worker: str) -> None:
         """The world serving ``worker``'s slot is gone (its liveliness token ended: it stopped, or
@@ -129,6 +152,8 @@ class _Dispatch:
         publish."""
         with self.lock:
             previous = self.slots.pop(worker, None)
+            self.asked.pop(worker, None)
+            self.answers.pop(worker, None)
             if previous is not None:
                 self._release(previous[0])
 
@@ -156,17 +181,23 @@ class _SlotSubscriptions:
     threads; the (un)subscribing is done on the asyncio loop, outside zenoh's callbacks."""
 
     def __init__(self, bus: Bus, run_id: str, role: Role, agent_id: str, dispatch: _Dispatch,
-                 loop: asyncio.AbstractEventLoop) -> None:
+                 loop: asyncio.AbstractEventLoop, *, reconnect_grace_s: float = 10.0) -> None:
         self.bus, self.run_id, self.role, self.agent_id = bus, run_id, role, agent_id
-        self.dispatch, self.loop = dispatch, loop
+        self.dispatch, self.loop, self.reconnect_grace_s = dispatch, loop, reconnect_grace_s
         self.handles: dict[str, tuple[Any, Any]] = {}  # worker -> (subscription, ready token)
+        self.leaving: dict[str, asyncio.TimerHandle] = {}  # worker -> its drop, if its token stays away
 
     def put(self, sample: Sample) -> None:
         with contextlib.suppress(RuntimeError):  # the loop is closed: the service is stopping
             self.loop.call_soon_threadsafe(self.update, sample.key, sample.payload == b"+")
 
     def update(self, key: str, alive: bool) -> None:
+        """A slot's token came (subscribe) or went: the slot is dropped, and its episode forgotten, only
+        if it stays away ``reconnect_grace_s`` (a router restart takes every token away for seconds;
+        zenoh declares this service's subscription and token again itself when it reconnects)."""
         worker = keys.slot_of(key)
+        if alive and (leaving := self.leaving.pop(worker, None)) is not None:
+            leaving.cancel()
         if alive and worker not in self.handles:
             obs_key = keys.obs(self.run_id, worker, self.role)
             try:
@@ -177,10 +208,11 @@ class _SlotSubscriptions:
                 log.exception("could not subscribe to %s", obs_key)
                 return
             self.handles[worker] = (subscription, ready)
-        elif not alive:
-            self._drop(worker)
+        elif not alive and worker in self.handles and worker not in self.leaving:
+            self.leaving[worker] = self.loop.call_later(self.reconnect_grace_s, self._drop, worker)
 
     def _drop(self, worker: str) -> None:
+        self.leaving.pop(worker, None)
         if worker in self.handles:
             subscription, ready = self.handles.pop(worker)
             self.bus.undeclare_token(ready)
@@ -189,6 +221,8 @@ class _SlotSubscriptions:
             self.dispatch.slot_over(worker)
 
     def close(self) -> None:
+        for leaving in self.leaving.values():
+            leaving.cancel()
         for worker in list(self.handles):
             self._drop(worker)
 
@@ -231,10 +265,10 @@ def _policy_failed(obs: Observation) -> Action:
     return action_for(obs, "WAIT", rationale="policy error (see agent log)")
 
 
-def publish_action(bus: Bus, run_id: str, worker: str, obs: Observation, action: Action, started: float) -> None:
+def publish_action(bus: Bus, run_id: str, worker: str, obs: Observation, action: Action, started: float) -> bytes:
     """Stamp the policy's wall-clock latency (realtime mode charges it in simulated time), check the
     answer as the world will read it (structs are built without checks) and send it; one the world
-    would refuse is logged and replaced by a legal WAIT."""
+    would refuse is logged and replaced by a legal WAIT. Returns the payload sent."""
     latency = round(time.monotonic() - started, 4)
     try:
         payload = _stamped(action, latency)
@@ -242,6 +276,7 @@ def publish_action(bus: Bus, run_id: str, worker: str, obs: Observation, action:
         action = _policy_failed(obs)
         payload = _stamped(action, latency)
     bus.publish(keys.act(run_id, worker, action.role), payload)
+    return payload
 
 
 def _stamped(action: Action, latency_s: float) -> bytes:
@@ -253,7 +288,8 @@ def _stamped(action: Action, latency_s: float) -> bytes:
     return payload
 
 
-async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, concurrency: int) -> int:
+async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, concurrency: int,
+                      reconnect_grace_s: float = 10.0) -> int:
     loop = asyncio.get_running_loop()
     limit = asyncio.Semaphore(concurrency)
     executor = ThreadPoolExecutor(max_workers=concurrency, thread_name_prefix="policy")
@@ -272,7 +308,7 @@ async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, 
                 fatal.append(exc)
                 stop.set()
                 return
-        publish_action(bus, run_id, worker, obs, action, started)
+        dispatch.send(worker, obs, action, started)
 
     def on_loop(worker: str, message: Observation) -> None:
         """Start answering an observation of ``worker``'s slot."""
@@ -282,7 +318,7 @@ async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, 
 
     agent_id = unique_id(policy.role)
     dispatch = _Dispatch(bus, policy, run_id, loop, on_loop)
-    slots = _SlotSubscriptions(bus, run_id, policy.role, agent_id, dispatch, loop)
+    slots = _SlotSubscriptions(bus, run_id, policy.role, agent_id, dispatch, loop, reconnect_grace_s=reconnect_grace_s)
     bus.watch_liveliness(keys.slot_live(run_id, "*"), slots)
     bus.declare_token(keys.live(run_id, "agent", agent_id))
     announce("agent", agent_id, run_id)
@@ -317,4 +353,5 @@ def main(cfg: AgosConfig, *, role: Role, policy_name: str | None = None, concurr
         log.info("VLM endpoint %s serves %s (checked: model listed, %s-sized requests accepted)",
                  cfg.vlm.base_url, cfg.vlm.model, role)
     with ZenohBus.from_settings(cfg.zenoh) as bus:
-        return asyncio.run(serve_async(bus, policy, cfg.run.run_id, stop, concurrency=concurrency))
+        return asyncio.run(serve_async(bus, policy, cfg.run.run_id, stop, concurrency=concurrency,
+                                       reconnect_grace_s=cfg.run.reconnect_grace_s))

@@ -417,3 +417,28 @@ def test_jpeg_round_trip_close_and_rgb() -> None:
 def test_decode_image_rejects_garbage() -> None:
     with pytest.raises(ValueError, match="could not be decoded"):
         decode_image(b"definitely not an image")
+
+
+@pytest.mark.parametrize("version", [1, 3, 99])
+def test_a_live_message_of_another_schema_version_is_refused_naming_both(version: int) -> None:
+    from agos.runtime.codec import WireVersionError
+
+    data = msgpack.unpackb(encode(_record()), raw=False)
+    data["v"] = version
+    for read in (decode, lambda p: decode_as(p, EpisodeRecord)):
+        with pytest.raises(WireVersionError, match=f"wire schema version {version}, this process speaks version "
+                                                   f"{SCHEMA_VERSION}") as caught:
+            read(msgpack.packb(data))
+        assert "\n" not in str(caught.value)
+    data["unknown_field_of_a_later_version"] = 1  # what a later version may add: still named by its version
+    with pytest.raises(WireVersionError):
+        decode(msgpack.packb(data))
+
+
+def test_stored_records_of_every_older_version_still_read() -> None:
+    """Records in results files and SQLite of schema version 1 (keys named episodes; the messages were
+    the same) read as they are."""
+    stored = json.loads(to_json(_record()))
+    stored["v"] = 1
+    record = from_json(json.dumps(stored), EpisodeRecord)
+    assert record.v == 1 and msgspec.structs.replace(record, v=SCHEMA_VERSION) == _record()

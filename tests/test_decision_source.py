@@ -5,6 +5,8 @@ as zenoh does."""
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from agos.runtime import keys
@@ -37,12 +39,19 @@ def test_the_slot_token_lives_while_the_slot_does_whatever_the_episodes() -> Non
 
 def test_an_agent_lost_mid_episode_ends_the_attempt_even_if_another_took_its_place() -> None:
     bus = MemoryBus()
-    source = _source(bus)
+    source = BusDecisionSource(WorkerSlot(bus, "r", "w1"), "e1", timeout_s=1.0, stop=StopFlag(), reconnect_grace_s=0.2)
     ready = bus.declare_token(keys.slot_ready("r", "w1", "uav", "uav-1"))
     source._check_agents({"uav": _Due()})  # type: ignore[dict-item]
     source._watch_agents()
+    bus.undeclare_token(ready)  # a router restart: gone, and back within the grace with its memory
+    source._watch_agents()
+    ready = bus.declare_token(keys.slot_ready("r", "w1", "uav", "uav-1"))
+    time.sleep(0.3)
+    source._watch_agents()
     bus.undeclare_token(ready)
     bus.declare_token(keys.slot_ready("r", "w1", "uav", "uav-2"))  # a restarted service, without the memory
+    source._watch_agents()  # within the grace
+    time.sleep(0.3)
     with pytest.raises(AgentVanished, match="UAV"):
         source._watch_agents()
     source.close()

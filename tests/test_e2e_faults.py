@@ -26,6 +26,7 @@ import zenoh
 from agos.deploy.run.launcher import free_port, wait_listening
 from agos.runtime import keys
 from agos.runtime.bus import zenoh_config
+from agos.runtime.schemas import SCHEMA_VERSION
 
 from support.records import by_episode
 
@@ -273,6 +274,64 @@ class MeshCluster(Cluster):
         self.start("agent-uav", "agent", "--role", "uav", "--connect", f"{b},{a}", "--run", run)
         self.start("agent-ugv", "agent", "--role", "ugv", "--connect", f"{c},{a}", "--run", run)
         self.start("w0", "world", "--connect", f"{b},{a}", "--run", run, "--worker-id", "w0")
+        self.a, self.b = a, b
+        log = (tmp / "mesh-client.log").open("ab")
+        self.procs["mesh-client"] = subprocess.Popen([sys.executable, str(MESH_CLIENT), "probe", f"{b},{a}"],
+                                                     cwd=tmp, stdout=log, stderr=subprocess.STDOUT)
+
+
+MESH_CLIENT = Path(__file__).parent / "support" / "mesh_client.py"
+
+
+def _router_id(endpoint: str) -> str:
+    """The zenoh id of the router listening on ``endpoint``."""
+    with zenoh.open(zenoh_config(connect=[endpoint])) as session:
+        return str(session.info.routers_zid()[0])
+
+
+class Pinger:
+    """The test's side of tests/support/mesh_client.py, from a session on ``endpoint``: pings it, reads which
+    router it answered from, and counts the ends of its token."""
+
+    def __init__(self, endpoint: str, name: str = "probe") -> None:
+        self.pongs: dict[int, list[str]] = {}  # ping -> the routers its pongs named (one pong each, or a bug)
+        self.token_ends = 0
+        self.sent = 0
+        self.lock = threading.Lock()
+        self.session = zenoh.open(zenoh_config(connect=[endpoint]))
+        self.ping = self.session.declare_publisher(f"failback/{name}/ping")
+        self.subs = [self.session.declare_subscriber(f"failback/{name}/pong", self._pong),
+                     self.session.liveliness().declare_subscriber(f"failback/{name}/live", self._token)]
+
+    def _pong(self, sample: zenoh.Sample) -> None:
+        n, router = sample.payload.to_bytes().decode().split()
+        with self.lock:
+            self.pongs.setdefault(int(n), []).append(router)
+
+    def _token(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            with self.lock:
+                self.token_ends += 1
+
+    def router(self, timeout_s: float = 20.0) -> str:
+        """Ping (again every 0.2 s unanswered) until a pong comes; the router it named."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            self.sent += 1
+            n = self.sent
+            self.ping.put(str(n).encode())
+            until = time.monotonic() + 0.2
+            while time.monotonic() < until:
+                with self.lock:
+                    if n in self.pongs:
+                        return self.pongs[n][0]
+                time.sleep(0.005)
+        raise AssertionError("the mesh client never answered")
+
+    def close(self) -> None:
+        for sub in self.subs:
+            sub.undeclare()
+        self.session.close()
 
 
 def test_router_mesh_a_site_router_killed_mid_run_gives_the_same_records(
@@ -283,10 +342,13 @@ def test_router_mesh_a_site_router_killed_mid_run_gives_the_same_records(
     the module's one-router run."""
     cluster = MeshCluster(tmp_path, "mesh")
     watcher = Watcher(cluster.endpoint)
+    pinger = Pinger(cluster.a)
     try:
         proc = cluster.eval(episodes, "--comm", "lossy")
         watcher.wait(lambda w: (e := _running_on(w, "w0")) is not None and w.uav_moves_of.get(e, 0) >= 2)
         victim = _running_on(watcher, "w0")
+        first_b = _router_id(cluster.b)
+        assert pinger.router() == first_b  # the mesh client of B's site is on B
         cluster.kill("router-b")
         out = _finish(proc)
         records = cluster.records()
@@ -297,7 +359,30 @@ def test_router_mesh_a_site_router_killed_mid_run_gives_the_same_records(
         assert by_episode(records, also=("provenance",))[victim] == clean[victim]
         assert by_episode(records, also=("provenance",)) == clean
         assert all(cluster.procs[name].poll() is None for name in ("router", "router-c", "agent-uav", "agent-ugv"))
+
+        # Failback: B's site had failed over to A; B comes back (a new router) and they return to it.
+        assert pinger.router() == _router_id(cluster.a)
+        ends = pinger.token_ends
+        restarted = time.monotonic()
+        cluster.start("router-b", "router", "--listen", cluster.b, "--peer", cluster.a)
+        assert wait_listening("127.0.0.1", int(cluster.b.rsplit(":", 1)[1]), 15.0)
+        second_b = _router_id(cluster.b)
+        assert second_b != first_b
+        while (on := pinger.router()) != second_b:  # it hears the ping and publishes the pong throughout
+            assert time.monotonic() - restarted < 20.0, f"still on {on}, not back on B"
+        print(f"mesh client back on B {time.monotonic() - restarted:.1f} s after B was restarted")
+        back = re.compile(r"back on the own zenoh router (\w+)")
+        for name in ("w0", "agent-uav", "mesh-client"):  # the world worker and the UAV agent too
+            log_path = tmp_path / f"{name}.log"
+            deadline = time.monotonic() + 10.0
+            while second_b not in back.findall(log_path.read_text()):
+                assert time.monotonic() < deadline, f"{name} did not return to B: {log_path.read_text()[-2000:]}"
+                time.sleep(0.1)
+        assert [pinger.router() for _ in range(3)] == [second_b] * 3
+        assert pinger.token_ends == ends  # its token never ended on the way back
+        assert all(len(routers) == 1 for routers in pinger.pongs.values())  # no ping was answered twice
     finally:
+        pinger.close()
         watcher.close()
         cluster.close()
 
@@ -371,7 +456,7 @@ def test_same_results_with_slow_and_stuck_observers(tmp_path: Path, episodes: Pa
     assert viz.frames > 0
 
 
-def _forgeries(run: str, episode_ids: list[str], rng) -> list[tuple[str, bytes]]:
+def _forgeries(run: str, episode_ids: list[str], rng, worker: str = "w0") -> list[tuple[str, bytes]]:
     """(key, payload) pairs a hostile client on an open router sends during a run: for every key the
     run's processes subscribe to, unreadable bytes, wrong shapes, another schema version, messages of
     the wrong type, messages naming another run, episode or role than their key, non-finite numbers,
@@ -419,36 +504,37 @@ def _forgeries(run: str, episode_ids: list[str], rng) -> list[tuple[str, bytes]]
             coordination=CoordinationState(run_id=run, episode_id=ep, sim_time_s=1.0))
         action = Action(run_id=run, episode_id=ep, role="uav", decision_index=rng.randrange(1, 80), action="WAIT")
         for role in ("uav", "ugv"):
-            out += [(keys.act(run, ep, role), rng.choice(junk)),
-                    (keys.act(run, ep, role), encode(msgspec.structs.replace(action, role=role, decision_index=9999))),
-                    (keys.act(run, ep, role), encode(msgspec.structs.replace(action, role=role, attempt=7))),
-                    (keys.act(run, ep, role), encode(msgspec.structs.replace(
+            out += [(keys.act(run, worker, role), rng.choice(junk)),
+                    (keys.act(run, worker, role), encode(msgspec.structs.replace(action, role=role, decision_index=9999))),
+                    (keys.act(run, worker, role), encode(msgspec.structs.replace(action, role=role, attempt=7))),
+                    (keys.act(run, worker, role), encode(msgspec.structs.replace(
                         action, role="ugv" if role == "uav" else "uav"))),
-                    (keys.act(run, ep, role), encode(msgspec.structs.replace(action, role=role, episode_id="elsewhere"))),
-                    (keys.act(run, ep, role), encode(msgspec.structs.replace(
+                    (keys.act(run, worker, role), encode(msgspec.structs.replace(action, role=role, episode_id="elsewhere"))),
+                    (keys.act(run, worker, role), encode(msgspec.structs.replace(
                         action, role=role, agent_wall_latency_s=float("nan")))),
-                    (keys.act(run, ep, role), v99(msgspec.structs.replace(action, role=role))),
-                    (keys.obs(run, ep, role), rng.choice(junk)),
-                    (keys.obs(run, ep, role), encode(msgspec.structs.replace(obs, role=role))),  # NaN heading
-                    (keys.obs(run, ep, role), encode(msgspec.structs.replace(obs, run_id="another-run"))),
-                    (keys.obs(run, ep, role), v99(obs)),
-                    (keys.obs(run, ep, role), encode(record))]
-        out += [(keys.result(run, ep), rng.choice(junk)),
-                (keys.result(run, ep), encode(record)),  # no lease: the holder is a real worker
-                (keys.result(run, ep), encode(msgspec.structs.replace(record, final_distance_m=float("nan")))),
-                (keys.result(run, ep), encode(msgspec.structs.replace(record, episode_id="elsewhere"))),
-                (keys.result(run, ep), v99(record)),
-                (keys.result(run, ep), encode(manifest)),
-                (keys.result_ack(run, ep), rng.choice(junk)),
-                (keys.result_ack(run, ep), encode(ResultAck(run_id=run, episode_id="elsewhere", newly_stored=True))),
-                (keys.lease(run, ep), rng.choice(junk)),
-                (keys.lease(run, ep), v99(LeaseNotice(run_id=run, episode_id=ep, worker_id="forger", attempt=9))),
-                (keys.lease(run, ep), encode(LeaseNotice(run_id=run, episode_id="elsewhere", worker_id="forger",
+                    (keys.act(run, worker, role), v99(msgspec.structs.replace(action, role=role))),
+                    (keys.obs(run, worker, role), rng.choice(junk)),
+                    (keys.obs(run, worker, role), encode(msgspec.structs.replace(obs, role=role))),  # NaN heading
+                    (keys.obs(run, worker, role), encode(msgspec.structs.replace(obs, run_id="another-run"))),
+                    (keys.obs(run, worker, role), v99(obs)),
+                    (keys.obs(run, worker, role), encode(record))]
+        out += [(keys.result(run, worker), rng.choice(junk)),
+                (keys.result(run, worker), encode(record)),  # on the real worker's slot, naming another
+                (keys.result(run, "forger"), encode(record)),  # no lease: the holder is a real worker
+                (keys.result(run, worker), encode(msgspec.structs.replace(record, final_distance_m=float("nan")))),
+                (keys.result(run, worker), encode(msgspec.structs.replace(record, episode_id="elsewhere"))),
+                (keys.result(run, worker), v99(record)),
+                (keys.result(run, worker), encode(manifest)),
+                (keys.result_ack(run, worker), rng.choice(junk)),
+                (keys.result_ack(run, worker), encode(ResultAck(run_id=run, episode_id="elsewhere", newly_stored=True))),
+                (keys.lease(run), rng.choice(junk)),
+                (keys.lease(run), v99(LeaseNotice(run_id=run, episode_id=ep, worker_id="forger", attempt=9))),
+                (keys.lease(run), encode(LeaseNotice(run_id=run, episode_id="elsewhere", worker_id="forger",
                                                          attempt=9))),
-                (keys.events(run, ep), rng.choice(junk)),
-                (keys.events(run, ep), encode(record)),
-                (f"agos/..-{ep}/ep/{ep}/result", encode(msgspec.structs.replace(record, run_id=f"..-{ep}"))),
-                (f"agos/-rf/ep/{ep}/result", encode(msgspec.structs.replace(record, run_id="-rf")))]
+                (keys.events(run, worker), rng.choice(junk)),
+                (keys.events(run, worker), encode(record)),
+                (f"agos/..-{ep}/slot/{worker}/result", encode(msgspec.structs.replace(record, run_id=f"..-{ep}"))),
+                (f"agos/-rf/slot/{worker}/result", encode(msgspec.structs.replace(record, run_id="-rf")))]
     return out
 
 
@@ -473,7 +559,7 @@ def test_a_hostile_client_changes_no_record(tmp_path: Path, episodes: Path, clea
     session = zenoh.open(zenoh_config(connect=[cluster.endpoint]))
     stop = threading.Event()
     sent = [0]
-    genuine: dict[str, bytes] = {}  # key -> the last payload of the run's own processes heard there
+    genuine: dict[tuple[str, str], bytes] = {}  # (key, episode) -> the last payload of the run's own processes
 
     def hear(sample: zenoh.Sample) -> None:
         payload = sample.payload.to_bytes()
@@ -481,11 +567,11 @@ def test_a_hostile_client_changes_no_record(tmp_path: Path, episodes: Path, clea
             data = msgpack.unpackb(payload, raw=False)
         except ValueError:
             return
-        if isinstance(data, dict) and data.get("worker_id") == "w0" and data.get("v") == 1:  # not a forgery
-            genuine[str(sample.key_expr)] = payload
+        if isinstance(data, dict) and data.get("worker_id") == "w0" and data.get("v") == SCHEMA_VERSION:  # not a forgery
+            genuine[(str(sample.key_expr), data.get("episode_id"))] = payload
 
     listeners = [session.declare_subscriber(keys.result(run, "*"), hear),
-                 session.declare_subscriber(keys.lease(run, "*"), hear)]
+                 session.declare_subscriber(keys.lease(run), hear)]
     answers = random.Random(0)  # its own generator: the queryable's callback runs on zenoh's thread
     junk = [b"", b"\xc1", bytes(answers.randrange(256) for _ in range(64)), msgpack.packb([1, 2, 3]),
             msgpack.packb({"type": "run_manifest", "v": 1, "status": 7})]
@@ -495,7 +581,7 @@ def test_a_hostile_client_changes_no_record(tmp_path: Path, episodes: Path, clea
         from agos.runtime.codec import encode
 
         while not stop.is_set():
-            for key, payload in [*_forgeries(run, ids, rng), *list(genuine.items())]:
+            for key, payload in [*_forgeries(run, ids, rng), *[(k, p) for (k, _), p in list(genuine.items())]]:
                 session.put(key, payload)
                 sent[0] += 1
             for payload in (b"\xc1", encode(JobRequest(worker_id="thief"))):  # a client asking for jobs
@@ -520,7 +606,7 @@ def test_a_hostile_client_changes_no_record(tmp_path: Path, episodes: Path, clea
         assert sent[0] >= 1000, sent[0]
         assert by_episode(cluster.records()) == clean_lossy
         assert "re-leased episodes" not in out, out
-        assert len([k for k in genuine if k.endswith("/result")]) == len(ids)
+        assert len([k for k, _ in genuine if k.endswith("/result")]) == len(ids)
         replays = re.findall(r"duplicate hostile/(\S+) ", (tmp_path / "evaluator.log").read_text())
         assert set(replays) == set(ids), replays  # each episode's record came again after it was stored
         alive = {name: p.poll() for name, p in cluster.procs.items() if name != "w0"}
@@ -545,5 +631,5 @@ def test_a_hostile_client_changes_no_record(tmp_path: Path, episodes: Path, clea
     assert sum(counted.values()) >= 1000, counted
     evaluator_reasons = re.findall(r"rejected \d+ messages: (.*)", (tmp_path / "evaluator.log").read_text())[-1]
     for reason in ("not from the lease holder", "a number that is not finite", "unreadable",
-                   "an id that is not a name", "names another episode than its key"):
+                   "an id that is not a name", "names another worker than its key"):
         assert reason in evaluator_reasons, evaluator_reasons

@@ -11,6 +11,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 import zenoh
@@ -18,9 +19,10 @@ import zenoh
 from agos.deploy.cli import main as agos
 from agos.deploy.ops.certs import make_certs, zenohd_config
 from agos.deploy.run.launcher import free_port
+from agos.runtime import bus as bus_module
 from agos.runtime import keys
 from agos.runtime.access_control import IDENTITIES, access_control
-from agos.runtime.bus import Inbox, ZenohBus, connect_retry_s, session_config
+from agos.runtime.bus import Inbox, ZenohBus, connect_retry_s, session_config, zenoh_config
 from agos.runtime.router import router_config
 from agos.runtime.settings import ConfigError, ZenohSettings, load_config
 
@@ -138,7 +140,7 @@ def test_a_secured_mesh_relays_what_each_router_allowed_and_nothing_else(tmp_pat
     with router(a, [], certs) as router_a, router(b, [a], certs), router(c, [a], other) as stranger_router, \
             client("world", f"{b},{a}") as world, client("agent-uav", a) as uav, \
             client("orchestrator", a) as orchestrator, client("world", c, other) as stranger:
-        obs, act = keys.obs(RUN, "e1", "uav"), keys.act(RUN, "e1", "uav")
+        obs, act = keys.obs(RUN, "w1", "uav"), keys.act(RUN, "w1", "uav")
         uav_hears, world_hears, orch_hears = Inbox(), Inbox(), Inbox()
         uav.subscribe(keys.obs(RUN, "*", "uav"), uav_hears)
         world.subscribe(keys.act(RUN, "*", "*"), world_hears)
@@ -147,20 +149,20 @@ def test_a_secured_mesh_relays_what_each_router_allowed_and_nothing_else(tmp_pat
 
         # B's world reaches A's agent; the stranger's world (a router of another CA) never does.
         def both() -> None:
-            stranger.publish(keys.obs(RUN, "c1", "uav"), b"o")
+            stranger.publish(keys.obs(RUN, "w1", "uav"), b"o")
             world.publish(obs, b"o")
 
         heard = _until(uav_hears, obs, both)
         assert set(heard) == {obs}
         # A's agent forges the UGV's action before its own: A drops it, B's world hears only the UAV's.
         for _ in range(5):
-            uav.publish(keys.act(RUN, "e1", "ugv"), b"forged")
+            uav.publish(keys.act(RUN, "w1", "ugv"), b"forged")
         assert set(_until(world_hears, act, lambda: uav.publish(act, b"a"))) == {act}
         # B's world forges acknowledgements before a result: B drops them, A's orchestrator hears the result.
         for _ in range(5):
-            world.publish(keys.result_ack(RUN, "e1"), b"forged")
-        assert set(_until(orch_hears, keys.result(RUN, "e1"), lambda: world.publish(keys.result(RUN, "e1"), b"r"))) \
-            == {keys.result(RUN, "e1")}
+            world.publish(keys.result_ack(RUN, "w1"), b"forged")
+        assert set(_until(orch_hears, keys.result(RUN, "w1"), lambda: world.publish(keys.result(RUN, "w1"), b"r"))) \
+            == {keys.result(RUN, "w1")}
         # Queries and liveliness tokens cross too: the world's job request, its token.
         jobs = orchestrator.serve(keys.jobs(RUN))
         token = world.declare_token(keys.live(RUN, "world", "w0"))
@@ -189,3 +191,123 @@ def test_a_secured_mesh_relays_what_each_router_allowed_and_nothing_else(tmp_pat
         # Seconds later still nothing from the stranger's world, whose router A never let in.
         assert {s.key for s in uav_hears.drain()} <= {obs}
         assert str(stranger_router.zid()) not in {str(z) for z in router_a.info.routers_zid()}
+
+
+def _router_of(bus: ZenohBus) -> str | None:
+    routers = bus.session.info.routers_zid()
+    return str(routers[0]) if routers else None
+
+
+def _wait(what: str, predicate: Callable[[], bool], timeout_s: float = 15.0) -> float:
+    """Seconds until ``predicate()``, polled every 10 ms; fails the test after ``timeout_s``."""
+    started = time.monotonic()
+    while not predicate():
+        assert time.monotonic() - started < timeout_s, f"{what}: not within {timeout_s} s"
+        time.sleep(0.01)
+    return time.monotonic() - started
+
+
+@pytest.mark.loopback
+def test_a_process_back_on_its_own_router_misses_nothing_and_hears_nothing_twice(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Routers A and B in this process (B peers A); a bus of B's site (B, then A) fails over to A when B
+    goes and moves back when B is up again: samples streamed to it (from A, and from itself) arrive once
+    each, in order, across the move; its token never ends for a watcher on A, and it sees none of A's
+    end; its queryable answers each query at most once, and its handles still work after."""
+    monkeypatch.setattr(bus_module, "FAILBACK_POLL_S", 0.1)
+    a, b = (f"tcp/127.0.0.1:{free_port(0)}" for _ in range(2))
+
+    def router(listen: str, peers: list[str]) -> zenoh.Session:
+        return zenoh.open(router_config(ZenohSettings(listen=listen, peers=peers)))
+
+    router_a, router_b = router(a, []), router(b, [a])
+    far = ZenohBus(zenoh_config(connect=[a]))
+    site = ZenohBus(zenoh_config(connect=[b, a]))
+    try:
+        _wait("site on B", lambda: _router_of(site) == str(router_b.zid()))
+        heard, own_heard, payloads, site_sees, far_sees = Inbox(), Inbox(), Inbox(), Inbox(), Inbox()
+        site.subscribe("fb/stream", heard)
+        site.subscribe("fb/own", own_heard)
+        site.subscribe_payloads("fb/stream", lambda p: payloads.put(bus_module.Sample("", p)))
+        token = site.declare_token("fb/live/site")
+        far.declare_token("fb/live/far")
+        site.watch_liveliness("fb/live/*", site_sees)
+        far.watch_liveliness("fb/live/*", far_sees)
+        queries = site.serve("fb/q")
+        _wait("the site's token at A", lambda: far.alive_tokens("fb/live/*") == ["fb/live/far", "fb/live/site"])
+
+        router_b.close()  # B goes: the site fails over to A (losing what was on the way: not this test's subject)
+        _wait("site on A", lambda: _router_of(site) == str(router_a.zid()))
+        _wait("the site's token at A again", lambda: "fb/live/site" in far.alive_tokens("fb/live/*"))
+        _wait("far's subscription reached", lambda: far.wait_for_subscriber("fb/stream", 0))
+        for inbox in (heard, own_heard, payloads, site_sees, far_sees):
+            inbox.drain()
+
+        stop = threading.Event()
+        sent = {"stream": 0, "own": 0}
+        answered: list[int] = []
+
+        def stream() -> None:  # from A, and from the site to itself, until stopped
+            while not stop.is_set():
+                far.publish("fb/stream", sent["stream"].to_bytes(4, "big"))
+                sent["stream"] += 1
+                site.publish("fb/own", sent["own"].to_bytes(4, "big"))
+                sent["own"] += 1
+                time.sleep(0.002)
+
+        def answer() -> None:
+            while not stop.is_set():
+                if (query := queries.get(0.05)) is not None:
+                    query.reply(b"yes")
+
+        def ask() -> None:
+            while not stop.is_set():
+                answered.append(len(far.request("fb/q", b"?", timeout_s=1.0)))
+
+        threads = [threading.Thread(target=f, daemon=True) for f in (stream, answer, ask)]
+        for thread in threads:
+            thread.start()
+        restarted = time.monotonic()
+        router_b = router(b, [a])  # B is back, a new router: the site moves home
+        _wait("site back on B", lambda: _router_of(site) == str(router_b.zid()))
+        moved_s = time.monotonic() - restarted
+        time.sleep(0.5)  # the stream goes on on B
+        stop.set()
+        for thread in threads:
+            thread.join(5.0)
+
+        def numbers(inbox: Inbox) -> list[int]:
+            got: list[int] = []
+            deadline = time.monotonic() + 5.0
+            while time.monotonic() < deadline and (not got or got[-1] < sent[("own" if inbox is own_heard else "stream")] - 1):
+                got += [int.from_bytes(s.payload, "big") for s in inbox.drain()]
+                time.sleep(0.05)
+            return got
+
+        for inbox in (heard, payloads, own_heard):
+            got = numbers(inbox)
+            assert got == list(range(got[0], got[0] + len(got))), "lost, twice or out of order"
+            assert got[0] == 0 and got[-1] == sent["own" if inbox is own_heard else "stream"] - 1
+        assert far_sees.drain() == [] and site_sees.drain() == []  # no token ended or began meanwhile
+        assert answered and max(answered) == 1 and answered[-1] == 1
+        print(f"moved back {moved_s:.2f} s after B was up; {sent['stream']} samples each way; "
+              f"{answered.count(0)} of {len(answered)} queries unanswered")
+        # The handles handed out before the move act on the new session.
+        site.undeclare_token(token)
+        _wait("the site's token ended", lambda: far.alive_tokens("fb/live/*") == ["fb/live/far"])
+        assert [s.payload for s in _drain_until(far_sees, 1)] == [b"-"]
+    finally:
+        site.close()
+        far.close()
+        router_b.close()
+        router_a.close()
+
+
+def _drain_until(inbox: Inbox, n: int, timeout_s: float = 5.0) -> list[Any]:
+    got: list[Any] = []
+    deadline = time.monotonic() + timeout_s
+    while len(got) < n and time.monotonic() < deadline:
+        sample = inbox.get(0.05)
+        if sample is not None:
+            got.append(sample)
+    return got

@@ -30,7 +30,7 @@ from agos.agents.contract import Policy
 from agos.agents.human.board import DecisionBoard, PageBoard
 from agos.agents.human.server import ConsoleServer
 from agos.agents.human.spectator import SpectatorBoard
-from agos.agents.service import _Dispatch, _SlotSubscriptions, publish_action
+from agos.agents.service import _Dispatch, _SlotSubscriptions
 from agos.runtime import keys
 from agos.runtime.bus import Bus, ZenohBus
 from agos.runtime.codec import encode
@@ -59,17 +59,19 @@ class HumanPolicy(Policy):
         self.board.forget(episode_id, self.role)
 
 
-async def serve_async(bus: Bus, board: DecisionBoard, run_id: str, stop: StopFlag) -> int:
+async def serve_async(bus: Bus, board: DecisionBoard, run_id: str, stop: StopFlag, *,
+                      reconnect_grace_s: float = 10.0) -> int:
     """Serve every role of ``board`` on the bus until ``stop``."""
     loop = asyncio.get_running_loop()
     tasks: set[asyncio.Task[None]] = set()
+    dispatches: dict[str, _Dispatch] = {}
 
     async def handle(worker: str, obs: Observation, future: Any, started: float) -> None:
         try:
             action = await asyncio.wrap_future(future)
         except asyncio.CancelledError:  # the world moved on, or the episode ended
             return
-        publish_action(bus, run_id, worker, obs, action, started)  # stamps the person's latency, checks, sends
+        dispatches[obs.role].send(worker, obs, action, started)  # stamps the person's latency, checks, sends
 
     def on_loop(worker: str, obs: Observation) -> None:
         asked = board.ask(obs)
@@ -83,8 +85,8 @@ async def serve_async(bus: Bus, board: DecisionBoard, run_id: str, stop: StopFla
     subscriptions = []
     for role in board.roles:
         agent_id = unique_id(role)
-        dispatch = _Dispatch(bus, HumanPolicy(role, board), run_id, loop, on_loop)
-        episodes = _SlotSubscriptions(bus, run_id, role, agent_id, dispatch, loop)
+        dispatch = dispatches[role] = _Dispatch(bus, HumanPolicy(role, board), run_id, loop, on_loop)
+        episodes = _SlotSubscriptions(bus, run_id, role, agent_id, dispatch, loop, reconnect_grace_s=reconnect_grace_s)
         bus.watch_liveliness(keys.slot_live(run_id, "*"), episodes)
         bus.declare_token(keys.live(run_id, "agent", agent_id))
         announce("agent", agent_id, run_id)
@@ -126,7 +128,7 @@ def main(cfg: AgosConfig, *, roles: tuple[Role, ...], host: str = "127.0.0.1", p
         return 2
     try:
         with ZenohBus.from_settings(cfg.zenoh) as bus:
-            asyncio.run(serve_async(bus, board, cfg.run.run_id, stop))
+            asyncio.run(serve_async(bus, board, cfg.run.run_id, stop, reconnect_grace_s=cfg.run.reconnect_grace_s))
     finally:
         server.close()
     return stop.exit_code()

@@ -89,13 +89,13 @@ class BusSink:
 
 class AgentPresence:
     """Which agent services have subscribed to a slot's observations, by role: kept from their ``ready``
-    tokens (``keys.slot_ready``) for the slot's whole life. ``losses[role]`` counts the times the last
-    agent of ``role`` went away: an episode served by a role whose count moved since has lost its memory."""
+    tokens (``keys.slot_ready``) for the slot's whole life. A token that vanishes and comes back is the
+    same service (a router restarted, a session reconnected: its memory is intact); another id is
+    another service."""
 
     def __init__(self) -> None:
         self._changed = threading.Condition()
         self.ready: dict[str, set[str]] = {role: set() for role in keys.ROLES}
-        self.losses: dict[str, int] = dict.fromkeys(keys.ROLES, 0)
 
     def put(self, change: Sample) -> None:
         """One change of a ``ready`` token, ``.../ready/<role>/<agent>``: ``+`` or ``-`` (zenoh's thread)."""
@@ -103,12 +103,12 @@ class AgentPresence:
         with self._changed:
             if role not in self.ready:
                 return
-            if change.payload == b"+":
-                self.ready[role].add(agent)
-            elif agent in self.ready[role]:
-                self.ready[role].discard(agent)
-                self.losses[role] += not self.ready[role]
+            (self.ready[role].add if change.payload == b"+" else self.ready[role].discard)(agent)
             self._changed.notify_all()
+
+    def serving(self, role: str) -> set[str]:
+        with self._changed:
+            return set(self.ready[role])
 
     def wait_for(self, roles: list[Role], timeout_s: float, stop: StopFlag) -> list[Role]:
         """Wait up to ``timeout_s`` until an agent of each role is ready; the roles still missing."""
@@ -188,12 +188,14 @@ class BusDecisionSource:
 
     def __init__(self, slot: WorkerSlot, episode_id: str, *, timeout_s: float, stop: StopFlag,
                  agent_wait_s: float = 30.0, frames: FrameStream | None = None, attempt: int = 1,
-                 rejections: Rejections | None = None) -> None:
+                 rejections: Rejections | None = None, reconnect_grace_s: float = 10.0) -> None:
         """``attempt``: the lease's attempt number, stamped on every observation. An action counts only
         when it answers the decision asked of its role in this attempt and names this run, episode and
         the role of its key, with finite numbers; anything else (a late answer meant for an earlier
         episode of the slot, or for a world that died, a stray or forged publisher) is refused and
-        counted in ``rejections``."""
+        counted in ``rejections``. ``reconnect_grace_s``: how long the agent services that served this
+        episode may all be gone (their tokens) before the attempt is given back (:class:`AgentVanished`);
+        back within it, they kept their memory (a router restarted)."""
         self.slot, self.bus, self.run_id, self.episode_id = slot, slot.bus, slot.run_id, episode_id
         self.attempt = attempt
         self.rejections = rejections or Rejections(log)
@@ -201,7 +203,9 @@ class BusDecisionSource:
         self.frames = frames  # thumbnails for observers (runtime/viz.py)
         self.inbox = slot.actions
         self.buffers = {role: bytearray() for role in keys.ROLES}  # each role's last observation, reused
-        self._losses_seen: dict[str, int] = {}  # role -> the slot's count of lost agents when it was first asked
+        self.reconnect_grace_s = reconnect_grace_s
+        self._served_by: dict[str, set[str]] = {}  # role -> the agents ready at its first decision
+        self._gone_since: dict[str, float] = {}  # role -> since when none of those is ready (monotonic)
 
     def close(self) -> None:
         """Nothing to undeclare: the slot outlives the episode."""
@@ -216,14 +220,19 @@ class BusDecisionSource:
         if (missing := self.slot.agents.wait_for(first, self.agent_wait_s, self.stop)) and not self.stop.is_set():
             raise MissingAgent(missing, self.run_id, self.agent_wait_s)
         for role in first:
-            self._losses_seen[role] = self.slot.agents.losses[role]
+            self._served_by[role] = self.slot.agents.serving(role)
 
     def _watch_agents(self) -> None:
-        """Raise :class:`AgentVanished` when, since the episode's first decision, every agent service of
-        a role has withdrawn its ``ready`` token (died, or lost its session): a service started in its
-        place would answer without the memory the episode so far built up."""
-        losses = self.slot.agents.losses
-        vanished = [role for role, seen in self._losses_seen.items() if losses[role] != seen]
+        """Raise :class:`AgentVanished` when every agent service that served a role since the episode's
+        first decision has withdrawn its ``ready`` token and not declared it again within
+        ``reconnect_grace_s`` (it died): a service started in its place would answer without the memory
+        the episode so far built up."""
+        now, vanished = time.monotonic(), []
+        for role, served_by in self._served_by.items():
+            if served_by & self.slot.agents.serving(role):
+                self._gone_since.pop(role, None)
+            elif now - self._gone_since.setdefault(role, now) >= self.reconnect_grace_s:
+                vanished.append(role)
         if vanished:
             raise AgentVanished(sorted(vanished))  # type: ignore[arg-type]
 
@@ -417,7 +426,8 @@ class WorldWorker:
             self.bus.publish_viz(keys.viz_spec(self.run_id, self.worker_id), spec)
             source = BusDecisionSource(self.slot, spec.episode_id, timeout_s=config.decision_timeout_s,
                                        stop=self.stop, agent_wait_s=self.cfg.run.agent_wait_s, frames=self.frames,
-                                       attempt=grant.attempt, rejections=self.rejections)
+                                       attempt=grant.attempt, rejections=self.rejections,
+                                       reconnect_grace_s=self.cfg.run.reconnect_grace_s)
             runner = EpisodeRunner(scene, town, spec, run_id=self.run_id, worker_id=self.worker_id,
                                    config=config, sink=self.sink)
             record = runner.run(source)
