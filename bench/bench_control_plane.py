@@ -798,12 +798,12 @@ def soak_report(r: Result, args: argparse.Namespace, console: Console, figures: 
         return False
     t = Table(title=title)
     for col in ("quarter", "records", "wall", "records/s", *(f"{role} ms/rec" for role in (*SOAK_ROLES, "worker hosts")),
-                "router RSS MB (end)"):
+                "RSS MB at its end: router / orchestrator / evaluator"):
         t.add_column(col, justify="right")
     for k, q in enumerate(qs, 1):
         t.add_row(f"Q{k}", f"{q.rows[0]:,}-{q.rows[1]:,}", f"{q.seconds:.0f} s", f"{(q.rows[1] - q.rows[0]) / q.seconds:.1f}"
                   if q.seconds > 0 else "-", *(f"{q.ms_per_record[role]:.2f}" for role in (*SOAK_ROLES, "worker hosts")),
-                  f"{q.rss_mb['router']:.1f}")
+                  f"{q.rss_mb['router']:.1f} / {q.rss_mb['orchestrator']:.0f} / {q.rss_mb['evaluator']:.0f}")
     console.print(t)
     g = Table(title="Soak goals: the last quarter against the first")
     for col in ("figure", "Q1", "Q4", "Q4 / Q1", "goal", "result"):
@@ -831,6 +831,15 @@ def soak_report(r: Result, args: argparse.Namespace, console: Console, figures: 
                 f"{100 * growth:+.1f} % ({first.rss_mb['router']:.1f} -> {last.rss_mb['router']:.1f} MB)",
                 f"<= +{100 * GOAL_SOAK_RSS_GROWTH:.0f} %", met)
     figures.add(f"{tag}: lost episodes", r.lost, str(r.lost), "0", r.lost == 0)
+    # For reading the above: the worker hosts do the same work for every record (a fixed slot, fixed
+    # episodes), so their ratio shows how the machine itself drifted; the other RSS are not goals.
+    hosts = last.ms_per_record["worker hosts"] / first.ms_per_record["worker hosts"] \
+        if first.ms_per_record["worker hosts"] > 0 else float("nan")
+    g.add_row("[dim]worker hosts CPU per record (fixed work: the machine's drift)", f"{first.ms_per_record['worker hosts']:.2f} ms",
+              f"{last.ms_per_record['worker hosts']:.2f} ms", f"{hosts:.2f}x", "", "info")
+    for role in ("orchestrator", "evaluator"):
+        g.add_row(f"[dim]{role} RSS, end of Q1 to end of Q4", f"{first.rss_mb[role]:.0f} MB", f"{last.rss_mb[role]:.0f} MB",
+                  f"{100 * (last.rss_mb[role] / first.rss_mb[role] - 1):+.0f} %" if first.rss_mb[role] > 0 else "-", "", "info")
     console.print(g)
     what = "soak" if args.soak else f"N={r.n} by quarter"
     console.print(f"{what}: {'PASS' if ok else 'FAIL'}; load average {os.getloadavg()[0]:.1f} at the end "
