@@ -49,10 +49,20 @@ def test_an_agent_lost_mid_episode_ends_the_attempt_even_if_another_took_its_pla
     time.sleep(0.3)
     source._watch_agents()
     bus.undeclare_token(ready)
+    source._watch_agents()  # none back yet: within the grace
     bus.declare_token(keys.slot_ready("r", "w1", "uav", "uav-2"))  # a restarted service, without the memory
-    source._watch_agents()  # within the grace
-    time.sleep(0.3)
     with pytest.raises(AgentVanished, match="UAV"):
+        source._watch_agents()
+    source.close()
+
+
+def test_agents_that_stay_away_past_the_grace_end_the_attempt() -> None:
+    bus = MemoryBus()
+    source = BusDecisionSource(WorkerSlot(bus, "r", "w1"), "e1", timeout_s=1.0, stop=StopFlag(), reconnect_grace_s=0.0)
+    ready = bus.declare_token(keys.slot_ready("r", "w1", "ugv", "ugv-1"))
+    source._check_agents({"ugv": _Due()})  # type: ignore[dict-item]
+    bus.undeclare_token(ready)
+    with pytest.raises(AgentVanished, match="UGV"):
         source._watch_agents()
     source.close()
 

@@ -68,6 +68,8 @@ def test_demo_runs_episodes_end_to_end_and_the_bus_is_observable(tmp_path: Path)
     assert endpoint_line.strip() == f"zenoh endpoint: tcp/127.0.0.1:{port}"
 
     seen: dict[str, set[str]] = {}
+    keys_heard: set[str] = set()
+    episodes_heard: set[str] = set()
     bad: list[str] = []
     lock = threading.Lock()
 
@@ -78,8 +80,11 @@ def test_demo_runs_episodes_end_to_end_and_the_bus_is_observable(tmp_path: Path)
             if not isinstance(data, dict) or "v" not in data or "type" not in data:
                 bad.append(key)
                 return
-            kind = key.split("/")[4] if key.split("/")[2] == "ep" else key.split("/")[2]
+            kind = key.split("/")[4] if key.split("/")[2] == "slot" else key.split("/")[2]
             seen.setdefault(kind + ("/" + key.split("/")[5] if kind in ("obs", "act") else ""), set()).add(data["type"])
+            keys_heard.add(key)
+            if isinstance(data.get("episode_id"), str):
+                episodes_heard.add(data["episode_id"])
 
     observer = zenoh.open(zenoh_config(connect=[f"tcp/127.0.0.1:{port}"]))
     sub = observer.declare_subscriber("agos/**", on_sample)
@@ -97,6 +102,9 @@ def test_demo_runs_episodes_end_to_end_and_the_bus_is_observable(tmp_path: Path)
     assert {"episode_started", "step"} <= seen.get("events", set()), seen
     assert seen.get("result") == {"episode_record"}, seen
     assert "run_manifest" in seen.get("ctl", set()), seen
+    # The key space is bounded (docs/ARCHITECTURE.md §2): episodes travel in payloads, no key names one.
+    assert len(episodes_heard) == 3, episodes_heard
+    assert not [k for k in keys_heard if set(k.split("/")) & episodes_heard], sorted(keys_heard)
 
     results = [line for line in output.splitlines() if line.startswith("results: ")]
     assert results, output

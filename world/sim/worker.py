@@ -224,14 +224,16 @@ class BusDecisionSource:
 
     def _watch_agents(self) -> None:
         """Raise :class:`AgentVanished` when every agent service that served a role since the episode's
-        first decision has withdrawn its ``ready`` token and not declared it again within
-        ``reconnect_grace_s`` (it died): a service started in its place would answer without the memory
-        the episode so far built up."""
+        first decision has withdrawn its ``ready`` token, and another service serves the role in its
+        place or none is back within ``reconnect_grace_s`` (a router restart takes every token away for
+        seconds; the same service comes back with its memory): a service started in its place would
+        answer without the memory the episode so far built up."""
         now, vanished = time.monotonic(), []
         for role, served_by in self._served_by.items():
-            if served_by & self.slot.agents.serving(role):
+            serving = self.slot.agents.serving(role)
+            if served_by & serving:
                 self._gone_since.pop(role, None)
-            elif now - self._gone_since.setdefault(role, now) >= self.reconnect_grace_s:
+            elif serving or now - self._gone_since.setdefault(role, now) >= self.reconnect_grace_s:
                 vanished.append(role)
         if vanished:
             raise AgentVanished(sorted(vanished))  # type: ignore[arg-type]
