@@ -22,15 +22,18 @@ import contextlib
 import json
 import logging
 import queue
+import random
 import re
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Generic, Protocol, TypeVar
 
 import zenoh
 
+from agos.runtime import keys
 from agos.runtime.codec import encode
 from agos.runtime.process import Interrupted, stop_requested
 from agos.runtime.settings import ZenohSettings
@@ -338,17 +341,195 @@ def open_session(config: zenoh.Config, *, retry_for_s: float = 0.0) -> zenoh.Ses
     raise exc
 
 
+FAILBACK_POLL_S = 1.0
+"""How often a process given several routers looks whether it is on its own (the first) router and,
+away from it, whether that router is back: at home a look costs a few microseconds; away, a session
+opened to it, refused in 0.2 ms of CPU while it is down (:meth:`ZenohBus._back_home`)."""
+FAILBACK_OVERLAP_S = 0.25
+"""Moving home, how long the new session holds every declaration before it takes over (they reach the
+routers of the mesh meanwhile), and how long the old one stays open after (what it had on the way arrives)."""
+
+
+def _client_endpoints(config: zenoh.Config) -> list[str]:
+    """The routers a client config names, in order ([] for a router or peer)."""
+    try:
+        mode, endpoints = json.loads(config.get_json("mode")), json.loads(config.get_json("connect/endpoints"))
+    except Exception:  # no such setting
+        return []
+    return endpoints if mode == "client" and isinstance(endpoints, list) else []
+
+
+class _Declared:
+    """What :class:`ZenohBus` hands out as a handle (a subscription, liveliness watch, queryable or token):
+    declared on the bus's session, and on the new one too while the bus moves home (:class:`_Move`),
+    so the handle outlives the session it was first declared on. ``make(session, handle)`` declares it."""
+
+    __slots__ = ("key", "make", "on")
+
+    def __init__(self, make: Callable[[zenoh.Session, Any], Any], key: str | None = None) -> None:
+        self.make = make
+        self.on: list[tuple[zenoh.Session, Any]] = []  # (session, what zenoh declared there)
+        self.key = key  # a token's key
+
+    def attach(self, session: zenoh.Session) -> None:
+        self.on.append((session, self.make(session, self)))
+
+    def take(self, session: zenoh.Session | None = None) -> list[Any]:
+        """What was declared on ``session`` (None: on every one), forgotten here for the caller to undeclare."""
+        taken = [d for s, d in self.on if session is None or s is session]
+        self.on = [(s, d) for s, d in self.on if not (session is None or s is session)]
+        return taken
+
+
+class _Watch(_Declared):
+    """A liveliness watch, which keeps the keys it told alive: it tells each change once (also where
+    zenoh says one twice, or both of a move's sessions see it), never the end of a key this process
+    holds a token on (zenoh reports a remote token's end on such a key as the key's end), and after a
+    move what changed meanwhile."""
+
+    __slots__ = ("alive", "inbox", "key_expr", "lock", "own")
+
+    def __init__(self, make: Callable[[zenoh.Session, Any], Any], key_expr: str, inbox: SampleSink,
+                 own: Counter[str]) -> None:
+        super().__init__(make)
+        self.key_expr, self.inbox, self.own = key_expr, inbox, own
+        self.alive: set[str] = set()
+        self.lock = threading.Lock()
+
+    def change(self, key: str, alive: bool) -> None:
+        with self.lock:
+            if alive == (key in self.alive) or (not alive and self.own[key] > 0):
+                return
+            if alive:
+                self.alive.add(key)
+            else:
+                self.alive.discard(key)
+            self.inbox.put(Sample(key, b"+" if alive else b"-"))
+
+
+class _Move:
+    """A bus moving from ``old`` (its session on another router) to ``new`` (on its own router), make
+    before break: ``new`` holds every declaration first, what it hears held back; at the switch it
+    takes over and first hands on what it held that ``old`` did not deliver (a sample is known by the
+    timestamp of the router where it entered the mesh, which every zenoh router gives by default; this
+    process's own puts through ``old``, which ``old`` delivers itself, by their attachment); then ``old``
+    closes. Queries are answered, and
+    liveliness changes told, by the session that is active when they arrive; at the switch each watch
+    is told how ``new`` sees its keys. ``lock``: the bus's (one lock, whatever a callback then calls)."""
+
+    def __init__(self, old: zenoh.Session, new: zenoh.Session, lock: threading.RLock) -> None:
+        self.old, self.new, self.active = old, new, old
+        self.mark = str(old.info.zid()).encode()
+        self.lock = lock
+        self.seen: set[str] = set()  # timestamps of the samples old delivered
+        self.held: list[tuple[_Declared, zenoh.Sample, Callable[[zenoh.Sample], None]]] = []
+        self.views: dict[_Watch, set[str]] = {}  # the keys each watch on new sees alive
+
+    def sample(self, handle: _Declared, session: zenoh.Session, sample: zenoh.Sample,
+               deliver: Callable[[zenoh.Sample], None]) -> None:
+        stamp = None if sample.timestamp is None else str(sample.timestamp)
+        with self.lock:
+            if session is self.old:
+                if stamp is None:  # this process's own put through old, which no one else hands on
+                    deliver(sample)
+                elif self.active is self.old:
+                    self.seen.add(stamp)
+                    deliver(sample)
+                return
+            if sample.attachment is not None and sample.attachment.to_bytes() == self.mark:
+                return  # this process's own put through old: delivered there
+            if self.active is self.old:
+                self.held.append((handle, sample, deliver))
+            elif stamp is None or stamp not in self.seen:
+                deliver(sample)
+
+    def query(self, session: zenoh.Session, query: zenoh.Query, inbox: QueryInbox) -> None:
+        with self.lock:
+            if session is self.active:  # the other lets it end without a reply
+                inbox.put(_ZenohQuery(query))
+
+    def change(self, watch: _Watch, session: zenoh.Session, key: str, alive: bool) -> None:
+        with self.lock:
+            if session is self.new and self.active is self.old:
+                view = self.views.setdefault(watch, set())
+                if alive:
+                    view.add(key)
+                else:
+                    view.discard(key)
+            elif session is self.active:
+                watch.change(key, alive)
+
+    def switch(self, watches: list[_Watch], own: list[str]) -> None:
+        """``new`` takes over (its views complete: a liveliness query on it has been answered since
+        its watches were declared); ``own``: the keys this process holds tokens on."""
+        with self.lock:
+            self.active = self.new
+            for handle, sample, deliver in self.held:  # each stamped: new published nothing yet, and routers stamp
+                if handle.on and sample.timestamp is not None and str(sample.timestamp) not in self.seen:
+                    deliver(sample)
+            self.held = []
+            for watch in watches:
+                view = self.views.get(watch, set()) | {key for key in own if _matches(watch.key_expr, key)}
+                for key in sorted(view - watch.alive):
+                    watch.change(key, True)
+                for key in sorted(watch.alive - view):
+                    watch.change(key, False)
+
+
+def _on_a_thread_not_a_daemon(work: Callable[[], object]) -> None:
+    """``work()`` on a thread of its own that is not a daemon, waited for. zenoh-python runs each Python
+    callback on a thread it starts from the declaring thread, of that thread's kind: a daemon's (this
+    bus's home thread's) die mid-call at the interpreter's exit, and the process aborts ("FATAL: exception
+    not rethrown"), where others are joined."""
+    failed: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            work()
+        except BaseException as exc:  # raised again on the waiting thread
+            failed.append(exc)
+
+    thread = threading.Thread(target=run, name="zenoh-declare", daemon=False)
+    thread.start()
+    thread.join()
+    if failed:
+        raise failed[0]
+
+
 class ZenohBus:
-    """A real zenoh session (client of a router by default); a context manager that closes it."""
+    """A real zenoh session (client of a router by default); a context manager that closes it.
+
+    Given several routers (``[zenoh] connect``, the process's own first), zenoh moves the session to
+    the next that answers when its router goes away, and leaves it there. So the bus looks every
+    :data:`FAILBACK_POLL_S` whether it is away from its own router and that router is back and linked
+    to the mesh again, and if so moves home, make before break (:class:`_Move`): a new session on its
+    own router declares everything the bus declared (the handles it handed out stay valid), takes over
+    publishing, and the old session closes. Tokens never vanish meanwhile; each sample reaches a
+    subscription once, in order."""
 
     def __init__(self, config: zenoh.Config, *, retry_for_s: float = 0.0) -> None:
         """Open the session (:func:`open_session`: ``retry_for_s`` is its own)."""
         self.session = open_session(config, retry_for_s=retry_for_s)
+        self._config = config
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._watched: dict[str, _MatchingFlag] = {}
-        self._keep: list[Any] = []
-        self._lock = threading.Lock()
+        self._keep: dict[_Declared, None] = {}
+        self._own_tokens: Counter[str] = Counter()
+        self._gets: Counter[int] = Counter()  # id(session) -> queries waiting on it
+        self._move: _Move | None = None
+        self._lock = threading.RLock()
         self._closed = False
+        self._home_thread: threading.Thread | None = None
+        self._stop_home = threading.Event()
+        endpoints = _client_endpoints(config)
+        if len(endpoints) > 1:
+            self._home = endpoints[0]
+            self._home_config = zenoh.Config.from_json5(str(config))
+            self._home_config.insert_json5("connect/endpoints", json.dumps([self._home]))
+            self._home_zid: str | None = None
+            self._away_since: float | None = None
+            self._home_thread = threading.Thread(target=self._home_loop, name="zenoh-home", daemon=True)
+            self._home_thread.start()
 
     def __enter__(self) -> ZenohBus:
         return self
@@ -363,7 +544,7 @@ class ZenohBus:
     @classmethod
     def from_settings(cls, z: ZenohSettings) -> ZenohBus:
         """A client session as the process's ``[zenoh]`` settings say (TLS included; with several
-        routers, the first that answers, in their order)."""
+        routers, the first that answers, in their order, and back to the first when it can)."""
         return cls(session_config(z), retry_for_s=connect_retry_s(z))
 
     def _publisher(self, key: str, *, viz: bool = False) -> zenoh.Publisher:
@@ -383,14 +564,36 @@ class ZenohBus:
                 self._publishers[key] = pub
             return pub
 
+    def _put(self, key: str, payload: bytes | bytearray, *, once: bool = False, viz: bool = False) -> None:
+        session = self.session
+        try:
+            move = self._move
+            if move is not None:
+                self._put_moving(move, key, payload, once=once, viz=viz)
+            elif once and key not in self._publishers:
+                session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+            else:
+                self._publisher(key, viz=viz).put(payload)
+        except zenoh.ZError:
+            if session is self.session:
+                raise
+            self._put(key, payload, once=once, viz=viz)  # the bus moved home and closed the session it went to
+
+    def _put_moving(self, move: _Move, key: str, payload: bytes | bytearray, *, once: bool, viz: bool) -> None:
+        """A put while the bus moves home: through the active session, marked if that is the old one."""
+        with self._lock:  # the session and its publishers, as one
+            session = self.session
+            pub = None if once and key not in self._publishers else self._publisher(key, viz=viz)
+        mark = move.mark if session is move.old else None
+        if pub is None:
+            session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK, attachment=mark)
+        else:
+            pub.put(payload, attachment=mark)
+
     def publish(self, key: str, message: Any, *, once: bool = False) -> None:
         """Control traffic: reliable, congestion control BLOCK (never lost, may wait). ``once``: put
         from the session, no publisher declared (see :meth:`Bus.publish`)."""
-        payload = message if isinstance(message, (bytes, bytearray)) else encode(message)
-        if once and key not in self._publishers:
-            self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
-            return
-        self._publisher(key).put(payload)
+        self._put(key, message if isinstance(message, (bytes, bytearray)) else encode(message), once=once)
 
     def watched(self, key: str) -> bool:
         """Whether anyone subscribes to the visualisation key ``key`` (known a round trip after the
@@ -398,17 +601,16 @@ class ZenohBus:
         the answer is a flag a matching listener keeps current, not a query into zenoh."""
         flag = self._watched.get(key)
         if flag is None:
-            publisher = self._publisher(key, viz=True)
             with self._lock:  # one listener per key, even if two threads ask at once
                 flag = self._watched.get(key)
                 if flag is None:
-                    flag = self._watched[key] = _MatchingFlag(publisher)
+                    flag = self._watched[key] = _MatchingFlag(self._publisher(key, viz=True))
         return flag.matching
 
     def publish_viz(self, key: str, message: Any) -> None:
         """Visualisation traffic: congestion control DROP, express, low priority, best effort.
         Never waits for a slow observer; a sample nobody can take is dropped."""
-        self._publisher(key, viz=True).put(message if isinstance(message, (bytes, bytearray)) else encode(message))
+        self._put(key, message if isinstance(message, (bytes, bytearray)) else encode(message), viz=True)
 
     def forget(self, key_prefix: str) -> None:
         """Undeclare the publishers under a prefix (an episode that is over)."""
@@ -418,82 +620,150 @@ class ZenohBus:
             for key in [k for k in self._publishers if k.startswith(key_prefix)]:
                 self._publishers.pop(key).undeclare()
 
+    def _sessions(self) -> list[zenoh.Session]:
+        """Where a new declaration goes: the session, or both while the bus moves and the old one is active."""
+        move = self._move
+        return [move.old, move.new] if move is not None and move.active is move.old else [self.session]
+
+    def _declare(self, handle: _Declared) -> _Declared:
+        with self._lock:
+            for session in self._sessions():
+                handle.attach(session)
+            self._keep[handle] = None
+            if handle.key is not None:
+                self._own_tokens[handle.key] += 1
+        return handle
+
+    def _undeclare(self, handle: Any) -> None:
+        with self._lock:
+            if not isinstance(handle, _Declared) or self._keep.pop(handle, False) is False:
+                return
+            if handle.key is not None:
+                self._own_tokens[handle.key] -= 1  # before zenoh says the key ended: see _Watch
+            taken = handle.take()
+        for declared in taken:
+            with contextlib.suppress(Exception):
+                declared.undeclare()
+
     def subscribe(self, key_expr: str, inbox: SampleSink) -> Any:
         """Queue every sample under ``key_expr`` into ``inbox``; returns a handle for
         :meth:`unsubscribe`."""
 
-        def on_sample(sample: zenoh.Sample) -> None:
+        def deliver(sample: zenoh.Sample) -> None:
             inbox.put(Sample(str(sample.key_expr), sample.payload.to_bytes()))
 
-        sub = self.session.declare_subscriber(key_expr, on_sample)
-        self._keep.append(sub)
-        return sub
+        def make(session: zenoh.Session, handle: _Declared) -> zenoh.Subscriber:
+            def on_sample(sample: zenoh.Sample) -> None:
+                move = self._move
+                if move is None:
+                    inbox.put(Sample(str(sample.key_expr), sample.payload.to_bytes()))
+                else:
+                    move.sample(handle, session, sample, deliver)
+
+            return session.declare_subscriber(key_expr, on_sample)
+
+        return self._declare(_Declared(make))
 
     def subscribe_payloads(self, key_expr: str, callback: Callable[[bytes], None]) -> Any:
         """Call ``callback(payload)`` on zenoh's thread for every sample under ``key_expr``: for a
         receiver that needs neither the key nor a queue (the agent service's hot path, where each
         layer costs microseconds in situ). Returns a handle for :meth:`unsubscribe`."""
 
-        def on_sample(sample: zenoh.Sample) -> None:
+        def deliver(sample: zenoh.Sample) -> None:
             callback(sample.payload.to_bytes())
 
-        sub = self.session.declare_subscriber(key_expr, on_sample)
-        self._keep.append(sub)
-        return sub
+        def make(session: zenoh.Session, handle: _Declared) -> zenoh.Subscriber:
+            def on_sample(sample: zenoh.Sample) -> None:
+                move = self._move
+                if move is None:
+                    callback(sample.payload.to_bytes())
+                else:
+                    move.sample(handle, session, sample, deliver)
+
+            return session.declare_subscriber(key_expr, on_sample)
+
+        return self._declare(_Declared(make))
 
     def unsubscribe(self, handle: Any) -> None:
-        if handle in self._keep:
-            self._keep.remove(handle)
-            handle.undeclare()
+        self._undeclare(handle)
 
     def serve(self, key_expr: str) -> QueryInbox:
         """Declare a queryable; its queries are queued in the returned inbox for the caller to
         answer with ``query.reply(bytes)`` (never inside the zenoh callback)."""
         inbox = QueryInbox()
 
-        def on_query(query: zenoh.Query) -> None:
-            inbox.put(_ZenohQuery(query))
+        def make(session: zenoh.Session, handle: _Declared) -> zenoh.Queryable:
+            def on_query(query: zenoh.Query) -> None:
+                move = self._move
+                if move is None:
+                    inbox.put(_ZenohQuery(query))
+                else:
+                    move.query(session, query, inbox)
 
-        self._keep.append(self.session.declare_queryable(key_expr, on_query))
+            return session.declare_queryable(key_expr, on_query)
+
+        self._declare(_Declared(make))
         return inbox
+
+    def _begin_get(self) -> zenoh.Session:
+        """The session a query goes out on, kept open until :meth:`_end_get` (a move waits for it)."""
+        with self._lock:
+            session = self.session
+            self._gets[id(session)] += 1
+            return session
+
+    def _end_get(self, session: zenoh.Session) -> None:
+        with self._lock:
+            self._gets[id(session)] -= 1
 
     def request(self, key: str, message: Any, timeout_s: float) -> list[bytes]:
         payload = message if isinstance(message, (bytes, bytearray)) else encode(message)
-        # Every reply, not zenoh's default "latest per key": a second queryable answering on the same
-        # key (a stray or hostile client) must not replace the real answer.
-        replies = self.session.get(key, payload=payload, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE)
-        return [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
+        session = self._begin_get()
+        try:
+            # Every reply, not zenoh's default "latest per key": a second queryable answering on the same
+            # key (a stray or hostile client) must not replace the real answer.
+            replies = session.get(key, payload=payload, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE)
+            return [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
+        finally:
+            self._end_get(session)
 
     def wait_for_subscriber(self, key: str, timeout_s: float) -> bool:
         """Start-up race guard: wait until someone subscribes to ``key`` (ZENOH_NOTES.md)."""
-        pub = self._publisher(key)
         deadline = time.monotonic() + timeout_s
-        while not pub.matching_status.matching:  # type: ignore[attr-defined]  # stub says bool: see _MatchingFlag
+        while True:
+            try:  # the publisher asked again each time: the bus may move home meanwhile
+                if self._publisher(key).matching_status.matching:  # type: ignore[attr-defined]  # stub says bool: see _MatchingFlag
+                    return True
+            except zenoh.ZError:
+                pass  # its session closed under it: the bus moved
             if time.monotonic() > deadline:
                 return False
             time.sleep(0.01)
-        return True
 
     def declare_token(self, key: str) -> Any:
         """A liveliness token on ``key`` until :meth:`undeclare_token` or the session ends (which
         zenoh notices, also when the process dies); returns its handle."""
-        token = self.session.liveliness().declare_token(key)
-        self._keep.append(token)
-        return token
+        return self._declare(_Declared(lambda session, handle: session.liveliness().declare_token(key), key=key))
 
     def undeclare_token(self, handle: Any) -> None:
-        self.unsubscribe(handle)
+        self._undeclare(handle)
 
     def watch_liveliness(self, key_expr: str, inbox: SampleSink) -> Any:
         """Queue ``Sample(key, b"+")`` when a token appears (also those alive now) and
         ``Sample(key, b"-")`` when it vanishes (process gone, or its session lost)."""
 
-        def on_sample(sample: zenoh.Sample) -> None:
-            inbox.put(Sample(str(sample.key_expr), b"+" if sample.kind == zenoh.SampleKind.PUT else b"-"))
+        def make(session: zenoh.Session, handle: _Watch) -> zenoh.Subscriber:
+            def on_sample(sample: zenoh.Sample) -> None:
+                key, alive = str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT
+                move = self._move
+                if move is None:
+                    handle.change(key, alive)
+                else:
+                    move.change(handle, session, key, alive)
 
-        sub = self.session.liveliness().declare_subscriber(key_expr, on_sample, history=True)
-        self._keep.append(sub)
-        return sub
+            return session.liveliness().declare_subscriber(key_expr, on_sample, history=True)
+
+        return self._declare(_Watch(make, key_expr, inbox, self._own_tokens))
 
     def alive_tokens(self, key_expr: str, timeout_s: float = 1.0) -> list[str]:
         """The liveliness tokens matching ``key_expr`` alive now (a liveliness query to the router).
@@ -502,24 +772,146 @@ class ZenohBus:
         these tokens itself (``watch_liveliness``) is answered inside ``get``, on this thread, and
         zenoh's default channel (256 replies) then filled up with nobody reading it: ``agos eval``
         with more than 256 world workers hung there for good, at its first presence check."""
-        replies = self.session.liveliness().get(key_expr, zenoh.handlers.FifoChannel(ALIVE_TOKENS_ROOM), timeout=timeout_s)
-        return sorted({str(r.ok.key_expr) for r in replies if r.ok is not None})
+        session = self._begin_get()
+        try:
+            replies = session.liveliness().get(key_expr, zenoh.handlers.FifoChannel(ALIVE_TOKENS_ROOM), timeout=timeout_s)
+            return sorted({str(r.ok.key_expr) for r in replies if r.ok is not None})
+        finally:
+            self._end_get(session)
+
+    # Moving home: the thread that looks, and the move.
+
+    def _home_loop(self) -> None:
+        while not self._stop_home.wait(FAILBACK_POLL_S * random.uniform(0.75, 1.25)):  # not all processes at once
+            try:
+                new = self._back_home()
+                if new is not None:
+                    self._move_to(new)
+            except Exception as exc:  # the bus stays where it is; the next look tries again
+                if not self._closed:
+                    log.warning("could not move back to the own zenoh router: %s", exc)
+
+    @staticmethod
+    def _alive(session: zenoh.Session, key: str, timeout_s: float = 2.0) -> bool | None:
+        """Whether a token on ``key`` is alive as ``session`` sees it; None if its router did not answer in time."""
+        started = time.monotonic()
+        found = any(r.ok is not None for r in session.liveliness().get(key, timeout=timeout_s))
+        return found or (None if time.monotonic() - started >= timeout_s else False)
+
+    def _back_home(self) -> zenoh.Session | None:
+        """A session on this process's own router if the bus is away from it and it is back, linked to
+        the router the bus is on; None otherwise (and at home)."""
+        here = self.session.info.routers_zid()
+        if not here or str(here[0]) == self._home_zid:
+            return None  # at home, or on no router (zenoh reconnects in the list's order itself)
+        try:
+            probe = zenoh.open(self._home_config)
+        except zenoh.ZError:
+            if self._away_since is None:
+                self._away_since = time.monotonic()
+                log.warning("own zenoh router %s is not answering: on router %s of the list until it is back",
+                            self._home, here[0])
+            return None
+        try:
+            home = probe.info.routers_zid()
+            if not home:
+                return None
+            self._home_zid = str(home[0])
+            if self._home_zid == str(here[0]):
+                return None  # at home (the first look)
+            token = keys.router_live(str(here[0]))
+            if self._alive(self.session, token) and not self._alive(probe, token):
+                return None  # back, but not linked to this router yet: the bus would be cut off there
+        finally:
+            probe.close()
+        new = zenoh.open(self._config)  # the whole list, own router first: it fails over as the first one did
+        moved = new.info.routers_zid()
+        if not moved or str(moved[0]) != self._home_zid:
+            new.close()
+            return None
+        return new
+
+    def _move_to(self, new: zenoh.Session) -> None:
+        """Move every declaration, publishing and queries from the session to ``new`` (:class:`_Move`)."""
+        started = time.monotonic()
+        old = self.session
+        move = _Move(old, new, self._lock)
+        with self._lock:
+            if self._closed:
+                new.close()
+                return
+            self._move = move
+
+            def attach_all() -> None:
+                for handle in self._keep:
+                    handle.attach(new)
+
+            _on_a_thread_not_a_daemon(attach_all)
+        # Meanwhile new's declarations reach the routers; then a liveliness query new's router answers
+        # after the watches' history, so their views are complete.
+        if self._stop_home.wait(FAILBACK_OVERLAP_S) or self._alive(new, keys.router_live(str(self._home_zid))) is None:
+            self._give_up(move)
+            return
+        with self._lock:
+            if self._closed:
+                return  # close() closes both
+            move.switch([h for h in self._keep if isinstance(h, _Watch)], [k for k, n in self._own_tokens.items() if n > 0])
+            self.session = new
+            self._publishers, self._watched = {}, {}  # declared again on new as they are used
+        self._stop_home.wait(FAILBACK_OVERLAP_S)
+        deadline = time.monotonic() + 120.0
+        while self._gets[id(old)] > 0 and time.monotonic() < deadline and not self._closed:
+            time.sleep(0.05)  # a query out on old waits for its replies there
+        with self._lock:
+            taken = [d for handle in self._keep for d in handle.take(old)]
+        for declared in taken:
+            with contextlib.suppress(Exception):
+                declared.undeclare()
+        with contextlib.suppress(Exception):
+            old.close()
+        self._move = None
+        away = f" ({time.monotonic() - self._away_since:.1f} s away)" if self._away_since is not None else ""
+        self._away_since = None
+        log.info("back on the own zenoh router %s%s: moved in %.2f s", self._home_zid, away, time.monotonic() - started)
+
+    def _give_up(self, move: _Move) -> None:
+        """Undo a move before its switch: new's declarations and new itself go."""
+        with self._lock:
+            taken = [d for handle in self._keep for d in handle.take(move.new)]
+        for declared in taken:
+            with contextlib.suppress(Exception):
+                declared.undeclare()
+        with contextlib.suppress(Exception):
+            move.new.close()
+        self._move = None  # after new closed: no callback of new is left to take the fast way
 
     def close(self) -> None:
         """Undeclare everything this bus declared and close the session; a second call does nothing."""
-        if self._closed:
-            return
-        self._closed = True
-        for obj in self._keep:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            taken = [d for handle in self._keep for d in handle.take()]
+            self._keep.clear()
+            flags = list(self._watched.values())
+            self._watched.clear()
+            self._publishers.clear()
+            move = self._move
+        self._stop_home.set()
+        for declared in taken:
             with contextlib.suppress(Exception):
-                obj.undeclare()
-        self._keep.clear()
-        for flag in self._watched.values():
+                declared.undeclare()
+        for flag in flags:
             with contextlib.suppress(Exception):
                 flag.close()
-        self._watched.clear()
-        self._publishers.clear()
+        if move is not None:
+            for other in (move.old, move.new):
+                if other is not self.session:
+                    with contextlib.suppress(Exception):
+                        other.close()
         self.session.close()
+        if self._home_thread is not None and self._home_thread is not threading.current_thread():
+            self._home_thread.join(5.0)
 
 
 class MemoryBus:
