@@ -444,8 +444,8 @@ class Sample:
 class Monitor:
     """Samples the processes, the machine and the store every ``POLL_S`` on a thread."""
 
-    def __init__(self, db: Path, roles: dict[str, list[int]]) -> None:
-        self.db, self.roles = db, roles
+    def __init__(self, db: Path, roles: dict[str, list[int]], census: KeyCensus | None = None) -> None:
+        self.db, self.roles, self.census = db, roles, census
         self.samples: list[Sample] = []
         self._last: dict[int, float] = {}
         """pid -> CPU seconds when last seen: a process that ended keeps what it spent."""
@@ -479,6 +479,85 @@ class Monitor:
         if rows < 0:
             rows = self.samples[-1].rows if self.samples else 0
         self.samples.append(Sample(time.time(), rows, machine_busy_s(), procs))
+        if self.census is not None:
+            self.census.offer(rows)
+
+
+class KeyCensus:
+    """The key space a run uses, as the router sees it: every key expression the router holds a
+    declaration of (subscribers, publishers, queryables, liveliness tokens: its admin space,
+    ``@/<zid>/router/<kind>/<key>``) and every key a sample was put on (a subscriber on ``agos/**``),
+    snapshot when the store first holds each of ``at`` records. A bounded key space gives the same
+    set at every snapshot (docs/ARCHITECTURE.md §2, "Why no key names an episode")."""
+
+    ADMIN_KINDS = ("subscriber", "publisher", "queryable", "token")
+
+    def __init__(self, endpoint: str, at: list[int]) -> None:
+        import msgspec
+        import zenoh
+
+        from agos.runtime import keys
+        from agos.runtime.bus import zenoh_config
+
+        class EpisodeField(msgspec.Struct):
+            episode_id: str | None = None
+
+        self._decoder = msgspec.msgpack.Decoder(EpisodeField)
+        self.root = keys.ROOT
+        self.at = sorted(at)
+        self.snapshots: dict[int, set[str]] = {}
+        self.put_keys: set[str] = set()
+        self.episodes: set[str] = set()
+        self._lock = threading.Lock()
+        self.session = zenoh.open(zenoh_config(connect=[endpoint]))
+        self._sub = self.session.declare_subscriber(f"{self.root}/**", self._heard)
+
+    def _heard(self, sample) -> None:
+        import msgspec
+
+        key = str(sample.key_expr)
+        try:
+            episode = self._decoder.decode(sample.payload.to_bytes()).episode_id
+        except (msgspec.ValidationError, msgspec.DecodeError):
+            episode = None
+        with self._lock:
+            self.put_keys.add(key)
+            if episode:
+                self.episodes.add(episode)
+
+    def declared(self) -> set[str]:
+        """The key expressions the router holds declarations of now, as ``<kind> <key>``."""
+        found = set()
+        for reply in self.session.get("@/*/router/**", timeout=5.0):
+            if reply.ok is None:
+                continue
+            parts = str(reply.ok.key_expr).split("/", 4)
+            if len(parts) == 5 and parts[3] in self.ADMIN_KINDS and parts[4].startswith(f"{self.root}/"):
+                found.add(f"{parts[3]} {parts[4]}")
+        return found
+
+    def offer(self, rows: int) -> None:
+        """Take each snapshot the store's ``rows`` have reached."""
+        for at in self.at:
+            if rows >= at and at not in self.snapshots:
+                with self._lock:
+                    put = {f"put {k}" for k in self.put_keys}
+                self.snapshots[at] = self.declared() | put
+
+    def close(self) -> None:
+        self._sub.undeclare()
+        self.session.close()
+
+    def verdict(self) -> str:
+        """One line: the snapshot sizes, what appeared between the first and the last, keys naming an episode."""
+        if len(self.snapshots) < 2:
+            return f"key census: only {len(self.snapshots)} of {len(self.at)} snapshots taken"
+        first, last = self.snapshots[min(self.snapshots)], self.snapshots[max(self.snapshots)]
+        naming = sorted(k for k in last if set(k.split(" ", 1)[1].split("/")) & self.episodes)
+        sizes = ", ".join(f"{len(v)} after {at} records" for at, v in sorted(self.snapshots.items()))
+        new = sorted(last - first)
+        return (f"key census: {sizes}; {len(new)} new{': ' + ', '.join(new[:5]) if new else ''}; "
+                f"{len(naming)} naming an episode{': ' + ', '.join(naming[:3]) if naming else ''}")
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -518,6 +597,8 @@ class Result:
     """Simulated workers whose thread raised (a bench fault, reported, never hidden)."""
     wall_s: float = 0.0
     eval_rc: int | None = None
+    census: str = ""
+    """The key census's line (``--census``), or ''."""
     load: tuple[float, float] = (0.0, 0.0)
     samples: list[Sample] = field(default_factory=list, repr=False)
     """The monitor's samples of the run (also in its ``samples.json``)."""
@@ -611,9 +692,10 @@ def measure(n: int, args: argparse.Namespace, work: Path, console: Console) -> R
         t0 = time.time()
         orchestrator = start(cmd, logs / "eval.log", {**env, "COLUMNS": "120"})
         procs.append(orchestrator)
+        census = KeyCensus(endpoint, args.census) if args.census else None
         monitor = Monitor(runs / run_id / "results.sqlite", {
             "orchestrator": [orchestrator.pid], "evaluator": [evaluator.pid], "router": [router.pid],
-            "worker hosts": [h.pid for h in hosts]})
+            "worker hosts": [h.pid for h in hosts]}, census)
         monitor.start()
         try:
             result.eval_rc = orchestrator.wait(args.limit_s)
@@ -623,6 +705,10 @@ def measure(n: int, args: argparse.Namespace, work: Path, console: Console) -> R
             result.eval_rc = orchestrator.wait(60.0)
         result.wall_s = time.time() - t0
         monitor.stop()
+        if census is not None:
+            result.census = census.verdict()
+            census.close()
+            console.print(result.census, highlight=False)
         for host in hosts:  # they end themselves once the run is over (the real workers' way)
             try:
                 host.wait(30.0)
@@ -893,6 +979,9 @@ def main() -> int:
     parser.add_argument("--soak", action="store_true",
                         help=f"N = {SOAK_WORKERS}, {SOAK_EPISODES_PER_WORKER} episodes a worker of {SOAK_EPISODE_S:g} s, a step "
                              f"event every {SOAK_DECISION_S:g} s: CPU per stored record and router RSS by quarter of the run")
+    parser.add_argument("--census", type=lambda text: [int(x) for x in text.split(",")], metavar="A,B",
+                        help="snapshot the key space the router holds and the keys put on when A, then B records are "
+                             "stored, and print whether it grew (a bounded key space does not)")
     parser.add_argument("--json", action="store_true", help="also print each figure as a BENCH-FIGURE line")
     parser.add_argument("--host", type=Path, help=argparse.SUPPRESS)  # internal: run one worker host
     args = parser.parse_args()

@@ -225,6 +225,10 @@ def zenoh_config(*, mode: str = "client", connect: list[str] | None = None, list
     conf.insert_json5("transport/shared_memory/enabled", "false")
     if mode == "router":
         conf.insert_json5("transport/unicast/max_sessions", json.dumps(ROUTER_MAX_SESSIONS))
+        # Read-only admin space (@/<zid>/router/...): the sessions and the key expressions declared, for
+        # operators and for bench_control_plane.py's key census. On the secured bus no identity is
+        # granted @/**, so only plain-TCP clients (which may say anything anyway) can read it.
+        conf.insert_json5("adminspace", json.dumps({"enabled": True, "permissions": {"read": True, "write": False}}))
     if tls is not None:
         conf.insert_json5("transport/link/tls", json.dumps(tls))
     if access_control is not None:
