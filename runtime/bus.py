@@ -195,6 +195,10 @@ ROUTER_MAX_SESSIONS = 10_000
 services of their run; each costs the router about 0.1 MB: bench/bench_control_plane.py)."""
 
 
+CONNECT_RETRY = {"period_init_ms": 1000, "period_max_ms": 1000, "period_increase_factor": 1.0}
+"""How a session tries its routers again: every second, no back-off."""
+
+
 def zenoh_config(*, mode: str = "client", connect: list[str] | None = None, listen: list[str] | None = None,
                  multicast_scouting: bool = False, connect_timeout_s: float = 10.0,
                  tls: dict[str, Any] | None = None, access_control: dict[str, Any] | None = None) -> zenoh.Config:
@@ -212,6 +216,10 @@ def zenoh_config(*, mode: str = "client", connect: list[str] | None = None, list
         # trying its peers in the background (-1), also after losing one.
         client_ms = int(connect_timeout_s * 1000) if len(connect) == 1 else 0
         conf.insert_json5("connect/timeout_ms", json.dumps({"client": client_ms, "peer": -1, "router": -1}))
+        # A session that lost its router tries again every second (zenoh's default backs off to 1, 3, 7,
+        # 11 s): back within about a second of the router, inside the orchestrator's reconnection grace
+        # ([run] reconnect_grace_s, 10 s) even for a router down 8 s.
+        conf.insert_json5("connect/retry", json.dumps(CONNECT_RETRY))
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(listen))
     # The visualisation stream (DATA_LOW, DROP) comes in bursts: six full-resolution views at a
