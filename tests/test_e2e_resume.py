@@ -1,9 +1,12 @@
-"""`agos eval` interrupted with Ctrl-C, then `--resume`: every episode stored exactly once."""
+"""`agos eval` interrupted with Ctrl-C, then `--resume`: every episode stored exactly once. On the way,
+one of its two world workers crashes (SIGSEGV, sent by the test): the console names it and its signal
+once, the run goes on with the other, and the worker's log holds the fault handler's traceback."""
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import sqlite3
 import subprocess
@@ -40,9 +43,20 @@ def test_interrupted_eval_resumes_and_stores_each_episode_once(tmp_path, sample_
     deadline = time.monotonic() + 180
     while len(_rows(db)) < 1 and time.monotonic() < deadline and first.poll() is None:
         time.sleep(0.2)
+    world_1 = run_dir / "logs" / "world-1.log"
+    pid = int(re.findall(r" world\[(\d+)\] ", world_1.read_text())[-1])
+    os.kill(pid, signal.SIGSEGV)  # as a crash in native code (the EGL renderer's, issue 39) ends it
+    while Path(f"/proc/{pid}").exists() and time.monotonic() < deadline:  # until agos eval has reaped it
+        time.sleep(0.05)
+    time.sleep(0.6)  # its next look (every 0.25 s) names it
     first.send_signal(signal.SIGINT)
     out, _ = first.communicate(timeout=60)
     done_first = len(_rows(db))
+    assert out.count("world-1 died: killed by SIGSEGV (Segmentation fault); the last lines of ") == 1, out
+    said = out[out.index("world-1 died"):]
+    assert "    Fatal Python error: Segmentation fault" in said and "    Current thread 0x" in said, said[:3000]
+    assert "Fatal Python error: Segmentation fault" in world_1.read_text()
+    assert "world-0 died" not in out, out  # stopped by agos itself at the end: not a death to report
     assert first.returncode == (0 if done_first == 3 else 130), out  # interrupted: 130, like a shell
     if done_first < 3:  # Ctrl-C landed before the end: the run says how to resume
         assert f"agos eval --resume {run_dir}" in " ".join(out.split())

@@ -1,6 +1,7 @@
 """`agos sweep`: Ctrl-C keeps every finished episode, and the next run of the same sweep plays only the
 rest and writes what an uninterrupted sweep writes. One worker process (the same pool as with several)
-plays the two points in order, so Ctrl-C after the first episode is stored interrupts the second."""
+plays the two points in order, so Ctrl-C after the first episode is stored interrupts the second.
+The pool of a sweep's workers names one that dies (issue 39, item 2): its signal and its log's last lines."""
 
 from __future__ import annotations
 
@@ -11,6 +12,11 @@ import time
 from pathlib import Path
 
 import pytest
+
+from agos.runtime.deaths import ChildDied
+from agos.runtime.process import interruptible_imap
+
+from support.crash import fail_on, segfault_on
 
 pytestmark = pytest.mark.e2e
 AGOS = [sys.executable, "-m", "agos.deploy.cli"]
@@ -44,3 +50,19 @@ def test_interrupted_sweep_resumes_to_the_same_table(tmp_path, sample_mid_episod
     assert again.returncode == 0, again.stderr
     assert (out / "sweep.csv").read_text() == (tmp_path / "clean" / "sweep.csv").read_text()
     assert not (out / ".episodes").exists()
+
+
+def test_a_pool_worker_that_dies_is_named_with_its_signal_and_its_log(tmp_path) -> None:
+    """What ``agos sweep`` (and ``agos episodes split``) run their episodes on: a worker killed by SIGSEGV
+    stops the pool at once (multiprocessing's pool waited for it forever), named with its signal and the
+    fault handler's traceback its log holds; an exception in a worker is raised as it was."""
+    got = []
+    with pytest.raises(ChildDied) as died:
+        for item in interruptible_imap(segfault_on, [0, 1, 2], 1, name="sweep", log_dir=tmp_path):
+            got.append(item)
+    assert got == [0] and (died.value.name, died.value.returncode) == ("sweep-0", -signal.SIGSEGV)
+    said = str(died.value).splitlines()
+    assert said[0] == f"sweep-0 died: killed by SIGSEGV (Segmentation fault); the last lines of {tmp_path / 'sweep-0.log'}:"
+    assert said[1] == "    Fatal Python error: Segmentation fault" and "in segfault_on" in said[3], said
+    with pytest.raises(ValueError, match="item 1 is refused"):
+        list(interruptible_imap(fail_on, [0, 1], 1))

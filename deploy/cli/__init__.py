@@ -39,6 +39,8 @@ try:  # a second or two of imports: Ctrl-C here is the same exit 130 as later, w
     from agos.deploy.cli import datasets, ops, recordings, reports, runs, services
     from agos.deploy.cli.common import Command
     from agos.runtime.bus import RouterUnreachable
+    from agos.runtime.deaths import ChildDied
+    from agos.runtime.process import enable_fault_handler
     from agos.runtime.settings import ConfigError
 except KeyboardInterrupt:
     raise SystemExit(130) from None
@@ -89,7 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run one ``agos`` command; its exit status. Ctrl-C at any moment is 130 (a command that stops its
-    own children and keeps its finished work says so before)."""
+    own children and keeps its finished work says so before). A fatal signal writes the Python
+    traceback of every thread to stderr (runtime/process.py: :func:`enable_fault_handler`)."""
+    enable_fault_handler()
     try:
         args = build_parser().parse_args(argv)
     except KeyboardInterrupt:
@@ -104,6 +108,9 @@ def main(argv: list[str] | None = None) -> int:
     except RouterUnreachable as exc:
         print(f"agos {args.command}: {exc}", file=sys.stderr)
         return 2
+    except ChildDied as exc:  # a worker of a process pool (runtime/process.py): a command that can says more
+        print(f"agos {args.command}: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # `agos metrics --json | head`: the reader left; not an error worth a traceback

@@ -215,11 +215,14 @@ def _add_sweep(sub: Any) -> None:
 
 
 def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
+    from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from agos.agents.contract import EndpointOutage, FatalPolicyError
     from agos.deploy.run.configure import episode_config
+    from agos.deploy.run.launcher import print_death
     from agos.deploy.run.sweep import check_sweep_endpoint, run_sweep, with_param
+    from agos.runtime.deaths import ChildDied
     from agos.runtime.links import ProfileError
     from agos.world.episodes.files import read_split
 
@@ -247,6 +250,10 @@ def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
         print(f"sweep error: the model endpoint gave no answer: {exc}; finished episodes are kept, the same sweep "
               "plays the rest once it answers", file=sys.stderr)
         return 6
+    except ChildDied as exc:  # a worker process died (a signal, an exit): which, how, its log's last lines
+        print_death(Console(stderr=True, soft_wrap=True), exc.name, exc.returncode, exc.log, exc.tail,
+                    note="; the sweep stops (its finished episodes are kept: the same command plays the rest)")
+        return 1
     print((args.out / "sweep.md").read_text())
     print(f"{len(table)} points -> {args.out}/sweep.csv, sweep.md, sweep.png")
     return 0

@@ -3,8 +3,10 @@
 :func:`run` starts the run's processes (deploy/run/local.py) unless ``--connect`` attaches to
 processes started elsewhere, hosts the orchestrator, and follows the run until every episode is
 stored, Ctrl-C, or a reason to stop: episodes lost in a row to one cause, processes missing for
-several presence checks (deploy/run/presence.py), a child that exited. Then it stops every child
-and prints the results. Its plan and run directory are deploy/run/plan.py's.
+several presence checks (deploy/run/presence.py), a child that exited. A child that dies by a signal
+or a non-zero exit meanwhile is named once, with how it died and the last lines of its log
+(deploy/run/launcher.py, :class:`~agos.deploy.run.launcher.Deaths`). Then it stops every child and
+prints the results. Its plan and run directory are deploy/run/plan.py's.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from agos.deploy.ops.certs import RunCredentials
 from agos.deploy.run.budget import EXIT_CAPPED, Budget
 from agos.deploy.run.human import CONSOLE_NAMES
-from agos.deploy.run.launcher import ROUTER_PORT, Launcher, free_port
+from agos.deploy.run.launcher import ROUTER_PORT, Deaths, Launcher, free_port
 from agos.deploy.run.local import Recording, launch_all, start_attached_recorder
 from agos.deploy.run.orchestrator import STUCK_AFTER_S, Orchestrator
 from agos.deploy.run.plan import RunPlan, stored_episodes
@@ -36,6 +38,7 @@ from agos.evaluator.metrics import by_difficulty
 from agos.evaluator.store import ResultStore, results_path
 from agos.evaluator.table import results_table
 from agos.runtime.bus import Bus, ZenohBus
+from agos.runtime.deaths import short_how
 from agos.runtime.process import Interrupted, install_stop_handlers
 from agos.runtime.schemas import EpisodeRecord
 from agos.runtime.settings import AgosConfig, ZenohSettings
@@ -49,6 +52,8 @@ RATE_WINDOW_S = 10.0
 """The progress bar's decisions per second are over this many seconds."""
 EVALUATOR_TABLE_S = 0.3
 """How long a finished run waits before it stops the evaluator, which logs its table first."""
+DEATH_NOTES = {"recorder": "; the run goes on without recording"}
+"""What a child's death means for the run, where the run goes on (:class:`~agos.deploy.run.launcher.Deaths`)."""
 STOP_ORDER = ["agent-uav", "agent-ugv", *CONSOLE_NAMES, "vlm-standin", "evaluator", "recorder", "router"]
 """The order children stop in after the world workers: the processes that serve others last."""
 
@@ -253,7 +258,7 @@ def exited_children(launcher: Launcher, logs: Path) -> Halt | None:
     every world worker exited."""
     dead = {n: c for n, c in launcher.dead().items() if not n.startswith("world") and n != "recorder"}
     if dead:
-        names = ", ".join(f"{n} (exit {c})" for n, c in dead.items())
+        names = ", ".join(f"{n} ({short_how(c)})" for n, c in dead.items())
         reasons = dict.fromkeys(r for n in dead if (r := last_error(logs / f"{n}.log")))  # each once, in order
         why = f": {escape('; '.join(reasons))}" if reasons else ""
         return Halt(f"[red]process exited early: {names}{why}; logs in {logs}", 1, announce=False)
@@ -314,6 +319,7 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
     done_before = stored_episodes(plan.run_dir)
     launcher = Launcher(None if attach else plan.run_dir / "logs")
     side = Launcher(plan.run_dir / "logs") if attach and recording is not None else None  # an attached run's recorder
+    deaths = Deaths(launcher, side, notes=DEATH_NOTES)  # said while the run goes on, never for those stopped at its end
     started = time.monotonic()
     bus = None
     orch = None
@@ -344,6 +350,7 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
                                 resume)
             halt = follow(orch, Bar(progress, orch), stop.is_set, Losses(resume or resume_command(plan)),
                           [Outages(orch, progress.console).check, absences.check,
+                           lambda: deaths.report(progress.console),
                            lambda: exited_children(launcher, plan.run_dir / "logs"), *watches],
                           on_record)
             if halt is not None:
@@ -358,6 +365,7 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
     except Interrupted:  # Ctrl-C while this command's own session was still connecting
         interrupted = True
     finally:
+        deaths.report(console)  # one that died since the last look; nothing is stopped yet
         if launcher.children:
             launcher.stop_all(order=[n for n in launcher.children if n.startswith("world")] + STOP_ORDER)
         if side is not None:

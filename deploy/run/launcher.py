@@ -5,6 +5,10 @@ reaches only the launcher, which then stops the children in order) with its outp
 ``<log_dir>/<name>.log``. On Linux a child also dies with its parent. A child's settings travel in
 its environment (deploy/run/children.py), its command line holds only the command's arguments.
 
+While a run goes on, :class:`Deaths` says once for each child that ended by a signal or a non-zero exit
+which one, how (the signal by name, the exit code) and the last lines of its log (runtime/deaths.py);
+children this process stops itself at the end are not its business.
+
 Once this process is asked to stop (Ctrl-C while a run starts), it starts no more children and waits
 for no more listeners: :meth:`Launcher.start` and :func:`wait_listening` raise
 :class:`~agos.runtime.process.Interrupted`, and the caller stops the children already started.
@@ -21,7 +25,11 @@ import sys
 import time
 from pathlib import Path
 
+from rich.console import Console
+from rich.markup import escape
+
 from agos.deploy.run.children import child_environ
+from agos.runtime.deaths import ended_how, log_tail
 from agos.runtime.process import Interrupted, die_with_parent, stop_requested
 from agos.runtime.settings import AgosConfig
 
@@ -64,6 +72,10 @@ class Launcher:
         self.children[name] = proc
         return proc
 
+    def log_path(self, name: str) -> Path:
+        """Where child ``name`` writes its output."""
+        return self.log_dir / f"{name}.log"
+
     def dead(self) -> dict[str, int]:
         """Children that have exited, with their exit codes."""
         return {n: p.returncode for n, p in self.children.items() if p.poll() is not None}
@@ -85,6 +97,37 @@ class Launcher:
                 log.warning("%s did not stop in %.0f s; killing it", name, grace_s)
                 proc.kill()
                 proc.wait()
+
+
+def print_death(console: Console, name: str, returncode: int, log: Path | None, tail: list[str] | None = None,
+                note: str = "") -> None:
+    """One short block for a process that died: ``NAME died: HOW`` (red) and the last lines of its log
+    (dim, indented; ``tail``: those lines, else read from ``log`` now). ``note``: what it means for the run."""
+    tail = log_tail(log) if tail is None else tail
+    where = f"; the last lines of {log}:" if tail and log is not None else (f"; its log {log} says nothing" if log else "")
+    console.print(f"[bold red]{escape(name)} died:[/] [red]{escape(ended_how(returncode))}[/]{escape(note)}"
+                  f"{escape(where)}", highlight=False)
+    for line in tail:
+        console.print(f"[dim]    {escape(line)}", highlight=False)
+
+
+class Deaths:
+    """Says, once for each, which children of ``launchers`` ended by a signal or a non-zero exit
+    (:func:`print_death`); ``notes``: what a child's death means for the run, by name."""
+
+    def __init__(self, *launchers: Launcher | None, notes: dict[str, str] | None = None) -> None:
+        self.launchers = [launcher for launcher in launchers if launcher is not None]
+        self.notes = notes or {}
+        self.said: set[int] = set()  # the pids already reported
+
+    def report(self, console: Console) -> None:
+        for launcher in self.launchers:
+            for name, proc in launcher.children.items():
+                code = proc.poll()
+                if code is None or code == 0 or proc.pid in self.said:
+                    continue
+                self.said.add(proc.pid)
+                print_death(console, name, code, launcher.log_path(name), note=self.notes.get(name, ""))
 
 
 def free_port(preferred: int = ROUTER_PORT, host: str = "127.0.0.1") -> int:

@@ -5,7 +5,10 @@ episodes. Episodes run in parallel worker processes with the policies called in-
 model lives in the world, so this measures exactly what `agos eval` would, without a router;
 the same seed gives the same numbers). VLM policies ask the endpoint of ``[vlm]`` (or a stand-in
 server the sweep starts itself, ``vlm_standin``). Writes ``points/*.jsonl`` (episode records),
-``sweep.csv``, ``sweep.md`` and ``sweep.png`` with 95 % bootstrap intervals over episodes.
+``sweep.csv``, ``sweep.md`` and ``sweep.png`` with 95 % bootstrap intervals over episodes. Each worker
+process ``sweep-K`` logs to ``logs/sweep-K.log``; one that dies stops the sweep with
+:class:`~agos.runtime.deaths.ChildDied` (how it died, the last lines of that log), its finished
+episodes kept.
 
 The parameter is any field of a profile section (``loss.p``, ``latency.mean_s``,
 ``bandwidth.bits_per_s``, ``bandwidth.queue_bytes``, ``range.max_range_m``, ``range.nlos_loss``,
@@ -201,7 +204,8 @@ def _run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, par
     for _ in range(len(finished)):
         if progress:
             progress()
-    for i, line in interruptible_imap(_run_point_episode, jobs, workers):  # Ctrl-C: finished ones are on disk
+    for i, line in interruptible_imap(_run_point_episode, jobs, workers,  # Ctrl-C: finished ones are on disk
+                                      name="sweep", log_dir=out_dir / "logs"):
         with done_files[i].open("a") as fh:
             fh.write(line + "\n")
         results[i].append(line)
