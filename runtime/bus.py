@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import os
 import queue
 import random
 import re
@@ -271,7 +272,8 @@ class _ZenohQuery:
         self.payload = query.payload.to_bytes() if query.payload is not None else b""
 
     def reply(self, payload: bytes) -> None:
-        self._query.reply(self.key, payload)
+        with contextlib.suppress(zenoh.ZError):  # the session it came through closed (the bus moved home): no answer
+            self._query.reply(self.key, payload)
 
 
 class _MatchingFlag:
@@ -360,6 +362,10 @@ opened to it, refused in 0.2 ms of CPU while it is down (:meth:`ZenohBus._back_h
 FAILBACK_OVERLAP_S = 0.25
 """Moving home, how long the new session holds every declaration before it takes over (they reach the
 routers of the mesh meanwhile), and how long the old one stays open after (what it had on the way arrives)."""
+FAILBACK_HANDOVER_S = 2.0
+"""Moving home, how long the old session stays open at most for the new one to hear each source of
+samples it delivered (one that went quiet never is), and the move lasts at most after for the new one
+to catch up with what was delivered (:class:`_Move`)."""
 
 
 def _client_endpoints(config: zenoh.Config) -> list[str]:
@@ -421,43 +427,110 @@ class _Watch(_Declared):
 
 class _Move:
     """A bus moving from ``old`` (its session on another router) to ``new`` (on its own router), make
-    before break: ``new`` holds every declaration first, what it hears held back; at the switch it
-    takes over and first hands on what it held that ``old`` did not deliver (a sample is known by the
-    timestamp of the router where it entered the mesh, which every zenoh router gives by default; this
-    process's own puts through ``old``, which ``old`` delivers itself, by their attachment); then ``old``
-    closes. Queries are answered, and
-    liveliness changes told, by the session that is active when they arrive; at the switch each watch
-    is told how ``new`` sees its keys. ``lock``: the bus's (one lock, whatever a callback then calls)."""
+    before break: ``new`` declares everything first; at the switch it takes over publishing and
+    liveliness (changes are told by the session active when they arrive; at the switch each watch is
+    told how ``new`` sees its keys); ``old`` closes last. A query is answered by the session it
+    reaches first, for those of :meth:`ZenohBus.request`, which names each; others by the active one.
+
+    Samples are handed over source by source, a source being one subscription's samples from one
+    router where they entered the mesh, known by the timestamp that router gives each (every zenoh
+    router does by default: its id, and a time that only grows). ``old`` hands on a source's samples
+    until, after the switch, ``new`` has heard one that ``old`` has delivered too; ``new`` holds what
+    it hears of the source until then and hands on the rest after, so each sample is delivered once
+    and in order whichever session hears it first (a move given up before the switch leaves ``old``
+    as it was). This process's own puts, delivered without a timestamp by the session they went
+    through, carry that session's id: the other drops their copies."""
 
     def __init__(self, old: zenoh.Session, new: zenoh.Session, lock: threading.RLock) -> None:
         self.old, self.new, self.active = old, new, old
-        self.mark = str(old.info.zid()).encode()
+        self.marks = {id(old): str(old.info.zid()).encode(), id(new): str(new.info.zid()).encode()}
         self.lock = lock
-        self.seen: set[str] = set()  # timestamps of the samples old delivered
-        self.held: list[tuple[_Declared, zenoh.Sample, Callable[[zenoh.Sample], None]]] = []
+        self.latest: dict[tuple[_Declared, str], Any] = {}  # source -> the time of the last sample delivered
+        self.new_heard: dict[tuple[_Declared, str], Any] = {}  # source -> the time of the last sample new heard
+        self.from_old: set[tuple[_Declared, str]] = set()  # sources old delivered from
+        self.handed: set[tuple[_Declared, str]] = set()  # sources new delivers now
+        self.held: dict[tuple[_Declared, str], list[tuple[Any, zenoh.Sample, Callable[[zenoh.Sample], None]]]] = {}
+        self.last_at: dict[tuple[_Declared, str], float] = {}  # source -> when a sample of it was last delivered
         self.views: dict[_Watch, set[str]] = {}  # the keys each watch on new sees alive
+        self.asked: set[bytes] = set()  # the names of the queries taken
 
     def sample(self, handle: _Declared, session: zenoh.Session, sample: zenoh.Sample,
                deliver: Callable[[zenoh.Sample], None]) -> None:
-        stamp = None if sample.timestamp is None else str(sample.timestamp)
+        stamp = sample.timestamp
+        if stamp is None:  # this process's own put, handed on by the session it went through alone
+            with self.lock:
+                deliver(sample)
+            return
+        other = self.marks[id(self.new if session is self.old else self.old)]
+        if sample.attachment is not None and sample.attachment.to_bytes() == other:
+            return  # a copy of this process's own put through the other session, which delivered it
+        source, time_ = (handle, str(stamp.get_id())), stamp.get_time_as_ntp64()
         with self.lock:
             if session is self.old:
-                if stamp is None:  # this process's own put through old, which no one else hands on
-                    deliver(sample)
-                elif self.active is self.old:
-                    self.seen.add(stamp)
-                    deliver(sample)
+                if source not in self.handed:
+                    self._deliver(source, time_, sample, deliver)
+                    self.from_old.add(source)
+                    held = self.held.get(source)
+                    if held and self.active is self.new and not time_ < held[0][0]:
+                        self._hand_over(source)  # old has caught up with new: new goes on
                 return
-            if sample.attachment is not None and sample.attachment.to_bytes() == self.mark:
-                return  # this process's own put through old: delivered there
-            if self.active is self.old:
-                self.held.append((handle, sample, deliver))
-            elif stamp is None or stamp not in self.seen:
-                deliver(sample)
+            self.new_heard[source] = time_
+            if source in self.handed:
+                self._deliver(source, time_, sample, deliver)
+            else:
+                self.held.setdefault(source, []).append((time_, sample, deliver))
+                latest = self.latest.get(source)
+                if latest is not None and self.active is self.new and not time_ > latest:
+                    self._hand_over(source)  # old delivered this one: new goes on
+
+    def _deliver(self, source: tuple[_Declared, str], time_: Any, sample: zenoh.Sample,
+                 deliver: Callable[[zenoh.Sample], None]) -> None:
+        latest = self.latest.get(source)
+        if (latest is None or time_ > latest) and source[0].on:
+            self.latest[source], self.last_at[source] = time_, time.monotonic()
+            deliver(sample)
+
+    def _settled(self, source: tuple[_Declared, str], now: float) -> bool:
+        """A source no longer of concern: its subscription ended, or nothing of it came for a while
+        (nothing of it is on the way)."""
+        return not source[0].on or now - self.last_at.get(source, 0.0) > FAILBACK_OVERLAP_S
+
+    def _hand_over(self, source: tuple[_Declared, str]) -> None:
+        self.handed.add(source)
+        for time_, sample, deliver in self.held.pop(source, []):
+            self._deliver(source, time_, sample, deliver)
+
+    def handed_over(self) -> bool:
+        """Whether new delivers every source old delivered from that is still sending."""
+        with self.lock:
+            now = time.monotonic()
+            return all(source in self.handed or self._settled(source, now) for source in self.from_old)
+
+    def old_closed(self) -> None:
+        """Old is gone: new delivers every source, first what it holds."""
+        with self.lock:
+            for source in list(self.held):
+                self._hand_over(source)
+            self.from_old.clear()
+
+    def caught_up(self) -> bool:
+        """Whether new has heard, of every source, as far as was delivered: nothing it hears from now on
+        was delivered already."""
+        with self.lock:
+            now = time.monotonic()
+            return all((source in self.new_heard and not self.new_heard[source] < time_) or self._settled(source, now)
+                       for source, time_ in self.latest.items())
 
     def query(self, session: zenoh.Session, query: zenoh.Query, inbox: QueryInbox) -> None:
+        """A query is answered by the session it reaches first, known by the name :meth:`ZenohBus.request`
+        attaches (one without, by the active session); the other lets it end without a reply."""
+        name = None if query.attachment is None else query.attachment.to_bytes()
         with self.lock:
-            if session is self.active:  # the other lets it end without a reply
+            if name is None:
+                if session is self.active:
+                    inbox.put(_ZenohQuery(query))
+            elif name not in self.asked:
+                self.asked.add(name)
                 inbox.put(_ZenohQuery(query))
 
     def change(self, watch: _Watch, session: zenoh.Session, key: str, alive: bool) -> None:
@@ -472,14 +545,15 @@ class _Move:
                 watch.change(key, alive)
 
     def switch(self, watches: list[_Watch], own: list[str]) -> None:
-        """``new`` takes over (its views complete: a liveliness query on it has been answered since
-        its watches were declared); ``own``: the keys this process holds tokens on."""
+        """``new`` takes over publishing, queries and liveliness (its views complete: a liveliness query
+        on it has been answered since its watches were declared); ``own``: the keys this process holds
+        tokens on."""
         with self.lock:
             self.active = self.new
-            for handle, sample, deliver in self.held:  # each stamped: new published nothing yet, and routers stamp
-                if handle.on and sample.timestamp is not None and str(sample.timestamp) not in self.seen:
-                    deliver(sample)
-            self.held = []
+            for source, held in list(self.held.items()):
+                latest = self.latest.get(source)
+                if latest is not None and not latest < held[0][0]:  # old has caught up with new
+                    self._hand_over(source)
             for watch in watches:
                 view = self.views.get(watch, set()) | {key for key in own if _matches(watch.key_expr, key)}
                 for key in sorted(view - watch.alive):
@@ -592,11 +666,11 @@ class ZenohBus:
             self._put(key, payload, once=once, viz=viz)  # the bus moved home and closed the session it went to
 
     def _put_moving(self, move: _Move, key: str, payload: bytes | bytearray, *, once: bool, viz: bool) -> None:
-        """A put while the bus moves home: through the active session, marked if that is the old one."""
+        """A put while the bus moves home: through the active session, marked with its id (:class:`_Move`)."""
         with self._lock:  # the session and its publishers, as one
             session = self.session
             pub = None if once and key not in self._publishers else self._publisher(key, viz=viz)
-        mark = move.mark if session is move.old else None
+        mark = move.marks[id(session)]
         if pub is None:
             session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK, attachment=mark)
         else:
@@ -733,8 +807,10 @@ class ZenohBus:
         session = self._begin_get()
         try:
             # Every reply, not zenoh's default "latest per key": a second queryable answering on the same
-            # key (a stray or hostile client) must not replace the real answer.
-            replies = session.get(key, payload=payload, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE)
+            # key (a stray or hostile client) must not replace the real answer. The attachment names the
+            # query: a queryable's process moving home hears it on both its sessions and answers once.
+            replies = session.get(key, payload=payload, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE,
+                                  attachment=os.urandom(8))
             return [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
         finally:
             self._end_get(session)
@@ -871,9 +947,8 @@ class ZenohBus:
             self.session = new
             self._publishers, self._watched = {}, {}  # declared again on new as they are used
         self._stop_home.wait(FAILBACK_OVERLAP_S)
-        deadline = time.monotonic() + 120.0
-        while self._gets[id(old)] > 0 and time.monotonic() < deadline and not self._closed:
-            time.sleep(0.05)  # a query out on old waits for its replies there
+        self._wait(lambda: self._gets[id(old)] == 0, 120.0)  # a query out on old waits for its replies there
+        self._wait(move.handed_over, FAILBACK_HANDOVER_S)
         with self._lock:
             taken = [d for handle in self._keep for d in handle.take(old)]
         for declared in taken:
@@ -881,10 +956,18 @@ class ZenohBus:
                 declared.undeclare()
         with contextlib.suppress(Exception):
             old.close()
+        move.old_closed()
+        self._wait(move.caught_up, FAILBACK_HANDOVER_S)
         self._move = None
         away = f" ({time.monotonic() - self._away_since:.1f} s away)" if self._away_since is not None else ""
         self._away_since = None
         log.info("back on the own zenoh router %s%s: moved in %.2f s", self._home_zid, away, time.monotonic() - started)
+
+    def _wait(self, done: Callable[[], bool], timeout_s: float) -> None:
+        """Until ``done()``, looked at every 10 ms, for at most ``timeout_s`` or until the bus closes."""
+        deadline = time.monotonic() + timeout_s
+        while not done() and time.monotonic() < deadline and not self._stop_home.wait(0.01):
+            pass
 
     def _give_up(self, move: _Move) -> None:
         """Undo a move before its switch: new's declarations and new itself go."""
