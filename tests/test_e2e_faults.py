@@ -424,7 +424,9 @@ def test_router_mesh_a_site_router_killed_mid_run_gives_the_same_records(
     the worker's episode is under way: both reconnect to A (the only world worker and UAV agent, so the
     run cannot end otherwise) within the orchestrator's reconnection grace, so nothing is re-leased
     (issue 38: before, the episode was re-leased as a fresh attempt), and every record equals
-    the module's one-router run."""
+    the module's one-router run. Then B is started again (a new router): the UAV agent and a client
+    process of B's site (tests/support/mesh_client.py, which names its router in each pong) return to
+    it, answering pings from A before, during and after, each once, the client's token never ending."""
     cluster = MeshCluster(tmp_path, "mesh")
     watcher = Watcher(cluster.endpoint)
     pinger = Pinger(cluster.a)
