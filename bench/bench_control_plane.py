@@ -38,7 +38,10 @@ records/s stored with none lost, the orchestrator and the evaluator each <= 1 co
     .venv/bin/python bench/bench_control_plane.py --soak --quick       # N = 20, 2,000 episodes (make bench)
 
 Prints one line per N (``control plane N=1000: lease p50 12 ms p99 340 ms, 250 records/s, lost 0``),
-then the tables. ``--json``: also one machine-readable line per figure (bench/figures.py).
+then the tables, then per N what the router's zenoh log says of the sessions (``router sessions N=...``:
+opened, reopened, closed during the run (before its last 0.5 s) and why, job queries
+unanswered in time, late replies dropped) and the orchestrator's re-leases by why. ``--json``: also one
+machine-readable line per figure (bench/figures.py).
 
 ``--soak``: does the control plane's cost per episode stay flat over a long run through one router
 (issue 38)? N = 20 workers, 1,000 episodes each (``--quick``: 100) of ``SOAK_EPISODE_S`` with a step
@@ -58,6 +61,7 @@ import json
 import logging
 import math
 import os
+import re
 import signal
 import sqlite3
 import subprocess
@@ -98,6 +102,13 @@ GOAL_SOAK_CPU_RATIO = 1.2
 GOAL_SOAK_RSS_GROWTH = 0.10
 QUARTERS_MIN_RECORDS = 1000
 """A run without ``--soak`` that stored this many records is also shown by quarter (its goals printed)."""
+ROUTER_ZENOH_LOG = ("warn,zenoh_transport::unicast::manager=debug,zenoh_transport::unicast::universal::transport=debug,"
+                    "zenoh_transport::unicast::universal::link=debug")
+"""The router's zenoh log (``RUST_LOG``): its warnings, and one line each when a client's transport (its
+session) opens, fails and closes (zenoh logs those at debug; nothing per message)."""
+ROUTER_WITH_ZENOH_LOG = ("import sys, zenoh; zenoh.try_init_log_from_env(); from agos.deploy.cli import main; "
+                         "sys.exit(main(sys.argv[1:]))")
+"""``agos router`` with zenoh's own log on (it is off unless the process asks for it)."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -599,6 +610,11 @@ class Result:
     eval_rc: int | None = None
     census: str = ""
     """The key census's line (``--census``), or ''."""
+    sessions_log: RouterSessions | None = None
+    """What the router's log says of its clients' sessions (opened, closed during the run, reopened)."""
+    releases: dict[str, int] = field(default_factory=dict)
+    """``re-leasing`` lines in the orchestrator's log by why: its holder's token vanished for longer than
+    ``[run] reconnect_grace_s`` ("vanished"), no progress for the stuck timeout ("no progress"), other."""
     load: tuple[float, float] = (0.0, 0.0)
     samples: list[Sample] = field(default_factory=list, repr=False)
     """The monitor's samples of the run (also in its ``samples.json``)."""
@@ -613,6 +629,78 @@ class Result:
 
 
 ROLES = ("orchestrator", "evaluator", "router", "worker hosts")
+
+
+@dataclass
+class RouterSessions:
+    """The client sessions as the router's zenoh log tells them (``ROUTER_ZENOH_LOG``)."""
+
+    opened: int = 0
+    peers: int = 0
+    """Distinct client ids among the opened: a session that lost its transport and got it back keeps its id."""
+    closed_in_run: int = 0
+    """Transports closed during the run, before its last 0.5 s (when the run's last record is stored and
+    processes start to leave): a router expiring a link, or a client gone."""
+    closed: int = 0
+    why: dict[str, int] = field(default_factory=dict)
+    """The first words of each ``RX task failed`` (why a link ended) during the run, counted."""
+    warnings: int = 0
+    """zenoh WARN and ERROR lines."""
+    unanswered: int = 0
+    """Of those, queries the router gave up on (``Didn't receive final reply``: the queryable, here the
+    orchestrator's job queryable, did not answer within the query's timeout)."""
+    late_replies: int = 0
+    """Of those, replies that came after their query was given up (``Route reply: Query not found``):
+    dropped by the router; a job grant among them is a lease its worker never hears of."""
+
+    @property
+    def reopened(self) -> int:
+        return self.opened - self.peers
+
+    def line(self, n: int) -> str:
+        why = "; ".join(f"{k}: {v}" for k, v in sorted(self.why.items(), key=lambda kv: -kv[1])[:3])
+        return (f"router sessions N={n}: {self.opened} opened by {self.peers} clients ({self.reopened} reopened), "
+                f"{self.closed_in_run} closed during the run{f' ({why})' if why else ''}, {self.closed} closed in all; "
+                f"{self.warnings} zenoh warnings: {self.unanswered} queries unanswered in time, {self.late_replies} late "
+                f"replies dropped")
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
+_OPENED = re.compile(r"New transport opened between \S+ and (\w+)")
+_CLOSING = re.compile(r"Closing transport with peer: (\w+)")
+_FAILED = re.compile(r"RX task failed: (.*)")
+
+
+def router_sessions(log_path: Path, until: float) -> RouterSessions:
+    """Count the router's client sessions from its zenoh log: those opened (and by how many clients), and
+    those closed before ``until`` (epoch seconds)."""
+    got = RouterSessions()
+    if not log_path.exists():
+        return got
+    seen: set[str] = set()
+    for raw in log_path.read_text(errors="replace").splitlines():
+        line = _ANSI.sub("", raw).strip()
+        if not line[:4].isdigit() or "zenoh" not in line:
+            continue
+        try:
+            at = datetime.fromisoformat(line.split(" ", 1)[0]).timestamp()
+        except ValueError:
+            continue
+        if (m := _OPENED.search(line)) is not None:
+            got.opened += 1
+            seen.add(m.group(1))
+        elif _CLOSING.search(line):
+            got.closed += 1
+            got.closed_in_run += at < until
+        elif (m := _FAILED.search(line)) is not None and at < until:
+            why = re.sub(r" on TCP link \S+ => \S+?:(?= )", ":", m.group(1).rsplit("}: ", 1)[-1].split(" at /", 1)[0])[:60]
+            got.why[why] = got.why.get(why, 0) + 1
+        if " WARN " in line or " ERROR " in line:
+            got.warnings += 1
+            got.unanswered += "Didn't receive final reply" in line
+            got.late_replies += "Route reply: Query not found" in line
+    got.peers = len(seen)
+    return got
 
 
 def start(cmd: list[str], log: Path, env: dict[str, str], **kwargs: Any) -> subprocess.Popen:
@@ -651,7 +739,8 @@ def measure(n: int, args: argparse.Namespace, work: Path, console: Console) -> R
     hosts: list[subprocess.Popen] = []
     monitor: Monitor | None = None
     try:
-        router = start([*AGOS, "router", "--listen", endpoint], logs / "router.log", env)
+        router = start([sys.executable, "-c", ROUTER_WITH_ZENOH_LOG, "router", "--listen", endpoint], logs / "router.log",
+                       {**env, "RUST_LOG": ROUTER_ZENOH_LOG, "NO_COLOR": "1"})
         procs.append(router)
         if not wait_listening("127.0.0.1", port, 60.0):
             raise RuntimeError(f"agos router did not listen on {endpoint} within 60 s; see {logs / 'router.log'}")
@@ -730,6 +819,16 @@ def measure(n: int, args: argparse.Namespace, work: Path, console: Console) -> R
             result.crashed += data["crashed"]
     samples = result.samples = monitor.samples if monitor else []
     (here / "samples.json").write_text(json.dumps([s.__dict__ for s in samples]))  # rows, CPU and RSS every 0.5 s
+    # Sessions closed during the run: before the last sample that had not seen the run's last record yet
+    # (the run's end, when processes close their sessions, falls in the 0.5 s after it).
+    last = max((s.rows for s in samples), default=0)
+    before_last = [s.t for s in samples if s.rows < last]
+    result.sessions_log = router_sessions(logs / "router.log", before_last[-1] if before_last else time.time())
+    eval_log = (logs / "eval.log").read_text(errors="replace") if (logs / "eval.log").exists() else ""
+    for line in eval_log.splitlines():
+        if line.startswith("re-leasing "):
+            why = "vanished" if "token vanished" in line else "no progress" if "no progress for" in line else "other"
+            result.releases[why] = result.releases.get(why, 0) + 1
     summarize(result, samples, runs / run_id, run_id, args)
     return result
 
@@ -814,6 +913,10 @@ def report(results: list[Result], args: argparse.Namespace, console: Console, wo
     console.print(u)
     for r in results:
         console.print(f"N={r.n}: saturates: {saturation(r, cores)}", highlight=False)
+    for r in results:
+        if r.sessions_log is not None:
+            releases = ", ".join(f"{v} {k}" for k, v in sorted(r.releases.items())) or "none"
+            console.print(r.sessions_log.line(r.n) + f"; orchestrator re-leases: {releases}", highlight=False)
     console.print(f"work: {work}", highlight=False)
     if args.soak:  # its own figures (soak_report)
         return
@@ -822,6 +925,10 @@ def report(results: list[Result], args: argparse.Namespace, console: Console, wo
     figures.add(f"{tag}: lease p99", big.lease_ms(0.99), f"{big.lease_ms(0.99):.0f} ms", f"<= {1000 * GOAL_LEASE_P99_S:.0f} ms",
                 big.lease_ms(0.99) <= 1000 * GOAL_LEASE_P99_S)
     figures.add(f"{tag}: lost episodes", big.lost, str(big.lost), "0", big.lost == 0)
+    if big.sessions_log is not None:
+        closed = big.sessions_log.closed_in_run
+        figures.add(f"{tag}: sessions closed during the run", closed,
+                    f"{closed} ({big.sessions_log.reopened} reopened)", "0", closed == 0)
     at_scale = big.n >= 1000
     figures.add(f"{tag}: records stored/s", big.records_per_s, f"{big.records_per_s:.0f}/s (ideal {big.ideal_per_s:.0f})",
                 f">= {GOAL_RECORDS_PER_S:.0f}/s at N=1000" if at_scale else "", big.records_per_s >= GOAL_RECORDS_PER_S
