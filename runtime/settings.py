@@ -170,6 +170,16 @@ class VlmOptions(_Section):
         return self.cache_dir is not None and self.cache_mode == "replay"
 
 
+class RenderSettings(_Section):
+    """This process's renderer hardware (``[render]``, ``AGOS_RENDER__*``): never part of a run's
+    configuration, which ``[world] renderer`` is (the orchestrator's, sent with every episode)."""
+
+    egl_device: int | None = Field(None, ge=0)
+    """A world worker's EGL device (the index PyBullet's EGL plugin reads from ``EGL_VISIBLE_DEVICES``).
+    None: ``EGL_VISIBLE_DEVICES`` if set, else the worker's index modulo the GPUs it sees
+    (world/sim/egl_device.py)."""
+
+
 class AgosConfig(_Section):
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     run: RunSettings = Field(default_factory=RunSettings)
@@ -177,6 +187,7 @@ class AgosConfig(_Section):
     """Everything that shapes an episode (runtime/episode_config.py); the orchestrator's copy, with
     the run's comm profile, timing and tools set, is what every world worker runs with."""
     vlm: VlmOptions = Field(default_factory=VlmOptions)
+    render: RenderSettings = Field(default_factory=RenderSettings)
 
 
 def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:

@@ -43,6 +43,7 @@ from agos.runtime.schemas import (
 )
 from agos.runtime.settings import AgosConfig
 from agos.runtime.viz import FrameStream, full_frames
+from agos.world.sim import egl_device
 from agos.world.sim.engine import EpisodeRunner
 from agos.world.sim.episode_vehicles import LookMismatch
 from agos.world.sim.scene import Scene
@@ -492,5 +493,6 @@ def main(cfg: AgosConfig, *, worker_id: str | None = None) -> int:
     setup_logging("world")
     stop = install_stop_handlers(exit_after_s=STOP_WITHIN_S)
     ident = worker_id or unique_id(host_prefix())
+    log.info(egl_device.apply(cfg.render.egl_device, ident))  # before any scene loads the EGL plugin
     with ZenohBus.from_settings(cfg.zenoh) as bus:
         return WorldWorker(cfg, bus, stop, keys.check_chunk(ident, what="worker id")).serve()
