@@ -17,6 +17,15 @@
 # source). It is used only in the build stage: the final image holds the virtual environment
 # /opt/agos, the uv.lock it was installed from (/opt/agos/uv.lock: its sha256 goes into every run's
 # and record's provenance, runtime/provenance.py) and no wheels.
+#
+# World workers that render with EGL ([world] renderer = "egl", on GPUs: docs/DEPLOY.md, "GPU world
+# workers") need the EGL libraries, which the default image leaves out:
+#
+#   docker build --build-arg RENDERER=egl -t agos:egl .
+#
+# adds Debian's EGL loader (GLVND) and Mesa's EGL with its software driver (llvmpipe, where no GPU is
+# given); on an NVIDIA GPU the container toolkit adds the driver's own EGL library at run time when
+# the container asks for the `graphics` capability. Needs apt in BASE_IMAGE and a reachable mirror.
 
 ARG BASE_IMAGE=python:3.11-slim
 
@@ -33,7 +42,13 @@ RUN python3 -m venv /opt/agos \
  && /opt/agos/bin/agos --help > /dev/null
 
 FROM ${BASE_IMAGE}
+ARG RENDERER=
 COPY --from=build /opt/agos /opt/agos
+RUN if [ "$RENDERER" = egl ]; then \
+        apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends \
+            libegl1 libegl-mesa0 libgl1-mesa-dri && rm -rf /var/lib/apt/lists/*; \
+    elif [ -n "$RENDERER" ]; then echo "RENDERER=$RENDERER: give egl, or nothing (TinyRenderer needs no library)" >&2; exit 1; \
+    fi
 # A fixed non-root user; compose may run as another uid (AGOS_UID, for bind-mounted run folders), so
 # everything a process writes goes to /runs, /tmp or $HOME, all writable by any uid.
 RUN useradd --uid 10001 --user-group --create-home --home-dir /home/agos --shell /usr/sbin/nologin agos \

@@ -190,3 +190,71 @@ def test_check_names_the_files_that_differ(tmp_path: Path, capsys: pytest.Captur
     assert render.main(["--out", str(out), "--check"]) == 1
     err = capsys.readouterr().err
     assert err.startswith("render: base/world.yaml in ") and err.count("\n") == 1
+
+
+def _with_gpu(objects: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``objects`` with the patches of the GPU component (deploy/k8s/components/gpu) applied."""
+    component = _committed("components/gpu/kustomization.yaml")[0]
+    assert component["kind"] == "Component"
+    objects = list(objects)
+    for entry in component["patches"]:
+        patch = _committed(f"components/gpu/{entry['path']}")[0]
+        target = [o for o in objects if (o["kind"], o["metadata"]["name"]) == (patch["kind"], patch["metadata"]["name"])]
+        assert len(target) == 1, f"{entry['path']} patches {patch['kind']} {patch['metadata']['name']}: not one object"
+        objects[objects.index(target[0])] = _merge(target[0], patch)
+    return objects
+
+
+def test_the_gpu_overlays_give_world_workers_a_gpu_with_graphics_and_the_run_egl() -> None:
+    assert _committed("overlays/gpu/kustomization.yaml")[0]["resources"] == ["../../base"]
+    assert _committed("overlays/secure-gpu/kustomization.yaml")[0]["resources"] == ["../secure"]
+    base = [o for f in _committed("base/kustomization.yaml")[0]["resources"] for o in _committed(f"base/{f}")]
+    for where, objects in (("overlays/gpu", _with_gpu(base)), ("overlays/secure-gpu", _with_gpu(_secure_objects()))):
+        for obj in objects:
+            _validate(obj, where)
+        by_name = {o["metadata"]["name"]: o for o in objects if o["kind"] in ("Deployment", "Job")}
+        (world,) = by_name["agos-world"]["spec"]["template"]["spec"]["containers"]
+        assert world["resources"]["limits"] == {"nvidia.com/gpu": "1"}
+        assert world["resources"]["requests"] == render.RESOURCES["world"]
+        env = {e["name"]: e.get("value") for e in world["env"]}
+        assert "graphics" in env["NVIDIA_DRIVER_CAPABILITIES"].split(",")
+        assert env["AGOS_ZENOH__CONNECT"].startswith("tls/" if "secure" in where else "tcp/")
+        (job,) = by_name["agos-eval"]["spec"]["template"]["spec"]["containers"]
+        assert {"name": "AGOS_WORLD__RENDERER", "value": "egl"} in job["env"]  # the run's renderer: the orchestrator's
+        others = [c for name, o in by_name.items() if name != "agos-world" for c in o["spec"]["template"]["spec"]["containers"]]
+        assert not any("limits" in c["resources"] for c in others)
+
+
+def test_a_compose_gpu_request_renders_as_a_gpu_limit(tmp_path: Path) -> None:
+    variables = render.read_env_file(ROOT / "deploy" / ".env.example")
+    text = (ROOT / "deploy" / "compose.yaml").read_text(encoding="utf-8")
+    replicas = "    deploy:\n      replicas: ${AGOS_WORLDS:-1}\n"
+    assert replicas in text
+
+    def world_with(request: str) -> Path:
+        path = tmp_path / "compose.yaml"
+        path.write_text(text.replace(replicas, replicas + request), encoding="utf-8")
+        return path
+
+    gpus = ("      resources:\n        reservations:\n          devices:\n            - driver: nvidia\n"
+            "              count: COUNT\n              capabilities: [gpu, graphics]\n")
+    files = render.render(variables | {"AGOS_WORLDS": "3"}, compose=world_with(gpus.replace("COUNT", "2")))
+    (world,) = _documents(files["base/world.yaml"])
+    _validate(world, "base/world.yaml with a GPU request")
+    (container,) = world["spec"]["template"]["spec"]["containers"]
+    assert world["spec"]["replicas"] == 3
+    assert container["resources"]["limits"] == {"nvidia.com/gpu": "2"}
+    assert {"name": "NVIDIA_DRIVER_CAPABILITIES", "value": "graphics"} in container["env"]
+    files = render.render(variables, compose=world_with(gpus.replace("COUNT", "all")))
+    (world,) = _documents(files["base/world.yaml"])  # all: the host's GPUs for each container; one per pod here
+    assert world["spec"]["template"]["spec"]["containers"][0]["resources"]["limits"] == {"nvidia.com/gpu": "1"}
+    with pytest.raises(render.RenderError, match=r"device count 'none': give a number of GPUs per pod or all"):
+        render.render(variables, compose=world_with(gpus.replace("COUNT", "none")))
+    with pytest.raises(render.RenderError, match=r"only driver nvidia with capability gpu"):
+        render.render(variables, compose=world_with(gpus.replace("nvidia", "amd")))
+    with pytest.raises(render.RenderError, match=r"^compose.yaml: world: deploy.resources.limits has no Kubernetes mapping"):
+        render.render(variables, compose=world_with("      resources:\n        limits:\n          cpus: '2'\n"))
+    # The GPU overlay follows AGOS_WORLD_GPUS, as compose does.
+    files = render.render(variables | {"AGOS_WORLD_GPUS": "4"})
+    (patch,) = _documents(files["components/gpu/world.yaml"])
+    assert patch["spec"]["template"]["spec"]["containers"][0]["resources"]["limits"] == {"nvidia.com/gpu": "4"}

@@ -1,14 +1,15 @@
 """Kubernetes manifests rendered from the compose deployment (docs/DEPLOY.md, "Kubernetes").
 
-    .venv/bin/python deploy/k8s/render.py                    # rewrite deploy/k8s/base and overlays/secure
+    .venv/bin/python deploy/k8s/render.py                    # rewrite deploy/k8s/base, overlays/ and components/
     .venv/bin/python deploy/k8s/render.py --check            # exit 1 naming each committed file that differs
     .venv/bin/python deploy/k8s/render.py --env-file deploy/.env --out my-k8s   # your settings, elsewhere
 
-The compose files are the one source: this reads ``deploy/compose.yaml`` and ``deploy/compose.secure.yaml``
-with compose's own interpolation of the variables in ``deploy/.env.example`` (overridden by ``--env-file``),
-and turns each service's image, command, entrypoint, environment, user, grace period, replicas, health
-check and volumes into Kubernetes objects. A compose key, service or volume this file has no mapping for
-stops the rendering with one line naming it, so the two deployments cannot drift apart silently;
+The compose files are the one source: this reads ``deploy/compose.yaml``, ``deploy/compose.secure.yaml`` and
+``deploy/compose.gpu.yaml`` with compose's own interpolation of the variables in ``deploy/.env.example``
+(overridden by ``--env-file``), and turns each service's image, command, entrypoint, environment, user, grace
+period, replicas, GPU request, health check and volumes into Kubernetes objects. A compose key, service or
+volume this file has no mapping for stops the rendering with one line naming it, so the two deployments cannot
+drift apart silently;
 ``tests/test_k8s_manifests.py`` re-renders and compares with the committed files.
 
 What Kubernetes needs and compose does not say is fixed here, in the constants below: the router's
@@ -16,6 +17,13 @@ Service name (every process connects to it; the router listens on all addresses)
 PersistentVolumeClaim, the split as an optional ConfigMap, resource requests, an init container that
 waits for the router (compose's ``depends_on``), and the longer presence checks of the eval Job (pods
 start slower than containers on one host).
+
+A compose GPU request (``deploy.resources.reservations.devices``, driver nvidia) becomes the container's
+``resources.limits`` ``nvidia.com/gpu: N`` (the NVIDIA device plugin's resource; compose's ``count: all``,
+every GPU of the host for each container, is one per pod, which the plugin gives each pod its own) and its capabilities other
+than ``gpu`` the variable ``NVIDIA_DRIVER_CAPABILITIES`` (how the NVIDIA container toolkit is asked for them
+on Kubernetes). compose.gpu.yaml's override is the kustomize Component ``components/gpu``, applied by
+``overlays/gpu`` (over the base) and ``overlays/secure-gpu`` (over the secured overlay).
 
 Needs PyYAML (the dev extra). Writes plain manifests and kustomize files; the secured overlay's
 Secrets come from a ``secretGenerator`` over the files ``agos certs`` writes.
@@ -37,6 +45,7 @@ HERE = Path(__file__).resolve().parent
 DEPLOY = HERE.parent
 COMPOSE = DEPLOY / "compose.yaml"
 COMPOSE_SECURE = DEPLOY / "compose.secure.yaml"
+COMPOSE_GPU = DEPLOY / "compose.gpu.yaml"
 ENV_EXAMPLE = DEPLOY / ".env.example"
 
 ROUTER_SERVICE = "agos-router"
@@ -50,6 +59,8 @@ VLM_SECRET = "agos-vlm"
 """An optional Secret with the hosted model's key (``OPENAI_API_KEY``): compose passes it through from the shell."""
 CA_SECRET, CERT_SECRET = "agos-ca", "agos-cert-{identity}"
 CERTS_FOLDER = "certs"
+GPU_RESOURCE = "nvidia.com/gpu"
+"""The extended resource of the NVIDIA device plugin (one GPU per unit; shared GPUs need its time-slicing)."""
 """Where the secured overlay's ``secretGenerator`` reads the files of ``agos certs`` (beside its kustomization)."""
 
 RESOURCES: dict[str, dict[str, str]] = {
@@ -236,6 +247,48 @@ def _volumes(service: str, entries: list[str]) -> tuple[list[dict[str, Any]], li
     return volumes, mounts
 
 
+def gpu_request(service: str, deploy: Any, environment: dict[str, Any], file: str = "compose.yaml") -> tuple[
+        dict[str, str], dict[str, str]]:
+    """A compose ``deploy`` block's GPU request as the container's resource limits and the environment it
+    needs (``NVIDIA_DRIVER_CAPABILITIES`` from the capabilities besides ``gpu``, unless the service sets it
+    with all of them); ``replicas`` is read by :func:`workload`, anything else has no mapping."""
+    if not isinstance(deploy, dict):
+        raise RenderError(f"{file}: {service}: deploy must be a map")
+    unknown = sorted(set(deploy) - {"replicas", "resources"})
+    resources = deploy.get("resources", {})
+    unknown += sorted(f"resources.{k}" for k in set(resources) - {"reservations"})
+    reservations = resources.get("reservations", {})
+    unknown += sorted(f"resources.reservations.{k}" for k in set(reservations) - {"devices"})
+    if unknown:
+        raise RenderError(f"{file}: {service}: deploy.{unknown[0]} has no Kubernetes mapping in deploy/k8s/render.py")
+    limits: dict[str, str] = {}
+    env: dict[str, str] = {}
+    for device in reservations.get("devices", []):
+        capabilities = [str(c) for c in device.get("capabilities", [])]
+        if device.get("driver") != "nvidia" or "gpu" not in capabilities:
+            raise RenderError(f"{file}: {service}: device {device!r}: only driver nvidia with capability gpu is rendered")
+        if "device_ids" in device or sorted(set(device) - {"driver", "count", "capabilities"}):
+            raise RenderError(f"{file}: {service}: device {device!r}: give a count (Kubernetes' device plugin "
+                              "chooses the GPUs), nothing else")
+        count = str(device.get("count", "all"))
+        if count == "all":  # every GPU of the host, for each container; a pod gets its own from the device plugin
+            count = "1"
+        if not count.isdigit() or int(count) < 1:
+            raise RenderError(f"{file}: {service}: device count {count!r}: give a number of GPUs per pod or all "
+                              "(AGOS_WORLD_GPUS)")
+        limits[GPU_RESOURCE] = str(int(limits.get(GPU_RESOURCE, "0")) + int(count))
+        wanted = [c for c in capabilities if c != "gpu"]
+        if wanted:
+            given = str(environment.get("NVIDIA_DRIVER_CAPABILITIES") or "")
+            missing = [c for c in wanted if given and c not in given.split(",") and given != "all"]
+            if missing:
+                raise RenderError(f"{file}: {service}: NVIDIA_DRIVER_CAPABILITIES {given!r} lacks {missing[0]!r}, "
+                                  "a capability its device request asks for")
+            if not given:
+                env["NVIDIA_DRIVER_CAPABILITIES"] = ",".join(wanted)
+    return limits, env
+
+
 def _probe(service: str, check: dict[str, Any]) -> dict[str, Any]:
     """A compose healthcheck as a readiness probe: it gates the router's Service and shows in READY, like
     ``docker compose ps``; nothing is restarted for it (compose restarts nothing for it either)."""
@@ -274,6 +327,8 @@ def pod_template(service: str, spec: dict[str, Any], connect: str) -> dict[str, 
         container["command"] = list(spec["entrypoint"])
     container["args"] = [str(arg) for arg in spec["command"]]
     container["env"] = _environment(service, spec.get("environment", {}))
+    limits, gpu_env = gpu_request(service, spec.get("deploy", {}), spec.get("environment", {}))
+    container["env"] += [{"name": name, "value": value} for name, value in gpu_env.items()]
     if service == "eval":
         container["env"] += [{"name": name, "value": value} for name, value in JOB_ENV.items()]
     volumes, mounts = _volumes(service, spec.get("volumes", []))
@@ -281,7 +336,7 @@ def pod_template(service: str, spec: dict[str, Any], connect: str) -> dict[str, 
         container["volumeMounts"] = mounts
     if "healthcheck" in spec:
         container["readinessProbe"] = _probe(service, spec["healthcheck"])
-    container["resources"] = {"requests": dict(RESOURCES[service])}
+    container["resources"] = {"requests": dict(RESOURCES[service]), **({"limits": limits} if limits else {})}
     if service == "router":
         port = connect.rsplit(":", 1)[1]
         container["ports"] = [{"name": "zenoh", "containerPort": int(port), "protocol": "TCP"}]
@@ -375,6 +430,32 @@ def secure_patch(service: str, spec: dict[str, Any]) -> tuple[dict[str, Any], di
     return patch, {secret: [i["key"] for i in files] for secret, files in items.items()}
 
 
+# --- the GPU component -----------------------------------------------------------------------------------------------
+
+def gpu_patch(service: str, spec: dict[str, Any]) -> dict[str, Any]:
+    """compose.gpu.yaml's override of one service as a strategic-merge patch: its environment, and its GPU
+    request as resource limits (:func:`gpu_request`). Its build arguments say how the image is built, which
+    on Kubernetes is done before (push the RENDERER=egl build as AGOS_IMAGE)."""
+    unknown = sorted(set(spec) - {"environment", "deploy", "build"})
+    if unknown:
+        raise RenderError(f"compose.gpu.yaml: {service}: key {unknown[0]!r} has no mapping in deploy/k8s/render.py")
+    if sorted(set(spec.get("build", {})) - {"args"}):
+        raise RenderError(f"compose.gpu.yaml: {service}: build: only args are read (the image is built before)")
+    if "replicas" in spec.get("deploy", {}):
+        raise RenderError(f"compose.gpu.yaml: {service}: replicas stay compose.yaml's")
+    environment = spec.get("environment", {})
+    limits, gpu_env = gpu_request(service, spec.get("deploy", {}), environment, "compose.gpu.yaml")
+    container: dict[str, Any] = {"name": service}
+    env = _environment(service, environment) + [{"name": name, "value": value} for name, value in gpu_env.items()]
+    if env:
+        container["env"] = env
+    if limits:
+        container["resources"] = {"limits": limits}
+    what = WORKLOADS[service]
+    return {"apiVersion": "batch/v1" if what.kind == "Job" else "apps/v1", "kind": what.kind,
+            "metadata": {"name": what.name}, "spec": {"template": {"spec": {"containers": [container]}}}}
+
+
 # --- files -----------------------------------------------------------------------------------------------------------
 
 class _Dumper(yaml.SafeDumper):
@@ -403,7 +484,8 @@ def _octal_mode(text: str) -> str:
     return re.sub(r"(defaultMode: )(\d+)\n", lambda m: f"{m[1]}{m[2]}  # 0{int(m[2]):o}\n", text)
 
 
-def render(variables: dict[str, str], *, compose: Path = COMPOSE, compose_secure: Path = COMPOSE_SECURE) -> dict[str, str]:
+def render(variables: dict[str, str], *, compose: Path = COMPOSE, compose_secure: Path = COMPOSE_SECURE,
+           compose_gpu: Path = COMPOSE_GPU) -> dict[str, str]:
     """Every file of deploy/k8s (path relative to it -> text) for the compose variables ``variables``
     (:func:`read_env_file`); :class:`RenderError` for anything the compose files say that has no mapping."""
     variables = {**variables, **KUBERNETES_VARIABLES}
@@ -445,6 +527,25 @@ def render(variables: dict[str, str], *, compose: Path = COMPOSE, compose_secure
         "secretGenerator": generators, "patches": patches}], tls)
     files["overlays/secure/.gitignore"] = (f"# the files of `agos certs --out {CERTS_FOLDER}` (private keys): never committed\n"
                                            f"/{CERTS_FOLDER}/\n")
+    gpu = load_compose(compose_gpu, variables)
+    gpu_header = HEADER.format(secure="{,.gpu}")
+    extra = sorted(set(gpu) - set(WORKLOADS))
+    if extra:
+        raise RenderError(f"compose.gpu.yaml: service {extra[0]!r} has no Kubernetes object in deploy/k8s/render.py")
+    gpu_patches = []
+    for name in WORKLOADS:
+        if name not in gpu:
+            continue
+        patch = gpu_patch(name, gpu[name])
+        if len(patch["spec"]["template"]["spec"]["containers"][0]) > 1:  # more than its name: something to patch
+            files[f"components/gpu/{name}.yaml"] = dump([patch], gpu_header)
+            gpu_patches.append({"path": f"{name}.yaml"})
+    files["components/gpu/kustomization.yaml"] = dump([{
+        "apiVersion": "kustomize.config.k8s.io/v1alpha1", "kind": "Component", "patches": gpu_patches}], gpu_header)
+    for overlay, below, sources in (("gpu", "../../base", "{,.gpu}"), ("secure-gpu", "../secure", "{,.secure,.gpu}")):
+        files[f"overlays/{overlay}/kustomization.yaml"] = dump([{
+            "apiVersion": "kustomize.config.k8s.io/v1beta1", "kind": "Kustomization", "resources": [below],
+            "components": ["../../components/gpu"]}], HEADER.format(secure=sources))
     return files
 
 
