@@ -260,3 +260,20 @@ def test_a_worker_back_within_the_grace_keeps_its_lease(tmp_path: Path) -> None:
     bench.until_finished()
     assert bench.orch.releases == 0 and not bench.orch.pending
     assert [(r.episode_id, r.worker_id) for r in bench.rows()] == [("e1", "w1"), ("e2", "w2")]
+
+
+def test_a_grant_that_never_reached_its_worker_is_granted_again(tmp_path: Path) -> None:
+    """A worker asks for a job only between episodes: asking again while it holds a lease that shows
+    nothing (no event, no record) means the grant's reply was lost (a busy router). It gets the same
+    episode and attempt again, not a second one, and nothing waits for the stuck timeout."""
+    bench = Bench(tmp_path, [minimal_spec("e1"), minimal_spec("e2")])
+    lost = bench.job("w1")
+    again = bench.job("w1")
+    assert again.episode == lost.episode and again.attempt == lost.attempt == 1
+    assert bench.orch.regrants == 1 and list(bench.orch.leases) == ["e1"]
+    bench.bus.publish(keys.result(RUN, "w1"), bench.record("e1", "w1"))  # played, its record on the way
+    assert bench.job("w1").episode.episode_id == "e2"  # type: ignore[union-attr]  # read before answering
+    bench.bus.publish(keys.result(RUN, "w1"), bench.record("e2", "w1"))
+    bench.until_finished()
+    assert bench.orch.releases == 0 and bench.orch.regrants == 1
+    assert [r.episode_id for r in bench.rows()] == ["e1", "e2"]

@@ -42,7 +42,7 @@ from typing import Literal
 import msgspec
 
 from agos.runtime import keys
-from agos.runtime.bus import Bus, Inbox
+from agos.runtime.bus import Bus, Inbox, Sample
 from agos.runtime.codec import DecodeError, decode, encode
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.failure_records import failure_record
@@ -125,6 +125,10 @@ class Orchestrator:
         self.already = len(self.stored)
         self.pending: deque[tuple[EpisodeSpec, int]] = deque((e, 1) for e in episodes if e.episode_id not in done)
         self.leases: dict[str, Lease] = {}
+        self._newly: list[EpisodeRecord] = []
+        """Records acknowledged since :meth:`pump` last returned."""
+        self.regrants = 0
+        """Grants sent again: the first never reached its worker (a reply lost on a busy router)."""
         self.records: dict[str, EpisodeRecord] = {}
         """The lease holders' records: whole until acknowledged, then their summary (:func:`summary_of`)."""
         self.releases = 0
@@ -187,10 +191,45 @@ class Orchestrator:
         """Answer job and asset queries, read results, acks, events and liveliness for up to
         ``timeout_s``; return the records whose storage was acknowledged in this call."""
         self._answer_queries()
-        newly: list[EpisodeRecord] = []
         sample = self._inbox.get(timeout_s)
+        self._read([sample] if sample else [])
         now = self._clock()
-        for s in ([sample] if sample else []) + self._inbox.drain():
+        for s in self._live.drain():
+            worker = s.key.rsplit("/", 1)[-1]
+            if s.payload == b"+":
+                self.live_workers.add(worker)
+                if self.vanished.pop(worker, None) is not None:
+                    log.info("world worker %s is back; it keeps its leases", worker)
+            else:
+                self.live_workers.discard(worker)
+                self.vanished[worker] = now
+        for worker, since in list(self.vanished.items()):
+            if now - since >= self.reconnect_grace_s:
+                del self.vanished[worker]
+                self._release_worker(worker, f"its liveliness token vanished (not back within "
+                                             f"{self.reconnect_grace_s:g} s)")
+        for episode_id, lease in list(self.leases.items()):
+            if now - lease.last_progress > self.stuck_after_s and episode_id not in self.records:
+                self._release(episode_id, f"no progress for {self.stuck_after_s:.0f} s on {lease.worker}")
+        if now >= self._repeat_at:
+            self._repeat_at = now + LEASE_REPEAT_S
+            for lease in self.leases.values():
+                self._announce(lease)
+            # Every record not yet acknowledged goes out again: this orchestrator's failure records, and
+            # a holder's record whose ack came first (a small ack can overtake a large record on another
+            # key) and was refused above, so the evaluator acknowledges it once more, in order.
+            unacked = {e: self.records[e] for e in self.unacknowledged()} | self.gave_up
+            for record in unacked.values():
+                self.bus.publish(keys.result(self.run_id, record.worker_id), record, once=True)
+        self._answer_queries()
+        newly, self._newly = self._newly, []
+        return newly
+
+    def _read(self, samples: list[Sample]) -> None:
+        """Read results, acks and events (``samples`` and whatever else the inbox holds); records whose
+        storage is acknowledged go to ``self._newly``, for :meth:`pump` to return."""
+        now = self._clock()
+        for s in samples + self._inbox.drain():
             if s.key.endswith("/events"):
                 try:
                     event = decode(s.payload)
@@ -242,37 +281,8 @@ class Orchestrator:
                 self.leases.pop(message.episode_id, None)
                 self.gave_up.pop(message.episode_id, None)
                 if message.episode_id in self.records:
-                    newly.append(self.records[message.episode_id])
+                    self._newly.append(self.records[message.episode_id])
                     self.records[message.episode_id] = summary_of(self.records[message.episode_id])
-        for s in self._live.drain():
-            worker = s.key.rsplit("/", 1)[-1]
-            if s.payload == b"+":
-                self.live_workers.add(worker)
-                if self.vanished.pop(worker, None) is not None:
-                    log.info("world worker %s is back; it keeps its leases", worker)
-            else:
-                self.live_workers.discard(worker)
-                self.vanished[worker] = now
-        for worker, since in list(self.vanished.items()):
-            if now - since >= self.reconnect_grace_s:
-                del self.vanished[worker]
-                self._release_worker(worker, f"its liveliness token vanished (not back within "
-                                             f"{self.reconnect_grace_s:g} s)")
-        for episode_id, lease in list(self.leases.items()):
-            if now - lease.last_progress > self.stuck_after_s and episode_id not in self.records:
-                self._release(episode_id, f"no progress for {self.stuck_after_s:.0f} s on {lease.worker}")
-        if now >= self._repeat_at:
-            self._repeat_at = now + LEASE_REPEAT_S
-            for lease in self.leases.values():
-                self._announce(lease)
-            # Every record not yet acknowledged goes out again: this orchestrator's failure records, and
-            # a holder's record whose ack came first (a small ack can overtake a large record on another
-            # key) and was refused above, so the evaluator acknowledges it once more, in order.
-            unacked = {e: self.records[e] for e in self.unacknowledged()} | self.gave_up
-            for record in unacked.values():
-                self.bus.publish(keys.result(self.run_id, record.worker_id), record, once=True)
-        self._answer_queries()
-        return newly
 
     def in_flight(self) -> int:
         """Episodes leased whose record has not come in yet."""
@@ -384,6 +394,13 @@ class Orchestrator:
             log.debug("no job for %s: no liveliness token of that world worker", worker)
             query.reply(encode(JobGrant(worker_id=worker, episode=None, run_finished=self.finished)))
             return
+        if (held := self._lost_grant(worker)) is not None:
+            self.regrants += 1
+            log.warning("granting %s to %s again (attempt %d): its grant did not reach it", held.spec.episode_id,
+                        worker, held.attempt)
+            query.reply(encode(JobGrant(worker_id=worker, episode=held.spec, attempt=held.attempt,
+                                        config=self._config_map)))
+            return
         self._unpause()
         while self.pending and self.pending[0][0].episode_id in self.stored:
             self.pending.popleft()  # never lease a stored episode again
@@ -399,6 +416,16 @@ class Orchestrator:
             query.reply(encode(JobGrant(worker_id=worker, episode=spec, attempt=attempt, config=self._config_map)))
         else:
             query.reply(encode(JobGrant(worker_id=worker, episode=None, run_finished=self.finished)))
+
+    def _lost_grant(self, worker: str) -> Lease | None:
+        """A lease of ``worker``'s that it cannot be playing: a worker asks for a job only between
+        episodes, so a lease of its with no record and no event since it was granted (what it has sent is
+        read first) is one whose grant never reached it: the reply came after its request had timed out,
+        or its session dropped (bench_control_plane.py at N = 1,000: up to 7 such leases a worker, each
+        waiting for the stuck timeout). It is granted again, the same episode and attempt."""
+        self._read([])
+        return next((lease for lease in self.leases.values() if lease.worker == worker
+                     and lease.last_progress == lease.leased_at and lease.spec.episode_id not in self.records), None)
 
     def _answer_asset(self, query) -> None:
         """Serve a town asset from the local asset cache; unknown hashes get no reply."""
