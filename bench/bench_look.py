@@ -16,6 +16,14 @@ same run:
 
 ``--quick`` (``make bench``): 3 rounds and one probe process a look. ``--json``: also one
 machine-readable line per figure (bench/figures.py).
+
+``--renderer egl`` measures the renderers instead: PyBullet's EGL plugin against TinyRenderer on the
+same scenes (each look of ``--look``, default both), the same observations, rounds alternating, CPU
+time of this process and wall time (on a GPU the work leaves the CPU, so the wall time is the
+latency of an observation and the CPU time what a worker's core pays). EGL renders on whatever
+device ``EGL_VISIBLE_DEVICES`` (or the plugin) picks: Mesa's llvmpipe where there is no GPU.
+
+    .venv/bin/python bench/bench_look.py --renderer egl [--look flat] [--repeats 15]
 """
 
 from __future__ import annotations
@@ -48,6 +56,72 @@ def _cpu(fn: Callable[[], object]) -> float:
     start = time.process_time()
     fn()
     return time.process_time() - start
+
+
+def _clock(fn: Callable[[], object]) -> tuple[float, float]:
+    """CPU and wall seconds of one call."""
+    cpu, wall = time.process_time(), time.perf_counter()
+    fn()
+    return time.process_time() - cpu, time.perf_counter() - wall
+
+
+def renderer_costs(town: Town, repeats: int, looks: tuple[str, ...], figures: Figures) -> None:
+    """EGL against TinyRenderer: per look, the same town, traffic, episode vehicles and views."""
+    for look in looks:
+        _renderers_on(town, look, repeats, figures)
+
+
+def _renderers_on(town: Town, look: str, repeats: int, figures: Figures) -> None:
+    cam = CameraConfig()
+    renderers = ("tiny", "egl")
+    scenes = {}
+    for renderer in renderers:
+        start = time.perf_counter()
+        scenes[renderer] = Scene(town.layout, look=look, renderer=renderer)
+        print(f"{look} look, {renderer}: scene built in {time.perf_counter() - start:.2f} s", flush=True)
+    spec = sample_episode(town, scenes["tiny"], "hard", 0, seed=5)
+    for scene in scenes.values():
+        add_episode_vehicles(scene, spec)
+    tx, ty = spec.target.position_world_m[:2]
+    ids, xy = town.roads.anchor_array()
+    nearest = np.argsort(np.hypot(xy[:, 0] - tx, xy[:, 1] - ty))[:3]
+    anchors = [((float(xy[k, 0]), float(xy[k, 1])), town.roads.heading_at(int(ids[k]))) for k in nearest]
+
+    def uav_obs(scene: Scene) -> None:
+        sensors.frames_of(sensors.nadir(scene, (tx, ty), 80.0, cam), scene, cam, with_grid=True)
+
+    def six_obs(scene: Scene, xy: tuple[float, float], heading: float) -> None:
+        for shot in sensors.six_views(scene, xy, heading, cam):
+            sensors.frames_of(shot, scene, cam)
+
+    for scene in scenes.values():  # warm-up (the EGL context, textures on the device)
+        uav_obs(scene)
+        six_obs(scene, *anchors[0])
+    times: dict[tuple[str, str], list[tuple[float, float]]] = {}
+    for _ in range(repeats):
+        for renderer, scene in scenes.items():
+            for a_xy, heading in anchors:
+                times.setdefault((renderer, "six_obs"), []).append(
+                    _clock(lambda s=scene, p=a_xy, h=heading: six_obs(s, p, h)))
+                times.setdefault((renderer, "six"), []).append(
+                    _clock(lambda s=scene, p=a_xy, h=heading: sensors.six_views(s, p, h, cam)))
+            times.setdefault((renderer, "uav_obs"), []).append(_clock(lambda s=scene: uav_obs(s)))
+            times.setdefault((renderer, "uav"), []).append(_clock(lambda s=scene: sensors.nadir(s, (tx, ty), 80.0, cam)))
+    print(f"{look} look, town {town.town_id}: medians of {repeats} rounds x {len(anchors)} anchors; "
+          "CPU time of this process | wall time")
+    rows = (("uav_obs", f"UAV observation {cam.nadir_px}px"), ("six_obs", f"six-view observation {cam.ground_px}px"),
+            ("uav", "  UAV render alone"), ("six", "  six renders alone"))
+    for key, what in rows:
+        cpu = {r: statistics.median(c for c, _ in times[(r, key)]) * 1000 for r in renderers}
+        wall = {r: statistics.median(w for _, w in times[(r, key)]) * 1000 for r in renderers}
+        print(f"{what:34s} CPU tiny {cpu['tiny']:7.1f} ms  egl {cpu['egl']:7.1f} ms  {cpu['egl'] / cpu['tiny']:.2f}x"
+              f"   | wall tiny {wall['tiny']:7.1f} ms  egl {wall['egl']:7.1f} ms  {wall['egl'] / wall['tiny']:.2f}x")
+        if key in ("uav_obs", "six_obs"):
+            figures.add(f"{what.strip()}, {look} look: EGL vs TinyRenderer (CPU)", cpu["egl"] / cpu["tiny"],
+                        f"{cpu['egl'] / cpu['tiny']:.2f}x ({cpu['egl']:.0f} vs {cpu['tiny']:.0f} ms CPU; wall "
+                        f"{wall['egl']:.0f} vs {wall['tiny']:.0f} ms)")
+    for scene in scenes.values():
+        scene.close()
 
 
 def observation_costs(town: Town, repeats: int, figures: Figures) -> None:
@@ -156,8 +230,15 @@ def main() -> None:
     parser.add_argument("--carla", type=Path, default=Path(__file__).resolve().parents[2] / "shared/maps/carla/Town04.xodr")
     parser.add_argument("--quick", action="store_true", help="3 rounds, one probe process a look")
     parser.add_argument("--json", action="store_true", help="also print each figure as a BENCH-FIGURE line")
+    parser.add_argument("--renderer", choices=["tiny", "egl"], default="tiny",
+                        help="egl: EGL against TinyRenderer on the same scenes, instead of rich against flat")
+    parser.add_argument("--look", choices=LOOKS, action="append",
+                        help="with --renderer egl: the look(s) to measure (default both)")
     args = parser.parse_args()
     figures = Figures(args.json)
+    if args.renderer == "egl":
+        renderer_costs(open_town(args.town), 3 if args.quick else args.repeats, tuple(args.look or LOOKS), figures)
+        return
     observation_costs(open_town(args.town), 3 if args.quick else args.repeats, figures)
     if args.carla.exists():
         memory(args.carla, figures, runs=1 if args.quick else 3)
