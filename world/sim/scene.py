@@ -9,7 +9,11 @@ Each process opens its own DIRECT client (never share one across a fork).
 
 from __future__ import annotations
 
+import hashlib
+import io
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -44,6 +48,115 @@ def _import_pybullet_quietly():
 
 
 pb = _import_pybullet_quietly()
+
+
+def obj_text(vertices: np.ndarray, indices: np.ndarray, normals: np.ndarray | None = None,
+             uvs: np.ndarray | None = None) -> bytes:
+    """A triangle mesh as Wavefront OBJ text: ``v`` lines, ``vt`` and ``vn`` lines where given (one per
+    vertex, so each face corner names the same index for all three), ``f`` lines (1-based)."""
+    buf = io.BytesIO()
+    np.savetxt(buf, np.asarray(vertices, np.float64).reshape(-1, 3), fmt="v %.9g %.9g %.9g")
+    if uvs is not None:
+        np.savetxt(buf, np.asarray(uvs, np.float64).reshape(-1, 2), fmt="vt %.9g %.9g")
+    if normals is not None:
+        np.savetxt(buf, np.asarray(normals, np.float64).reshape(-1, 3), fmt="vn %.7g %.7g %.7g")
+    corner = {(False, False): "%d", (True, False): "%d/%d", (False, True): "%d//%d",
+              (True, True): "%d/%d/%d"}[(uvs is not None, normals is not None)]
+    tris = np.asarray(indices, np.int64).reshape(-1, 3) + 1
+    np.savetxt(buf, np.repeat(tris, corner.count("%"), axis=1), fmt=" ".join(["f", corner, corner, corner]))
+    return buf.getvalue()
+
+
+def box_mesh(half: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A box centred on the origin as a triangle mesh: four vertices a face, its outward normal on
+    each, counter-clockwise seen from outside."""
+    vertices: list[np.ndarray] = []
+    normals: list[np.ndarray] = []
+    indices: list[int] = []
+    for axis in range(3):
+        u, v = (axis + 1) % 3, (axis + 2) % 3
+        for sign in (1.0, -1.0):
+            corners = []
+            for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
+                p = np.zeros(3)
+                p[axis], p[u], p[v] = sign * half[axis], a * half[u], sign * b * half[v]
+                corners.append(p)
+            k = len(vertices)
+            vertices += corners
+            normals += [np.eye(3)[axis] * sign] * 4
+            indices += [k, k + 1, k + 2, k, k + 2, k + 3]
+    return np.array(vertices), np.array(indices), np.array(normals)
+
+
+def obj_file(text: bytes, root: Path) -> Path:
+    """The OBJ's path under ``root``, named by the sha256 of its text and written on first use;
+    concurrent writers (world workers sharing the cache) race harmlessly (write, then rename)."""
+    path = root / f"{hashlib.sha256(text).hexdigest()[:32]}.obj"
+    if not path.exists():
+        root.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_bytes(text)
+        os.replace(tmp, path)
+    return path
+
+EGL_PACKAGES = "libegl1 libegl-mesa0 libgl1-mesa-dri"
+"""Debian packages that give PyBullet's EGL plugin a display: the EGL loader, Mesa's EGL and its
+drivers (llvmpipe, software, where there is no GPU; a GPU's vendor brings its own EGL library)."""
+
+
+def egl_problem() -> str | None:
+    """Why PyBullet's EGL plugin cannot render here, or None where it can. The plugin ends the whole
+    process (``exit(1)``) when EGL fails it, so this walks its steps first, through ctypes: load
+    libEGL.so.1, list the EGL devices, initialise a display on one (the one ``EGL_VISIBLE_DEVICES``
+    names, as the plugin does) and find an OpenGL pbuffer configuration on it."""
+    import ctypes
+    import importlib.util
+
+    if importlib.util.find_spec("eglRenderer") is None:
+        return "pybullet's eglRenderer plugin is not installed (a pybullet wheel without it)"
+    try:
+        egl = ctypes.CDLL("libEGL.so.1")
+    except OSError as exc:
+        return f"libEGL.so.1 cannot be loaded ({exc}); on Debian: apt-get install {EGL_PACKAGES}"
+    egl.eglGetProcAddress.restype = ctypes.c_void_p
+    egl.eglGetProcAddress.argtypes = [ctypes.c_char_p]
+    query_address = egl.eglGetProcAddress(b"eglQueryDevicesEXT")
+    display_address = egl.eglGetProcAddress(b"eglGetPlatformDisplayEXT")
+    if not query_address or not display_address:
+        return "libEGL.so.1 has no EGL_EXT_device_enumeration / EGL_EXT_platform_device (an EGL vendor library missing?)"
+    query = ctypes.CFUNCTYPE(ctypes.c_uint, ctypes.c_int, ctypes.POINTER(ctypes.c_void_p),
+                             ctypes.POINTER(ctypes.c_int))(query_address)
+    get_display = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_uint, ctypes.c_void_p, ctypes.c_void_p)(display_address)
+    devices = (ctypes.c_void_p * 32)()
+    count = ctypes.c_int(0)
+    if not query(32, devices, ctypes.byref(count)) or count.value == 0:
+        return f"EGL lists no device (no GPU driver and no Mesa software driver?); on Debian: apt-get install {EGL_PACKAGES}"
+    chosen = range(count.value)
+    visible = os.environ.get("EGL_VISIBLE_DEVICES")
+    if visible is not None:
+        index = int(visible) if visible.strip().lstrip("-").isdigit() else -1
+        if not 0 <= index < count.value:
+            return f"EGL_VISIBLE_DEVICES={visible} names no device (EGL lists {count.value})"
+        chosen = range(index, index + 1)
+    egl.eglInitialize.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
+    egl.eglChooseConfig.argtypes = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_int), ctypes.c_void_p, ctypes.c_int,
+                                    ctypes.POINTER(ctypes.c_int)]
+    egl.eglTerminate.argtypes = [ctypes.c_void_p]
+    # the plugin's configuration: 8-bit RGB and depth, a pbuffer surface, desktop OpenGL
+    attributes = (ctypes.c_int * 15)(0x3024, 8, 0x3023, 8, 0x3022, 8, 0x3025, 8, 0x3033, 0x0001, 0x3040, 0x0008,
+                                     0x3038, 0x3038, 0x3038)
+    for k in chosen:
+        display = get_display(0x313F, devices[k], None)  # EGL_PLATFORM_DEVICE_EXT
+        if not display or not egl.eglInitialize(display, None, None):
+            continue
+        configs = ctypes.c_int(0)
+        found = egl.eglChooseConfig(display, attributes, None, 0, ctypes.byref(configs)) and configs.value > 0
+        egl.eglTerminate(display)
+        if found:
+            return None
+    return (f"no EGL device of {count.value} initialises with an OpenGL pbuffer configuration; "
+            f"on Debian: apt-get install {EGL_PACKAGES}")
+
 
 # Semantic classes of the uint8 semantic map (furniture: lamp posts of the rich look).
 SEM_NONE, SEM_GROUND, SEM_ROAD, SEM_SIDEWALK, SEM_BUILDING, SEM_VEHICLE, SEM_MARKING, SEM_VEGETATION, SEM_FURNITURE = range(9)
@@ -108,9 +221,14 @@ class Scene:
         self.renderer = renderer
         self._renderer_flag = pb.ER_TINY_RENDERER
         if renderer == "egl":
-            # The plugin must be loaded before any body exists, or renders come back empty.
+            # The plugin must be loaded before any body exists, or renders come back empty; it ends the
+            # process when EGL fails it, so first ask EGL ourselves.
             import importlib.util
 
+            problem = egl_problem()
+            if problem is not None:
+                pb.disconnect(physicsClientId=self.client)
+                raise RuntimeError(f"the EGL renderer cannot run here: {problem}")
             egl = importlib.util.find_spec("eglRenderer")
             if egl is None or egl.origin is None or pb.loadPlugin(egl.origin, "_eglRendererPlugin",
                                                                   physicsClientId=self.client) < 0:
@@ -133,6 +251,12 @@ class Scene:
     # ----- construction -------------------------------------------------------------------
     def _visual_box(self, half_extents: tuple[float, float, float], rgb: tuple[float, float, float]) -> int:
         key = ("v", *(round(h, 4) for h in half_extents), *(round(c, 4) for c in rgb))
+        if key not in self._shape_cache and self.renderer == "egl":
+            # the plugin draws a box as the convex hull of points on it, lit by normals pointing away from
+            # its centre (a shaded gradient across every face), and flattens a thin wide one: a mesh
+            vertices, indices, normals = box_mesh(np.asarray(half_extents, dtype=np.float64))
+            self._shape_cache[key] = self._visual_mesh(vertices, indices, normals, rgbaColor=[*rgb, 1.0],
+                                                       specularColor=[0.05, 0.05, 0.05])
         if key not in self._shape_cache:
             self._shape_cache[key] = pb.createVisualShape(
                 pb.GEOM_BOX, halfExtents=list(half_extents), rgbaColor=[*rgb, 1.0],
@@ -160,19 +284,54 @@ class Scene:
         self._semantic[uid] = semantic
         return uid
 
-    def _mesh_body(self, parts: list, rgb: tuple[float, float, float], semantic: int) -> None:
+    def _visual_mesh(self, vertices: np.ndarray, indices: np.ndarray, normals: np.ndarray | None = None,
+                     uvs: np.ndarray | None = None, **style: list[float]) -> int:
+        """A triangle-mesh visual shape (``style``: rgbaColor, specularColor). TinyRenderer takes the
+        arrays themselves. PyBullet's EGL plugin reads meshes from files only: its converter has no
+        branch for a mesh given as arrays (it warns "issue extracting mesh from COLLADA/STL file", draws
+        nothing, and the rich look's renders then crash), so for EGL the mesh goes through a Wavefront
+        OBJ in the asset cache (``$AGOS_ASSET_CACHE/meshes/``), named by its content."""
+        if self.renderer != "egl":
+            arrays: dict[str, list] = {"vertices": vertices.tolist(), "indices": indices.tolist()}
+            if normals is not None:
+                arrays["normals"] = normals.tolist()
+            if uvs is not None:
+                arrays["uvs"] = uvs.tolist()
+            return pb.createVisualShape(pb.GEOM_MESH, **arrays, **style, physicsClientId=self.client)
+        from agos.world.towns.asset import cache_dir
+
+        path = obj_file(obj_text(vertices, indices, normals, uvs), cache_dir() / "meshes")
+        return pb.createVisualShape(pb.GEOM_MESH, fileName=str(path), meshScale=[1.0, 1.0, 1.0], **style,
+                                    physicsClientId=self.client)
+
+    def _layer_origin(self, draw_rank: int) -> np.ndarray:
+        """Where a static body whose mesh is given in world coordinates has its origin. TinyRenderer:
+        the world's. EGL: ``draw_rank`` metres above it. The EGL context has a 16-bit depth buffer
+        (the plugin asks for ``EGL_DEPTH_SIZE`` 8 and EGL hands out the smallest that fits: 0.3 m a
+        step at 80 m), so the town's stacked flat layers (markings 1.5 cm above the road, shadows
+        6 mm above their surface) come out at equal depths, and the first one drawn wins
+        (``GL_LESS``). The plugin draws opaque shapes in the order of their body's origin along the
+        view direction, farthest first (GLInstancingRenderer::renderSceneInternal); for any camera
+        looking down, a lower origin is farther, so a layer on top takes a lower rank and is drawn
+        before the layers under it. For the UAV's nadir camera, vehicles (origins on the ground)
+        and so their drawn shadows come before every layer as well."""
+        return np.array([0.0, 0.0, float(draw_rank) if self.renderer == "egl" else 0.0])
+
+    def _mesh_body(self, parts: list, rgb: tuple[float, float, float], semantic: int, *, draw_rank: int = 0) -> None:
+        origin = self._layer_origin(draw_rank)
         for vertices, indices in chunks(parts):
-            shape = pb.createVisualShape(pb.GEOM_MESH, vertices=vertices.tolist(), indices=indices.tolist(),
-                                         normals=vertex_normals(vertices, indices).tolist(), rgbaColor=[*rgb, 1.0],
-                                         specularColor=[0.02, 0.02, 0.02], physicsClientId=self.client)
-            uid = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape, physicsClientId=self.client)
+            normals = vertex_normals(vertices, indices)
+            if self.renderer == "egl":
+                vertices = vertices - origin
+            shape = self._visual_mesh(vertices, indices, normals, rgbaColor=[*rgb, 1.0],
+                                      specularColor=[0.02, 0.02, 0.02])
+            uid = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape, basePosition=origin.tolist(),
+                                     physicsClientId=self.client)
             self._semantic[uid] = semantic
 
     def _build_static(self, layout: TownLayout) -> None:
         x0, y0, x1, y1 = layout.bounds_world_m(pad_m=0.0)
         pad = 200.0
-        self._static_box(((x0 + x1) / 2, (y0 + y1) / 2, -0.05),
-                         ((x1 - x0) / 2 + pad, (y1 - y0) / 2 + pad, 0.05), (0.55, 0.53, 0.48), SEM_GROUND)
         by_kind: dict[str, list] = {}
         for surface in layout.surfaces:
             by_kind.setdefault(surface.kind, []).append(surface_mesh(surface, SURFACE_Z[surface.kind]))
@@ -182,8 +341,24 @@ class Scene:
                 left, right = lane.boundary()
                 by_kind["road"].append(strip_mesh(left[::2] if len(left) > 4 else left,
                                                   right[::2] if len(right) > 4 else right, SURFACE_Z["road"]))
+        # draw ranks (EGL): the highest surfaces first, the ground last
+        heights = sorted({SURFACE_Z[kind] for kind in by_kind}, reverse=True)
+        ground_centre = ((x0 + x1) / 2, (y0 + y1) / 2, -0.05)
+        ground_half = ((x1 - x0) / 2 + pad, (y1 - y0) / 2 + pad, 0.05)
+        if self.renderer == "egl":  # the ground drawn last; a mesh (the plugin's hull of a box 0.1 m thick and
+            # hundreds of metres wide lies 5 cm low)
+            origin = self._layer_origin(len(heights) + 1)
+            vertices, indices, normals = box_mesh(np.asarray(ground_half))
+            shape = self._visual_mesh(vertices + np.asarray(ground_centre) - origin, indices, normals,
+                                      rgbaColor=[0.55, 0.53, 0.48, 1.0], specularColor=[0.05, 0.05, 0.05])
+            uid = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape, basePosition=origin.tolist(),
+                                     physicsClientId=self.client)
+            self._semantic[uid] = SEM_GROUND
+        else:
+            self._static_box(ground_centre, ground_half, (0.55, 0.53, 0.48), SEM_GROUND)
         for kind, parts in by_kind.items():
-            self._mesh_body(parts, SURFACE_RGB[kind], SURFACE_SEMANTIC[kind])
+            self._mesh_body(parts, SURFACE_RGB[kind], SURFACE_SEMANTIC[kind],
+                            draw_rank=1 + heights.index(SURFACE_Z[kind]))
         if layout.decks:
             self._mesh_body([slab_mesh(d.polygon_m, d.bottom_m, d.top_m) for d in layout.decks], (0.52, 0.50, 0.47),
                             SEM_BUILDING)
@@ -204,9 +379,12 @@ class Scene:
 
         city = build_city(layout, texture_root=cache_dir() / "textures")
         self._city = city
+        rank = 0
         while city.parts:  # PyBullet copies each mesh: let go of ours as we go (peak memory)
             part = city.parts.pop(0)
-            self._textured_body(part.mesh, part.material, part.rgb, _SEMANTIC_OF[part.semantic], specular=part.specular)
+            rank += 1  # the parts come in draw order (city._draw_rank): EGL keeps it (_layer_origin)
+            self._textured_body(part.mesh, part.material, part.rgb, _SEMANTIC_OF[part.semantic], specular=part.specular,
+                                draw_rank=rank)
         if layout.decks:
             self._mesh_body([slab_mesh(d.polygon_m, d.bottom_m, d.top_m) for d in layout.decks], (0.56, 0.55, 0.52),
                             SEM_BUILDING)
@@ -242,9 +420,8 @@ class Scene:
     def _hidden_visual(self) -> int:
         key = ("hidden",)
         if key not in self._shape_cache:
-            self._shape_cache[key] = pb.createVisualShape(
-                pb.GEOM_MESH, vertices=[[0, 0, -500.0], [0.01, 0, -500.0], [0, 0.01, -500.0]], indices=[0, 1, 2],
-                physicsClientId=self.client)
+            self._shape_cache[key] = self._visual_mesh(
+                np.array([[0, 0, -500.0], [0.01, 0, -500.0], [0, 0.01, -500.0]]), np.array([0, 1, 2]))
         return self._shape_cache[key]
 
     def _texture(self, name: str) -> int:
@@ -254,17 +431,23 @@ class Scene:
         return self._textures[name]
 
     def _textured_body(self, mesh: TexMesh, material: str, rgb: tuple[float, float, float], semantic: int, *,
-                       specular: float = 0.03) -> list[int]:
-        """One body a chunk of the mesh, with the material's texture (if it has one) times ``rgb``."""
+                       specular: float = 0.03, draw_rank: int = 0) -> list[int]:
+        """One body a chunk of the mesh, with the material's texture (if it has one) times ``rgb``.
+
+        EGL: the plugin's changeShapeTexture hands the renderer a graphics instance id where it wants
+        a shape index, so a texture reaches the right body only while every shape so far has exactly
+        one instance. The city's bodies come first in a scene, each with a mesh of its own; no
+        textured body may follow a shared shape (vehicles, boxes, the hidden triangle)."""
         uids = []
         assert self._city is not None
         texture = self._city.texture_of.get(material)
+        origin = self._layer_origin(draw_rank)
         for part in chunked(mesh):
-            kwargs = {"uvs": part.uvs.tolist()} if texture else {}
-            shape = pb.createVisualShape(pb.GEOM_MESH, vertices=part.vertices.tolist(), indices=part.indices.tolist(),
-                                         normals=part.normals.tolist(), rgbaColor=[*rgb, 1.0],
-                                         specularColor=[specular] * 3, physicsClientId=self.client, **kwargs)
-            uid = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape, physicsClientId=self.client)
+            vertices = part.vertices - origin if self.renderer == "egl" else part.vertices
+            shape = self._visual_mesh(vertices, part.indices, part.normals, part.uvs if texture else None,
+                                      rgbaColor=[*rgb, 1.0], specularColor=[specular] * 3)
+            uid = pb.createMultiBody(baseMass=0, baseVisualShapeIndex=shape, basePosition=origin.tolist(),
+                                     physicsClientId=self.client)
             if texture:
                 pb.changeVisualShape(uid, -1, textureUniqueId=self._texture(texture), physicsClientId=self.client)
             self._semantic[uid] = semantic
@@ -337,18 +520,16 @@ class Scene:
             if key not in self._shape_cache:
                 vertices, indices, normals = mesh.arrays(material)
                 specular = 0.35 if material == "glass" else 0.05
-                self._shape_cache[key] = pb.createVisualShape(
-                    pb.GEOM_MESH, vertices=vertices.tolist(), indices=indices.tolist(), normals=normals.tolist(),
-                    rgbaColor=[*rgb, 1.0], specularColor=[specular] * 3, physicsClientId=self.client)
+                self._shape_cache[key] = self._visual_mesh(vertices, indices, normals, rgbaColor=[*rgb, 1.0],
+                                                           specularColor=[specular] * 3)
             visuals.append(self._shape_cache[key])
         if self._city is not None:  # the rich city: the vehicle's shadow as its last link, in its frame
             key = ("shadow", model, attributes, yaw_rad)  # its outline turns with the yaw (slots repeat)
             if key not in self._shape_cache:
                 shadow = vehicle_shadow_mesh(self._city, mesh, yaw_rad)
-                self._shape_cache[key] = pb.createVisualShape(
-                    pb.GEOM_MESH, vertices=shadow.vertices.tolist(), indices=shadow.indices.tolist(),
-                    normals=shadow.normals.tolist(), rgbaColor=[*self._city.vehicle_shadow_rgb, 1.0],
-                    specularColor=[0.0] * 3, physicsClientId=self.client)
+                self._shape_cache[key] = self._visual_mesh(
+                    shadow.vertices, shadow.indices, shadow.normals, rgbaColor=[*self._city.vehicle_shadow_rgb, 1.0],
+                    specularColor=[0.0] * 3)
             visuals.append(self._shape_cache[key])
         # Every link carries a mesh, the first ones also a collision box (a link with a collision box
         # and no visual shape would be drawn as that box).
