@@ -126,12 +126,15 @@ class HostPlan:
     decision_s: float
     record_decisions: int
     out: str
+    nice: int = 0
+    """Scheduling niceness of the host (``--workers-nice``): below the measured processes."""
 
 
 def host_main(plan_path: Path) -> int:
     """Open one session per worker, run each worker's real ``serve`` loop on a thread until the run is
     over (or SIGTERM), then write the host's figures to the plan's ``out`` as JSON."""
     plan = HostPlan(**json.loads(plan_path.read_text()))
+    os.nice(plan.nice)  # on a cluster the workers have cores of their own: here they yield to the measured processes
     logging.basicConfig(level=logging.WARNING, format=f"%(asctime)s host[{os.getpid()}] %(levelname)s %(name)s: %(message)s")
     counts = _WarningCounts()
     logging.getLogger("agos").addHandler(counts)
@@ -752,7 +755,7 @@ def measure(n: int, args: argparse.Namespace, work: Path, console: Console) -> R
         ids = [f"sim{k:04d}" for k in range(n)]
         for h in range(n_hosts):
             plan = HostPlan(endpoint, run_id, ids[h::n_hosts], args.episode_s, args.decision_s, args.record_decisions,
-                            str(here / f"host-{h}.json"))
+                            str(here / f"host-{h}.json"), nice=args.workers_nice)
             plan_path = here / f"host-{h}.plan.json"
             plan_path.write_text(json.dumps(plan.__dict__))
             hosts.append(subprocess.Popen([sys.executable, __file__, "--host", str(plan_path)], stdout=subprocess.PIPE,
@@ -1086,6 +1089,10 @@ def main() -> int:
     parser.add_argument("--soak", action="store_true",
                         help=f"N = {SOAK_WORKERS}, {SOAK_EPISODES_PER_WORKER} episodes a worker of {SOAK_EPISODE_S:g} s, a step "
                              f"event every {SOAK_DECISION_S:g} s: CPU per stored record and router RSS by quarter of the run")
+    parser.add_argument("--workers-nice", type=int, default=0, metavar="N",
+                        help="run the simulated workers' hosts at this niceness (default 0: they compete with the "
+                             "measured processes as equals; 10: the router, orchestrator and evaluator get the cores "
+                             "first, as on a cluster where the workers have their own)")
     parser.add_argument("--census", type=lambda text: [int(x) for x in text.split(",")], metavar="A,B",
                         help="snapshot the key space the router holds and the keys put on when A, then B records are "
                              "stored, and print whether it grew (a bounded key space does not)")
