@@ -8,6 +8,7 @@ through the in-memory bus.
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import sqlite3
@@ -393,7 +394,10 @@ def test_the_world_sends_full_frames_only_while_someone_asks(observations) -> No
     from agos.world.sim.worker import BusDecisionSource, WorkerSlot
 
     later = [o for o in observations if o.decision_index > 1]  # no waiting for agents' ready tokens
-    obs = {"uav": next(o for o in later if o.role == "uav"), "ugv": next(o for o in later if o.mode == "stop_6view")}
+    # copies: decide() stamps its attempt and timeout on what it sends, and the fixture's observations are
+    # shared with other modules' tests (a VLM test once read this 0.01 s timeout as its decision's time)
+    obs = {"uav": copy.copy(next(o for o in later if o.role == "uav")),
+           "ugv": copy.copy(next(o for o in later if o.mode == "stop_6view"))}
     bus = MemoryBus()
     run = obs["uav"].run_id
     slot = WorkerSlot(bus, run, WORKER)

@@ -34,6 +34,16 @@ def descendants(pid: int) -> list[int]:
     return found
 
 
+def importing(pid: int) -> bool:
+    """Whether ``pid`` has loaded a compiled module from the environment's site-packages: the agos
+    command's imports, all inside its Ctrl-C guard (deploy/cli/__init__.py), have begun."""
+    try:
+        maps = Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return False
+    return any("site-packages" in line and ".so" in line for line in maps.splitlines())
+
+
 def alive(pid: int) -> bool:
     """Whether ``pid`` runs (a zombie waiting for its parent does not)."""
     try:
@@ -61,8 +71,17 @@ class Interruptible:
         return (self.cwd / "err.txt").read_text()
 
     def after(self, seconds: float) -> Callable[[], bool]:
-        """A moment: ``seconds`` after the start."""
-        return lambda: time.monotonic() - self.started >= seconds
+        """A moment: ``seconds`` after the command's own imports began (:func:`importing`): a SIGINT
+        before that ends any Python with -2 before a line of agos runs, and a loaded CI machine can take
+        over a second to get there."""
+        began: list[float] = []
+
+        def moment() -> bool:
+            if not began and importing(self.proc.pid):
+                began.append(time.monotonic())
+            return bool(began) and time.monotonic() - began[0] >= seconds
+
+        return moment
 
     def wait_for(self, moment: Callable[[], bool], timeout_s: float = 120.0) -> None:
         """Until ``moment()``; fails if the command exits first or the moment does not come."""
