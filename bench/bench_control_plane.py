@@ -517,6 +517,7 @@ class KeyCensus:
             episode_id: str | None = None
 
         self._decoder = msgspec.msgpack.Decoder(EpisodeField)
+        self._undecodable = (msgspec.ValidationError, msgspec.DecodeError)
         self.root = keys.ROOT
         self.at = sorted(at)
         self.snapshots: dict[int, set[str]] = {}
@@ -527,12 +528,10 @@ class KeyCensus:
         self._sub = self.session.declare_subscriber(f"{self.root}/**", self._heard)
 
     def _heard(self, sample) -> None:
-        import msgspec
-
         key = str(sample.key_expr)
         try:
             episode = self._decoder.decode(sample.payload.to_bytes()).episode_id
-        except (msgspec.ValidationError, msgspec.DecodeError):
+        except self._undecodable:
             episode = None
         with self._lock:
             self.put_keys.add(key)

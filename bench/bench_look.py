@@ -71,6 +71,19 @@ def renderer_costs(town: Town, repeats: int, looks: tuple[str, ...], figures: Fi
         _renderers_on(town, look, repeats, figures)
 
 
+
+def _episode_in(town, scenes: dict, sample_in: Scene):
+    """One hard episode (seed 5) sampled in ``sample_in``, its vehicles added to every scene of ``scenes``:
+    the spec, the target's (x, y) and the three road anchors nearest it (position, heading)."""
+    spec = sample_episode(town, sample_in, "hard", 0, seed=5)
+    for scene in scenes.values():
+        add_episode_vehicles(scene, spec)
+    tx, ty = spec.target.position_world_m[:2]
+    ids, xy = town.roads.anchor_array()
+    nearest = np.argsort(np.hypot(xy[:, 0] - tx, xy[:, 1] - ty))[:3]
+    anchors = [((float(xy[k, 0]), float(xy[k, 1])), town.roads.heading_at(int(ids[k]))) for k in nearest]
+    return spec, (tx, ty), anchors
+
 def _renderers_on(town: Town, look: str, repeats: int, figures: Figures) -> None:
     cam = CameraConfig()
     renderers = ("tiny", "egl")
@@ -79,13 +92,7 @@ def _renderers_on(town: Town, look: str, repeats: int, figures: Figures) -> None
         start = time.perf_counter()
         scenes[renderer] = Scene(town.layout, look=look, renderer=renderer)
         print(f"{look} look, {renderer}: scene built in {time.perf_counter() - start:.2f} s", flush=True)
-    spec = sample_episode(town, scenes["tiny"], "hard", 0, seed=5)
-    for scene in scenes.values():
-        add_episode_vehicles(scene, spec)
-    tx, ty = spec.target.position_world_m[:2]
-    ids, xy = town.roads.anchor_array()
-    nearest = np.argsort(np.hypot(xy[:, 0] - tx, xy[:, 1] - ty))[:3]
-    anchors = [((float(xy[k, 0]), float(xy[k, 1])), town.roads.heading_at(int(ids[k]))) for k in nearest]
+    _, (tx, ty), anchors = _episode_in(town, scenes, scenes["tiny"])
 
     def uav_obs(scene: Scene) -> None:
         sensors.frames_of(sensors.nadir(scene, (tx, ty), 80.0, cam), scene, cam, with_grid=True)
@@ -131,13 +138,7 @@ def observation_costs(town: Town, repeats: int, figures: Figures) -> None:
         start = time.perf_counter()
         scenes[look] = Scene(town.layout, look=look)
         build_s[look] = time.perf_counter() - start
-    spec = sample_episode(town, scenes["flat"], "hard", 0, seed=5)
-    for scene in scenes.values():
-        add_episode_vehicles(scene, spec)
-    tx, ty = spec.target.position_world_m[:2]
-    ids, xy = town.roads.anchor_array()
-    nearest = np.argsort(np.hypot(xy[:, 0] - tx, xy[:, 1] - ty))[:3]
-    anchors = [((float(xy[k, 0]), float(xy[k, 1])), town.roads.heading_at(int(ids[k]))) for k in nearest]
+    spec, (tx, ty), anchors = _episode_in(town, scenes, scenes["flat"])
     region_map = RegionMap(town.layout, spec.region_world_m, size_px=cam.map_px)
 
     def uav_obs(scene: Scene) -> None:

@@ -264,21 +264,40 @@ def test_router_restarted_mid_run_loses_no_episode_and_re_leases_none(
     clients try their router again 1, 3, 7, 11 s after losing it: one listening again within 6 s of the
     kill has them back by 7 s, within the 10 s grace.)"""
     cluster = Cluster(tmp_path, "router-restart")
-    watcher = Watcher(cluster.endpoint)
+    _restart_mid_run(cluster, cluster.endpoint, "router",
+                     lambda: cluster.start("router", "router", "--listen", cluster.endpoint), episodes, clean_lossy)
+
+
+def _restart_mid_run(cluster: Cluster, watch_at: str, router: str, restart, episodes: Path,
+                     clean: dict[str, dict]) -> None:
+    """Kill ``router`` once w0's episode has 4 step events, ``restart()`` it 1 s later; every episode is
+    played once, as attempt 1, and the records equal the ``clean`` run's. Closes ``cluster``."""
+    watcher = Watcher(watch_at)
     try:
         proc = cluster.eval(episodes, "--comm", "lossy")
         watcher.wait(lambda w: (e := _running_on(w, "w0")) is not None and w.steps_of.get(e, 0) >= 4)
-        cluster.kill("router")
+        cluster.kill(router)
         time.sleep(1.0)
-        cluster.start("router", "router", "--listen", cluster.endpoint)
+        restart()
         out = _finish(proc)
         records = cluster.records()
         _one_finished_record_each(records, 3)
-        _played_once_each(out, [tmp_path / "w0.log", tmp_path / "w1.log"], watcher, set(clean_lossy))
-        _same_records(records, clean_lossy)
+        _played_once_each(out, [cluster.tmp / "w0.log", cluster.tmp / "w1.log"], watcher, set(clean))
+        _same_records(records, clean)
     finally:
         watcher.close()
         cluster.close()
+
+
+def _free_ports(n: int) -> list[int]:
+    """``n`` distinct free ports: each bound while the next is chosen."""
+    socks = [socket.socket() for _ in range(n)]
+    for sock in socks:
+        sock.bind(("127.0.0.1", 0))
+    ports = [sock.getsockname()[1] for sock in socks]
+    for sock in socks:
+        sock.close()
+    return ports
 
 
 class TwoSiteCluster(Cluster):
@@ -289,12 +308,7 @@ class TwoSiteCluster(Cluster):
     def __init__(self, tmp: Path, run: str, workers: int = 2) -> None:
         self.tmp, self.run = tmp, run
         self.procs = {}
-        socks = [socket.socket() for _ in range(2)]  # two distinct free ports: each bound while the next is chosen
-        for sock in socks:
-            sock.bind(("127.0.0.1", 0))
-        ports = [sock.getsockname()[1] for sock in socks]
-        for sock in socks:
-            sock.close()
+        ports = _free_ports(2)
         self.a, self.b = (f"tcp/127.0.0.1:{port}" for port in ports)
         self.port, self.endpoint = ports[1], f"{self.b},{self.a}"
         self.start("router", "router", "--listen", self.a)
@@ -317,21 +331,7 @@ def test_router_of_a_mesh_restarted_mid_run_loses_no_episode_and_re_leases_none(
     evaluator, on A, see every token of B's clients vanish and come back (through A, or B once it is
     back); no episode is re-leased, and the records equal the module's one-router run."""
     cluster = TwoSiteCluster(tmp_path, "mesh-restart")
-    watcher = Watcher(cluster.a)
-    try:
-        proc = cluster.eval(episodes, "--comm", "lossy")
-        watcher.wait(lambda w: (e := _running_on(w, "w0")) is not None and w.steps_of.get(e, 0) >= 4)
-        cluster.kill("router-b")
-        time.sleep(1.0)
-        cluster.start_b()
-        out = _finish(proc)
-        records = cluster.records()
-        _one_finished_record_each(records, 3)
-        _played_once_each(out, [tmp_path / "w0.log", tmp_path / "w1.log"], watcher, set(clean_lossy))
-        _same_records(records, clean_lossy)
-    finally:
-        watcher.close()
-        cluster.close()
+    _restart_mid_run(cluster, cluster.a, "router-b", cluster.start_b, episodes, clean_lossy)
 
 
 class MeshCluster(Cluster):
@@ -342,12 +342,7 @@ class MeshCluster(Cluster):
     def __init__(self, tmp: Path, run: str) -> None:
         self.tmp, self.run = tmp, run
         self.procs = {}
-        socks = [socket.socket() for _ in range(3)]  # three distinct free ports: each bound while the next is chosen
-        for sock in socks:
-            sock.bind(("127.0.0.1", 0))
-        ports = [sock.getsockname()[1] for sock in socks]
-        for sock in socks:
-            sock.close()
+        ports = _free_ports(3)
         a, b, c = (f"tcp/127.0.0.1:{port}" for port in ports)
         self.port, self.endpoint = ports[0], a
         self.start("router", "router", "--listen", a)
