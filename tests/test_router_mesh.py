@@ -137,60 +137,77 @@ def test_a_secured_mesh_relays_what_each_router_allowed_and_nothing_else(tmp_pat
             connect=connect, ca_file=creds / "ca.pem", cert_file=creds / f"{identity}.pem",
             key_file=creds / f"{identity}.key", connect_timeout_s=5))
 
-    with router(a, [], certs) as router_a, router(b, [a], certs), router(c, [a], other) as stranger_router, \
-            client("world", f"{b},{a}") as world, client("agent-uav", a) as uav, \
-            client("orchestrator", a) as orchestrator, client("world", c, other) as stranger:
-        obs, act = keys.obs(RUN, "w1", "uav"), keys.act(RUN, "w1", "uav")
-        uav_hears, world_hears, orch_hears = Inbox(), Inbox(), Inbox()
-        uav.subscribe(keys.obs(RUN, "*", "uav"), uav_hears)
-        world.subscribe(keys.act(RUN, "*", "*"), world_hears)
-        for key in (keys.result(RUN, "*"), keys.result_ack(RUN, "*")):
-            orchestrator.subscribe(key, orch_hears)
+    with router(a, [], certs) as router_a, router(b, [a], certs) as router_b, \
+            router(c, [a], other) as stranger_router:
+        # Clients declare once B has linked to A: zenoh 1.10 can leave a subscription declared on B
+        # during the link's set-up unknown to A for good (seen on a loaded machine, about 1 run in 10).
+        _linked(router_a, router_b)
+        with client("world", f"{b},{a}") as world, client("agent-uav", a) as uav, \
+                client("orchestrator", a) as orchestrator, client("world", c, other) as stranger:
+            _relay_checks(router_a, stranger_router, world, uav, orchestrator, stranger)
 
-        # B's world reaches A's agent; the stranger's world (a router of another CA) never does.
-        def both() -> None:
-            stranger.publish(keys.obs(RUN, "w1", "uav"), b"o")
-            world.publish(obs, b"o")
 
-        heard = _until(uav_hears, obs, both)
-        assert set(heard) == {obs}
-        # A's agent forges the UGV's action before its own: A drops it, B's world hears only the UAV's.
-        for _ in range(5):
-            uav.publish(keys.act(RUN, "w1", "ugv"), b"forged")
-        assert set(_until(world_hears, act, lambda: uav.publish(act, b"a"))) == {act}
-        # B's world forges acknowledgements before a result: B drops them, A's orchestrator hears the result.
-        for _ in range(5):
-            world.publish(keys.result_ack(RUN, "w1"), b"forged")
-        assert set(_until(orch_hears, keys.result(RUN, "w1"), lambda: world.publish(keys.result(RUN, "w1"), b"r"))) \
-            == {keys.result(RUN, "w1")}
-        # Queries and liveliness tokens cross too: the world's job request, its token.
-        jobs = orchestrator.serve(keys.jobs(RUN))
-        token = world.declare_token(keys.live(RUN, "world", "w0"))
-        deadline = time.monotonic() + 10
-        while orchestrator.alive_tokens(keys.live(RUN, "world", "*")) != [keys.live(RUN, "world", "w0")]:
-            assert time.monotonic() < deadline, "the world's token never reached A"
-        stop = threading.Event()
+def _linked(router_a: zenoh.Session, router_b: zenoh.Session, timeout_s: float = 15.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while str(router_b.zid()) not in {str(z) for z in router_a.info.routers_zid()}:
+        assert time.monotonic() < deadline, "router B never linked to A"
+        time.sleep(0.05)
 
-        def answer() -> None:
-            while not stop.is_set():
-                if (query := jobs.get(0.1)) is not None:
-                    query.reply(b"grant")
 
-        answering = threading.Thread(target=answer, daemon=True)
-        answering.start()
-        try:
-            replies: list[bytes] = []
-            while not replies:
-                assert time.monotonic() < deadline, "the job request never got across"
-                replies = world.request(keys.jobs(RUN), b"ask", timeout_s=2.0)
-        finally:
-            stop.set()
-            answering.join()
-        assert replies == [b"grant"]
-        world.undeclare_token(token)
-        # Seconds later still nothing from the stranger's world, whose router A never let in.
-        assert {s.key for s in uav_hears.drain()} <= {obs}
-        assert str(stranger_router.zid()) not in {str(z) for z in router_a.info.routers_zid()}
+def _relay_checks(router_a: zenoh.Session, stranger_router: zenoh.Session, world: ZenohBus, uav: ZenohBus,
+                  orchestrator: ZenohBus, stranger: ZenohBus) -> None:
+    """What crosses the mesh and what each router drops."""
+    obs, act = keys.obs(RUN, "w1", "uav"), keys.act(RUN, "w1", "uav")
+    uav_hears, world_hears, orch_hears = Inbox(), Inbox(), Inbox()
+    uav.subscribe(keys.obs(RUN, "*", "uav"), uav_hears)
+    world.subscribe(keys.act(RUN, "*", "*"), world_hears)
+    for key in (keys.result(RUN, "*"), keys.result_ack(RUN, "*")):
+        orchestrator.subscribe(key, orch_hears)
+
+    # B's world reaches A's agent; the stranger's world (a router of another CA) never does.
+    def both() -> None:
+        stranger.publish(keys.obs(RUN, "w1", "uav"), b"o")
+        world.publish(obs, b"o")
+
+    heard = _until(uav_hears, obs, both)
+    assert set(heard) == {obs}
+    # A's agent forges the UGV's action before its own: A drops it, B's world hears only the UAV's.
+    for _ in range(5):
+        uav.publish(keys.act(RUN, "w1", "ugv"), b"forged")
+    assert set(_until(world_hears, act, lambda: uav.publish(act, b"a"))) == {act}
+    # B's world forges acknowledgements before a result: B drops them, A's orchestrator hears the result.
+    for _ in range(5):
+        world.publish(keys.result_ack(RUN, "w1"), b"forged")
+    assert set(_until(orch_hears, keys.result(RUN, "w1"), lambda: world.publish(keys.result(RUN, "w1"), b"r"))) \
+        == {keys.result(RUN, "w1")}
+    # Queries and liveliness tokens cross too: the world's job request, its token.
+    jobs = orchestrator.serve(keys.jobs(RUN))
+    token = world.declare_token(keys.live(RUN, "world", "w0"))
+    deadline = time.monotonic() + 10
+    while orchestrator.alive_tokens(keys.live(RUN, "world", "*")) != [keys.live(RUN, "world", "w0")]:
+        assert time.monotonic() < deadline, "the world's token never reached A"
+    stop = threading.Event()
+
+    def answer() -> None:
+        while not stop.is_set():
+            if (query := jobs.get(0.1)) is not None:
+                query.reply(b"grant")
+
+    answering = threading.Thread(target=answer, daemon=True)
+    answering.start()
+    try:
+        replies: list[bytes] = []
+        while not replies:
+            assert time.monotonic() < deadline, "the job request never got across"
+            replies = world.request(keys.jobs(RUN), b"ask", timeout_s=2.0)
+    finally:
+        stop.set()
+        answering.join()
+    assert replies == [b"grant"]
+    world.undeclare_token(token)
+    # Seconds later still nothing from the stranger's world, whose router A never let in.
+    assert {s.key for s in uav_hears.drain()} <= {obs}
+    assert str(stranger_router.zid()) not in {str(z) for z in router_a.info.routers_zid()}
 
 
 def _router_of(bus: ZenohBus) -> str | None:
