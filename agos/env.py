@@ -55,6 +55,7 @@ from agos.agents.names import tools_for
 from agos.runtime.camera import parse_cell
 from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.runtime.links import load_profile
+from agos.runtime.model_link import load_model_link
 from agos.runtime.schemas import (
     Action,
     AgentMessage,
@@ -112,18 +113,21 @@ class StepResult:
 
 
 def episode_config(*, policies: str | Mapping[Role, str] | None = None, comm: str | os.PathLike[str] | None = None,
-                   **world: Any) -> EpisodeConfig:
+                   model_link: str | os.PathLike[str] | None = None, **world: Any) -> EpisodeConfig:
     """An :class:`EpisodeConfig` as ``agos eval`` would build it for ``policies`` (one name for both
     roles, or one per role: sets the world-side tools, e.g. the oracle's hints or the expert's plan)
-    over the link profile ``comm`` (a name in deploy/comm, e.g. ``"lossy"``, or a TOML file), with
+    over the link profile ``comm`` (a name in deploy/comm, e.g. ``"lossy"``, or a TOML file), with the
+    model placed by ``model_link`` (a name in deploy/model_link, e.g. ``"lte"``, or a TOML file), with
     any other ``[world]`` field given by keyword (``look="flat"``, ``decision_budget=20``,
-    ``cameras={"nadir_px": 128}`` ...). Raises ``ValueError`` (pydantic's, or a profile's one line)."""
+    ``cameras={"nadir_px": 128}``, ``pose_error="gnss-5m"`` ...). Raises ``ValueError`` (pydantic's, or a profile's one line)."""
     data = dict(world)
     if policies is not None:
         names = dict.fromkeys(ROLES, policies) if isinstance(policies, str) else dict(policies)
         data["tools"] = ToolConfig(**tools_for(cast(dict[str, str], names)))
     if comm is not None:
         data["comm"] = load_profile(comm if isinstance(comm, str) else Path(comm))
+    if model_link is not None:
+        data["model_link"] = load_model_link(model_link if isinstance(model_link, str) else Path(model_link))
     return EpisodeConfig.model_validate(data)
 
 

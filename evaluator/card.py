@@ -65,6 +65,7 @@ def card_lines(meta: dict[str, Any] | None, *, label: str) -> list[str]:
                      f"{dirty}, uv.lock {_short(prov.get('lock_sha256'))}, Python {prov.get('python', '?')}; {packages}")
     policies = meta.get("policies") or {}
     lines.append(f"  policies: UAV {policies.get('uav', '?')}, UGV {policies.get('ugv', '?')}; comm {meta.get('comm', '?')}, "
+                 f"pose error {meta.get('pose_error', 'exact')}, "
                  f"timing {meta.get('timing_mode', '?')}, configuration {meta.get('config_hash', '?')}")
     card = meta.get("card")
     if not isinstance(card, dict):
@@ -81,6 +82,10 @@ def card_lines(meta: dict[str, Any] | None, *, label: str) -> list[str]:
         cache = card.get("cache")
         lines.append(f"  model-call cache: {cache['mode']} {cache['dir']}" if isinstance(cache, dict)
                      else "  model-call cache: none")
+        link = card.get("model_link")
+        if isinstance(link, dict):  # cards since the link to the model (docs/COMMS.md)
+            lines.append(f"  model placement: {link.get('placement', '?')}"
+                         + (f" ({link['description']})" if link.get("description") else ""))
     else:
         lines.append("  model: none (scripted policies)")
     split = card.get("split")

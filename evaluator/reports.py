@@ -276,6 +276,40 @@ def comms_rows(runs: Sequence[RunResults]) -> tuple[list[str], list[list[str]]]:
     return header, rows
 
 
+def sensing_rows(runs: Sequence[RunResults]) -> tuple[list[str], list[list[str]]]:
+    """What the robots did not know or paid to ask, beside SR, CErr and ACG: each role's localisation error
+    (mean over episodes of its mean, and the largest), the UGV's share of decisions in the degraded zone,
+    the link to the model (time and bytes up per model-backed decision, exchanges lost), and messages the
+    robot link duplicated or garbled."""
+    header = ["Run", "SR", "CErr", "ACG", "pose error UAV m (max)", "pose error UGV m (max)", "UGV degraded %",
+              "model link s/decision", "kB up/decision", "model link failed", "duplicated", "corrupted"]
+    return header, [_sensing_row(run) for run in runs]
+
+
+def _pose_error_cell(scored: Sequence[EpisodeSummary], role: str) -> str:
+    stats = [e.pose_error[role] for e in scored if e.pose_error and role in e.pose_error]
+    if not stats:
+        return "-"
+    return f"{sum(s['mean_m'] for s in stats) / len(stats):.2f} ({max(s['max_m'] for s in stats):.1f})"
+
+
+def _sensing_row(run: RunResults) -> list[str]:
+    scored = [e for e in run.episodes if e.status == "finished"]
+    overall = run.summaries()["overall"]
+    ugv = [e.pose_error["ugv"]["degraded_share"] for e in scored if e.pose_error and "ugv" in e.pose_error]
+    links = [e.model_link for e in scored if e.model_link and e.model_link.get("decisions")]
+    decisions = sum(m["decisions"] for m in links)
+    faults = [e.link for e in scored if e.link]
+    return [run.name, fmt("SR", overall.SR), fmt("CErr", overall.CErr), fmt("ACG", overall.ACG),
+            _pose_error_cell(scored, "uav"), _pose_error_cell(scored, "ugv"),
+            f"{100 * sum(ugv) / len(ugv):.0f}" if ugv else "-",
+            f"{sum(m['link_time_s'] for m in links) / decisions:.2f}" if decisions else "-",
+            f"{sum(m['bytes_up'] for m in links) / decisions / 1000:.0f}" if decisions else "-",
+            str(sum(m.get("failed", 0) for m in links)) if links else "-",
+            str(sum(int(link.get("duplicated", 0)) for link in faults)),
+            str(sum(int(link.get("corrupted", 0)) for link in faults))]
+
+
 def stage_chart(runs: Sequence[RunResults], path: Path) -> None:
     """Grouped bars of ASE, ACG and GVA (overall, %) per run, with GVA support annotated."""
     import matplotlib
@@ -341,6 +375,9 @@ def write_report(runs: Sequence[RunResults], out_dir: Path) -> list[Path]:
     header, rows = comms_rows(runs)
     put("comms.md", _markdown(header, rows))
     put("comms.csv", _csv(header, rows))
+    header, rows = sensing_rows(runs)
+    put("sensing.md", _markdown(header, rows))
+    put("sensing.csv", _csv(header, rows))
     stage_chart(runs, out_dir / "stagewise.png")
     written.append(out_dir / "stagewise.png")
     return written

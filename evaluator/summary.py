@@ -73,6 +73,8 @@ class _SummaryIn(TypedDict):
     config: NotRequired[dict[str, Any] | None]
     usage: NotRequired[list[_UsageIn]]
     decision_traces: NotRequired[list[_TraceIn]]
+    pose_error: NotRequired[dict[str, Any] | None]
+    model_link: NotRequired[dict[str, Any] | None]
 
 
 _SUMMARY = TypeAdapter(_SummaryIn)
@@ -150,6 +152,11 @@ class EpisodeSummary:
     usage: tuple[UsageSummary, ...] = ()
     """Tokens per model of the episode's model calls (empty for scripted policies)."""
     decision_latencies_s: tuple[float, ...] = ()
+    pose_error: dict[str, Any] | None = None
+    """Per role, its localisation error over its decisions (``mean_m``, ``max_m``, ``degraded_share``);
+    None with exact localisation."""
+    model_link: dict[str, Any] | None = None
+    """The link to the model (``EpisodeRecord.model_link``); None with the model onboard."""
     """Wall-clock latency of each traced decision (model-backed policies), re-asks and retries included."""
 
     @classmethod
@@ -164,7 +171,8 @@ class EpisodeSummary:
             d["decisions_uav"], d["decisions_ugv"], d.get("status", "finished"), d.get("termination"),
             d.get("town_id"), d.get("run_id"), d.get("link"), (d.get("tools") or {}).get("candidates", True),
             d.get("config_hash"), d.get("config"), _usage(d),
-            tuple(t["latency_s"] for t in d.get("decision_traces", ())))
+            tuple(t["latency_s"] for t in d.get("decision_traces", ())), d.get("pose_error") or None,
+            d.get("model_link"))
 
     @classmethod
     def model_validate(cls, data: dict[str, Any]) -> EpisodeSummary:

@@ -19,9 +19,11 @@ import hashlib
 import json
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from agos.runtime.links import IDEAL, CommProfile
+from agos.runtime.links import IDEAL, CommProfile, CorruptionSpec, DuplicateSpec
+from agos.runtime.model_link import ModelLinkProfile, placement
+from agos.runtime.sensing import EXACT, PoseErrorProfile, load_pose_error
 
 Look = Literal["flat", "rich"]
 DEFAULT_LOOK: Look = "rich"
@@ -130,10 +132,27 @@ class EpisodeConfig(_Part):
     tools: ToolConfig = ToolConfig()
     comm: CommProfile = IDEAL
     """The link model between the roles (docs/COMMS.md)."""
+    pose_error: PoseErrorProfile = EXACT
+    """Each role's localisation error (docs/COMMS.md, "Localisation error"): what it is shown as its
+    own pose, sends its teammate and projects candidates from; the world and the scores use the truth."""
+    model_link: ModelLinkProfile | None = None
+    """Where the model of VLM policies runs, and the link to it (docs/COMMS.md, "The link to the
+    model"; runtime/model_link.py). None: onboard, no link (an ``onboard`` profile is stored as None)."""
     capture_every_m: float | None = Field(None, gt=0)
     """Dataset builds (``agos dataset build``): the world also renders each role's camera every this
     many metres along its moves, delivered with the next observation (``ExpertHints.passed``, expert
     runs only). None: no views between decisions."""
+
+    @field_validator("model_link")
+    @classmethod
+    def _onboard_is_none(cls, value: ModelLinkProfile | None) -> ModelLinkProfile | None:
+        return placement(value)
+
+    @field_validator("pose_error", mode="before")
+    @classmethod
+    def _pose_error_by_name(cls, value: Any) -> Any:
+        """``pose_error = "gnss-5m"`` (a settings file, the library): the profile of that name or file."""
+        return load_pose_error(value).model_dump() if isinstance(value, str) else value
 
     @model_validator(mode="after")
     def _expert_needs_a_frozen_uav(self) -> EpisodeConfig:
@@ -177,10 +196,15 @@ def read_config(data: Any, *, where: str) -> EpisodeConfig:
 
 
 HASHED_ONLY_WHEN_NOT: dict[str, dict[str, Any]] = {
-    "": {"look": "flat", "capture_every_m": None, "uav_during_verification": "frozen"},
-    "tools": {"expert": False}}
+    "": {"look": "flat", "capture_every_m": None, "uav_during_verification": "frozen",
+         "pose_error": EXACT.model_dump(mode="json"), "model_link": None},
+    "tools": {"expert": False},
+    "comm": {"duplicate": DuplicateSpec().model_dump(mode="json"),
+             "corruption": CorruptionSpec().model_dump(mode="json")}}
 """Fields added after configurations were first stored, by section ("" is the top level): left out
-of the hash at these values, so configurations stored before the fields existed keep their hash."""
+of the hash at these values, so configurations stored before the fields existed keep their hash. A
+field may itself be a section (the link profile's message faults): it is left out when the whole of
+it is at its defaults."""
 
 
 def config_hash(data: dict[str, Any]) -> str:

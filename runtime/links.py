@@ -15,8 +15,18 @@ in this order, each recording why a message was dropped:
    lognormal; never negative), added after the queue, so with jitter messages may arrive out of
    order (receivers keep the newest information).
 
+Two message-fault stages then harm what was delivered (both off by default):
+
+6. ``duplicate``: with probability ``p`` a delivered transmission arrives a second time,
+   ``delay_s`` after the first (:attr:`Delivery.duplicate_arrive_s`);
+7. ``corruption``: each character of a ``message`` text is replaced, with probability
+   ``char_error_rate``, by another printable ASCII character (:func:`corrupt_text`, seeded by
+   :attr:`Delivery.corrupt_seed`). The link does not see payloads: the channel applies it to text.
+
 Each direction (uav->ugv, ugv->uav) has its own link and random stream, derived from the
-episode seed, so the same seed gives bit-identical deliveries. Profiles are TOML files in
+episode seed, so the same seed gives bit-identical deliveries. The fault stages draw from a
+second stream of their own (a fixed count per transmission), so adding them leaves the
+deliveries of every profile without faults exactly as they were. Profiles are TOML files in
 ``deploy/comm/`` (see :func:`load_profile`).
 """
 
@@ -67,6 +77,19 @@ class RangeSpec(_Section):
     """Extra loss probability when the line of sight between the two agents is blocked."""
 
 
+class DuplicateSpec(_Section):
+    p: float = Field(0.0, ge=0, le=1)
+    """Probability that a delivered transmission is delivered a second time."""
+    delay_s: float = Field(0.05, ge=0)
+    """How long after the original the copy arrives."""
+
+
+class CorruptionSpec(_Section):
+    char_error_rate: float = Field(0.0, ge=0, le=1)
+    """Probability that each character of a ``message`` text is replaced by another printable ASCII
+    character (syncs and beacons are never corrupted: see agos.world.sim.comms)."""
+
+
 class Blackout(_Section):
     start_s: float = Field(ge=0)
     end_s: float = Field(ge=0)
@@ -86,6 +109,8 @@ class CommProfile(_Section):
     bandwidth: BandwidthSpec = Field(default_factory=BandwidthSpec)
     range: RangeSpec = Field(default_factory=RangeSpec)
     blackouts: list[Blackout] = Field(default_factory=list)
+    duplicate: DuplicateSpec = Field(default_factory=DuplicateSpec)
+    corruption: CorruptionSpec = Field(default_factory=CorruptionSpec)
     beacon_s: float = Field(5.0, gt=0)
     """Each role re-broadcasts its coordination knowledge at least this often (sim seconds)."""
 
@@ -93,7 +118,8 @@ class CommProfile(_Section):
     def ideal(self) -> bool:
         return (self.latency.mean_s == 0 and self.latency.jitter_s == 0 and self.loss.model == "none"
                 and self.bandwidth.bits_per_s is None and self.range.max_range_m is None
-                and self.range.nlos_loss == 0 and not self.blackouts)
+                and self.range.nlos_loss == 0 and not self.blackouts
+                and self.duplicate.p == 0 and self.corruption.char_error_rate == 0)
 
 
 class ProfileError(ValueError):
@@ -124,6 +150,10 @@ def load_profile(name_or_path: str | Path) -> CommProfile:
 
 
 IDEAL = CommProfile(name="ideal")
+FAULT_ENTROPY = 0x6661756C
+"""Mixed into the episode seed for the fault stages' streams ("faul"; stages 1-5 use "link")."""
+PRINTABLE = "".join(chr(c) for c in range(0x20, 0x7F))
+"""What a corrupted character becomes (printable ASCII, space included)."""
 
 
 @dataclass(frozen=True)
@@ -132,6 +162,10 @@ class Delivery:
     arrive_s: float | None
     reason: str | None = None
     """Why it was dropped: blackout, out_of_range, nlos, loss, queue_full."""
+    duplicate_arrive_s: float | None = None
+    """Delivered a second time, arriving then (the ``duplicate`` stage); None: once."""
+    corrupt_seed: int | None = None
+    """Seed for :func:`corrupt_text` when the ``corruption`` stage is on and it was delivered; None: off."""
 
 
 @dataclass
@@ -140,6 +174,8 @@ class Link:
 
     profile: CommProfile
     rng: np.random.Generator
+    fault_rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(FAULT_ENTROPY))
+    """The fault stages' own stream (:func:`links_for` derives one per direction from the seed)."""
     _bad: bool = False
     _busy_until_s: float = 0.0
     _queue: list[tuple[float, int]] = field(default_factory=list)
@@ -150,6 +186,22 @@ class Link:
         # Draw every random number in a fixed order whatever happens, so one message's fate
         # never shifts the stream of the next (bit-identical replays, comparable sweeps).
         u_loss, u_nlos, u_state, z = self.rng.random(), self.rng.random(), self.rng.random(), self.rng.standard_normal()
+        # The fault stages' draws come from their own stream, likewise fixed in number, so a
+        # profile without faults delivers exactly what it did before they existed.
+        u_dup, corrupt_seed = self.fault_rng.random(), int(self.fault_rng.integers(0, 2**63 - 1))
+        delivery = self._deliver(t_send, size_bytes, distance_m, line_of_sight, u_loss, u_nlos, u_state, z)
+        if not delivery.delivered or delivery.arrive_s is None:
+            return delivery
+        dup = delivery.arrive_s + p.duplicate.delay_s if u_dup < p.duplicate.p else None
+        seed = corrupt_seed if p.corruption.char_error_rate > 0 else None
+        if dup is None and seed is None:
+            return delivery
+        return Delivery(True, delivery.arrive_s, duplicate_arrive_s=dup, corrupt_seed=seed)
+
+    def _deliver(self, t_send: float, size_bytes: int, distance_m: float, line_of_sight: bool,
+                 u_loss: float, u_nlos: float, u_state: float, z: float) -> Delivery:
+        """Stages 1-5 (the draws made by :meth:`transmit`)."""
+        p = self.profile
         lost = self._lost(u_loss, u_state)  # the loss chain steps on every transmission, whatever its fate
         if any(b.start_s <= t_send < b.end_s for b in p.blackouts):
             return Delivery(False, None, "blackout")
@@ -198,8 +250,27 @@ class Link:
         return max(0.0, d)
 
 
+def corrupt_text(text: str, char_error_rate: float, seed: int) -> str:
+    """``text`` with each character replaced, with probability ``char_error_rate``, by a printable ASCII
+    character other than itself (so every hit changes the text). The per-message generator seeded
+    by ``seed`` draws two values per character, whatever the rate."""
+    if not text:
+        return text
+    rng = np.random.default_rng(seed)
+    hits = rng.random(len(text)) < char_error_rate
+    picks = rng.integers(0, len(PRINTABLE) - 1, size=len(text))
+    out = list(text)
+    for i in np.flatnonzero(hits):
+        k = int(picks[i])
+        own = PRINTABLE.find(out[i])
+        out[i] = PRINTABLE[k + 1 if 0 <= own <= k else k]  # skip the character itself
+    return "".join(out)
+
+
 def links_for(profile: CommProfile, seed: int) -> dict[tuple[str, str], Link]:
-    """The two directed links of an episode, with independent seeded streams."""
+    """The two directed links of an episode, with independent seeded streams: one per direction for
+    stages 1-5 and one per direction for the fault stages."""
     streams = np.random.SeedSequence([seed, 0x6C696E6B]).spawn(2)
-    return {("uav", "ugv"): Link(profile, np.random.default_rng(streams[0])),
-            ("ugv", "uav"): Link(profile, np.random.default_rng(streams[1]))}
+    faults = np.random.SeedSequence([seed, FAULT_ENTROPY]).spawn(2)
+    return {("uav", "ugv"): Link(profile, np.random.default_rng(streams[0]), np.random.default_rng(faults[0])),
+            ("ugv", "uav"): Link(profile, np.random.default_rng(streams[1]), np.random.default_rng(faults[1]))}

@@ -21,7 +21,7 @@ from typing import Any, Final, Literal
 
 import msgspec
 
-SCHEMA_VERSION: Final = 2
+SCHEMA_VERSION: Final = 3
 """The version every live process writes and the only one it accepts from the bus
 (runtime/codec.py ``decode``: another is refused in one line naming both). Stored messages (records
 in results files and SQLite, specs in split files) of every version in :data:`SchemaVersion` still
@@ -33,8 +33,11 @@ for a new field, say), tested with a payload of each older version (tests/test_c
 
 - 1: keys named episodes (``agos/<run>/ep/<ep>/...``).
 - 2: keys name world workers' slots (``agos/<run>/slot/<worker>/...``, ``viz/<worker>/...``) and lease
-  notices travel on ``ctl/lease``; the messages are those of version 1."""
-SchemaVersion = Literal[1, 2]
+  notices travel on ``ctl/lease``; the messages are those of version 1.
+- 3: sensing and links (docs/COMMS.md): records, steps and traces carry the localisation error, the
+  link to the model (bytes up and down, link time) and message faults (duplicates, corrupted text);
+  older stored messages read with those fields empty."""
+SchemaVersion = Literal[1, 2, 3]
 """Every ``v`` a stored message may carry."""
 
 Role = Literal["uav", "ugv"]
@@ -302,6 +305,11 @@ class DecisionTrace(Part, kw_only=True):
     http_attempts: int = 0
     """HTTP requests made, retries included."""
     latency_s: float = 0.0
+    request_bytes: int = 0
+    """The HTTP request body sent to the model (its images included), bytes: what the link to the
+    model carries up (``--model-link``)."""
+    reply_bytes: int = 0
+    """The reply body, bytes: what the link to the model carries down."""
     prompt_tokens: int | None = None
     completion_tokens: int | None = None
     error: str | None = None
@@ -414,6 +422,9 @@ class LedgerEntry(Part, kw_only=True):
     arrive_s: float | None = None
     delay_s: float | None = None
     drop_reason: str | None = None
+    fault: Literal["duplicate", "corrupted"] | None = None
+    """A delivered transmission the link harmed: ``duplicate`` (a second copy of the entry before it,
+    same ``seq`` source) or ``corrupted`` (message text with characters changed)."""
 
 
 class LinkStats(Part, kw_only=True):
@@ -432,6 +443,10 @@ class LinkStats(Part, kw_only=True):
     candidates_delivered: int
     candidates_lost: int
     """Candidates the UGV never learned of."""
+    duplicated: int = 0
+    """Transmissions delivered twice (the ledger's ``fault = "duplicate"`` entries)."""
+    corrupted: int = 0
+    """Messages delivered with their text changed."""
 
 
 class LoggedStep(Part, kw_only=True, omit_defaults=True):
@@ -453,6 +468,37 @@ class LoggedStep(Part, kw_only=True, omit_defaults=True):
     """The candidate the action annotated, went to, confirmed or rejected."""
     candidate_polygon_world_m: list[Vec2] = []
     """ANNOTATE_CANDIDATE only: the new candidate's ground polygon."""
+    pose_error_m: float | None = None
+    """Horizontal distance between the pose the role was shown at this decision and its true pose
+    (None: exact localisation)."""
+    model_link_s: float | None = None
+    """Simulated time the decision's request and reply spent on the link to the model (None: no link)."""
+    model_bytes_up: int = 0
+    model_bytes_down: int = 0
+
+
+class PoseErrorStats(Part, kw_only=True):
+    """One role's localisation error over its decisions: the horizontal distance between the pose it
+    was shown and the truth (runtime/sensing.py)."""
+
+    mean_m: float
+    max_m: float
+    degraded_share: float
+    """Share of its decisions taken in the degraded zone (buildings crowding the sky)."""
+
+
+class ModelLinkStats(Part, kw_only=True):
+    """The link to the model over one episode (runtime/model_link.py): model-backed decisions only."""
+
+    profile: str
+    decisions: int
+    bytes_up: int
+    bytes_down: int
+    link_time_s: float
+    """Sum over decisions of the simulated time their requests and replies spent on the link."""
+    max_link_time_s: float
+    failed: int
+    """Decisions whose request or reply was lost in every attempt the client makes (a counted WAIT)."""
 
 
 class StoredTrace(DecisionTrace, kw_only=True):
@@ -527,6 +573,11 @@ class EpisodeRecord(Message, tag="episode_record", kw_only=True):
     comm_profile: str = "ideal"
     timing_mode: Literal["lockstep", "realtime"] = "lockstep"
     link: LinkStats | None = None
+    pose_error_profile: str = "exact"
+    pose_error: dict[str, PoseErrorStats] = {}
+    """Per role, its localisation error over its decisions (empty with exact localisation)."""
+    model_link: ModelLinkStats | None = None
+    """The link to the model (None: the model onboard, or no model)."""
     ledger: list[LedgerEntry] = []
     confirm_rejection: str | None = None
     """Why the checker refused the final CONFIRM (a false confirm), else None."""
@@ -580,6 +631,10 @@ class StepEvent(Message, tag="step", kw_only=True):
     candidate_id: str | None = None
     info_age_s: float | None = None
     """Age of the teammate information in this role's view when it decided."""
+    pose_error_m: float | None = None
+    """As in :class:`LoggedStep`."""
+    model_link_s: float | None = None
+    """As in :class:`LoggedStep`."""
 
 
 class VizFrame(Message, tag="viz_frame", kw_only=True):

@@ -156,6 +156,14 @@ class VlmOptions(_Section):
     """Further requests after a reply that cannot be used, before the fallback action."""
     images: Literal["all", "view_only"] = "all"
     """``view_only`` sends only the role's camera view(s) and the top reference (small image limits)."""
+    image_max_px: int | None = Field(None, ge=16)
+    """Shrink every image sent to the model to at most this many pixels on its longest side (its
+    camera numbers scaled with it: agents/vlm/images.py). None: as rendered."""
+    jpeg_quality: int | None = Field(None, ge=1, le=100)
+    """Re-encode every image sent to the model as JPEG at this quality, but those with transparency
+    (the target's references stay PNG). None: as rendered (camera views JPEG 90, references PNG, the
+    map JPEG 85). With ``image_max_px``, what a request weighs on the link
+    to the model (``--model-link``, docs/COMMS.md)."""
     trace_file: Path | None = None
     """Also append every decision trace as a JSON line here (agent side)."""
     cache_dir: Path | None = None

@@ -60,11 +60,11 @@ def test_watch_help_says_what_it_prints_by_default(agos) -> None:
 
 
 def test_watch_prints_times_to_the_hundredth() -> None:
-    step = {"type": "step", "v": 2, "role": "ugv", "decision_index": 7, "applied": "STOP_OBSERVE",
+    step = {"type": "step", "v": 3, "role": "ugv", "decision_index": 7, "applied": "STOP_OBSERVE",
             "sim_time_s": 47.27230898491565}
     line = describe("agos/r/viz/w/events", msgspec.msgpack.encode(step))
     assert " ugv#7 STOP_OBSERVE t=47.27 " in line and "47.272" not in line
-    coord = {"type": "coordination_state", "v": 2, "sim_time_s": 3.0, "candidates": [{}, {}]}
+    coord = {"type": "coordination_state", "v": 3, "sim_time_s": 3.0, "candidates": [{}, {}]}
     assert "t=3.00 candidates=2" in describe("agos/r/viz/w/coord", msgspec.msgpack.encode(coord))
 
 
@@ -73,12 +73,12 @@ def test_watch_names_each_messages_episode_and_follows_one_by_it(capsys) -> None
     from agos.runtime.observer import printer
 
     def step(episode: str) -> bytes:
-        return msgspec.msgpack.encode({"type": "step", "v": 2, "episode_id": episode, "role": "uav", "decision_index": 1,
+        return msgspec.msgpack.encode({"type": "step", "v": 3, "episode_id": episode, "role": "uav", "decision_index": 1,
                                        "applied": "WAIT", "sim_time_s": 1.0})
 
-    assert "v2 step ep=e1 uav#1 WAIT t=1.00 " in describe("agos/r/viz/w/events", step("e1"))
+    assert "v3 step ep=e1 uav#1 WAIT t=1.00 " in describe("agos/r/viz/w/events", step("e1"))
     samples = [("agos/r/viz/w/events", step("e1")), ("agos/r/viz/w/events", step("e2")),
-               ("agos/r/viz/w/events", b"\x93garbage"), ("agos/r/ctl/manifest", msgspec.msgpack.encode({"v": 2}))]
+               ("agos/r/viz/w/events", b"\x93garbage"), ("agos/r/ctl/manifest", msgspec.msgpack.encode({"v": 3}))]
     for episode, kept in ((None, 4), ("e2", 1)):
         show = printer(episode)
         for key, payload in samples:

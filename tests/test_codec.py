@@ -217,7 +217,7 @@ def test_payload_is_plain_msgpack_map() -> None:
 
     plain = msgpack.unpackb(encode(_observation()), raw=False, ext_hook=no_ext)
     assert isinstance(plain, dict)
-    assert plain["v"] == SCHEMA_VERSION == 2
+    assert plain["v"] == SCHEMA_VERSION == 3
     assert plain["type"] == "observation"
     assert plain["images"][0]["data"] == RAW
     assert isinstance(plain["images"][0]["data"], bytes)
@@ -419,7 +419,7 @@ def test_decode_image_rejects_garbage() -> None:
         decode_image(b"definitely not an image")
 
 
-@pytest.mark.parametrize("version", [1, 3, 99])
+@pytest.mark.parametrize("version", [1, 2, 4, 99])
 def test_a_live_message_of_another_schema_version_is_refused_naming_both(version: int) -> None:
     from agos.runtime.codec import WireVersionError
 
@@ -435,10 +435,19 @@ def test_a_live_message_of_another_schema_version_is_refused_naming_both(version
         decode(msgpack.packb(data))
 
 
-def test_stored_records_of_every_older_version_still_read() -> None:
-    """Records in results files and SQLite of schema version 1 (keys named episodes; the messages were
-    the same) read as they are."""
+@pytest.mark.parametrize("version", [1, 2])
+def test_stored_records_of_every_older_version_still_read(version: int) -> None:
+    """Records in results files and SQLite of schema versions 1 and 2 (before localisation error, the
+    model link and message faults: those fields absent) read with those fields empty."""
     stored = json.loads(to_json(_record()))
-    stored["v"] = 1
+    stored["v"] = version
+    for later in ("pose_error_profile", "pose_error", "model_link"):
+        del stored[later]
+    for entry in stored["ledger"]:
+        entry.pop("fault", None)
+    if stored.get("link"):
+        for later in ("duplicated", "corrupted"):
+            stored["link"].pop(later, None)
     record = from_json(json.dumps(stored), EpisodeRecord)
-    assert record.v == 1 and msgspec.structs.replace(record, v=SCHEMA_VERSION) == _record()
+    assert record.v == version and msgspec.structs.replace(record, v=SCHEMA_VERSION) == _record()
+    assert record.pose_error == {} and record.model_link is None and record.pose_error_profile == "exact"

@@ -196,7 +196,8 @@ def report_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     runs = [RunResults("Heuristic", synthetic(24, 0.4, seed=11)), RunResults("+Variant", synthetic(24, 0.6, seed=12))]
     written = write_report(runs, out)
     assert {p.name for p in written} == {"main.md", "main.csv", "main.tex", "ablation.md", "ablation.csv", "ablation.tex",
-                                         "outcomes.md", "outcomes.csv", "comms.md", "comms.csv", "cost.md", "cost.csv",
+                                         "outcomes.md", "outcomes.csv", "comms.md", "comms.csv", "sensing.md", "sensing.csv",
+                                         "cost.md", "cost.csv",
                                          "stagewise.png"}  # no card.md: these runs have no run.json
     return out
 
@@ -256,3 +257,25 @@ def test_compare_warns_when_a_difficulty_has_too_few_pairs() -> None:
     assert len(few.warnings) == sum(n < MIN_PAIRS_PER_LEVEL for n in few.per_level.values())
     many = compare(synthetic(90, 0.5, seed=1), synthetic(90, 0.7, seed=2), resamples=200)
     assert many.warnings == []
+
+
+def test_the_sensing_table_puts_pose_error_and_the_model_link_beside_sr() -> None:
+    """Records of a run with localisation error and a link to the model: the per-role error, the
+    degraded share and the model link's time and bytes per decision; '-' where a run has none."""
+    import dataclasses
+
+    from agos.evaluator.reports import sensing_rows
+
+    plain = synthetic(6, 0.5, seed=3)
+    noisy = [dataclasses.replace(e, pose_error={"uav": {"mean_m": 2.0 + i, "max_m": 4.0 + i, "degraded_share": 0.0},
+                                                "ugv": {"mean_m": 3.0, "max_m": 9.5, "degraded_share": 0.5}},
+                                 model_link={"profile": "lte", "decisions": 10, "bytes_up": 2_000_000, "bytes_down": 5000,
+                                             "link_time_s": 4.0, "max_link_time_s": 0.6, "failed": 1})
+             for i, e in enumerate(synthetic(6, 0.5, seed=3))]
+    header, rows = sensing_rows([RunResults("exact", plain), RunResults("gnss", noisy)])
+    exact, gnss = (dict(zip(header, row, strict=True)) for row in rows)
+    assert exact["pose error UAV m (max)"] == "-" and exact["model link s/decision"] == "-"
+    assert gnss["pose error UAV m (max)"] == "4.50 (9.0)" and gnss["pose error UGV m (max)"] == "3.00 (9.5)"
+    assert gnss["UGV degraded %"] == "50" and gnss["model link s/decision"] == "0.40"
+    assert gnss["kB up/decision"] == "200" and gnss["model link failed"] == "6"
+    assert exact["SR"] == gnss["SR"]

@@ -35,6 +35,7 @@ from agos.agents.names import split_name
 from agos.agents.vlm import agos_prompts, baseline_prompts
 from agos.agents.vlm.cache import ReplyCache
 from agos.agents.vlm.client import CallTag, VlmClient, VlmError, image_part
+from agos.agents.vlm.images import as_sent
 from agos.agents.vlm.parse import Parsed, to_action
 from agos.agents.vlm.protocol import action_schema
 from agos.agents.vlm.request import Memory, Prompt, uncovered
@@ -187,7 +188,8 @@ class VlmAgent(Policy):
         what the model is sent at this decision. Call :meth:`note_decision` with the answer."""
         memory = self._memory.setdefault(obs.episode_id, Memory())
         self._locate(obs, memory)
-        return self.build(obs, memory, images=self.options.images)
+        sent = as_sent(obs, self.options.image_max_px, self.options.jpeg_quality)  # [vlm] image size and encoding
+        return self.build(sent, memory, images=self.options.images)
 
     def note_decision(self, obs: Observation, action: Action) -> None:
         """Remember the decision taken at ``obs`` (the memory the next prompts show). The dataset's
@@ -199,7 +201,7 @@ class VlmAgent(Policy):
         prompt = self.prompt_for(obs)
         schema = action_schema(prompt.actions)
         messages = prompt.messages()
-        attempts = reasks = prompt_tokens = completion_tokens = 0
+        attempts = reasks = prompt_tokens = completion_tokens = request_bytes = reply_bytes = 0
         latency = 0.0
         raw: str | None = None
         error: str | None = None
@@ -217,6 +219,8 @@ class VlmAgent(Policy):
                 break
             attempts += reply.attempts
             latency += reply.latency_s
+            request_bytes += reply.request_bytes
+            reply_bytes += reply.reply_bytes
             prompt_tokens += reply.prompt_tokens or 0
             completion_tokens += reply.completion_tokens or 0
             raw = reply.text
@@ -239,7 +243,8 @@ class VlmAgent(Policy):
             policy=self.name, model=str(self.options.model), stage=prompt.stage, prompt_sha256=prompt.sha256(),
             image_bytes=prompt.image_bytes, raw_reply=None if raw is None else raw[:RAW_REPLY_CHARS],
             parsed_action=action.action, fallback=reason is not None, fallback_reason=reason, repaired=parsed.repaired,
-            reasks=reasks, http_attempts=attempts, latency_s=round(latency, 4), prompt_tokens=prompt_tokens or None,
+            reasks=reasks, http_attempts=attempts, latency_s=round(latency, 4), request_bytes=request_bytes,
+            reply_bytes=reply_bytes, prompt_tokens=prompt_tokens or None,
             completion_tokens=completion_tokens or None, error=error)
         self.note_decision(obs, action)
         if self._trace_path is not None:

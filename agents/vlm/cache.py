@@ -21,7 +21,9 @@ of model calls") documents the format for readers outside agos.
   A request the endpoint never answered (after its retries) is stored as an error and replayed as
   that error, so a replayed run reproduces the recorded one; ``record`` asks such a request again.
 * A served reply carries the recorded latency and HTTP attempts (what the model call cost when it
-  was made), so a replayed run's records equal the recorded run's.
+  was made), so a replayed run's records equal the recorded run's. The reply body is stored as the
+  endpoint sent it, so its size (``reply_bytes``, what ``--model-link`` carries down) is the same
+  when served.
 """
 
 from __future__ import annotations
@@ -211,8 +213,8 @@ class ReplyCache:
     def _store(self, request: CanonicalRequest, stream: str, occurrence: int, reply: Reply | None, latency_s: float,
                attempts: int, error: VlmError | None) -> None:
         fields = (None, None, None, None, None) if reply is None else (
-            json.dumps(reply.raw, separators=(",", ":")), reply.text, reply.finish_reason, reply.prompt_tokens,
-            reply.completion_tokens)
+            reply.body_text if reply.body_text is not None else json.dumps(reply.raw, separators=(",", ":")),
+            reply.text, reply.finish_reason, reply.prompt_tokens, reply.completion_tokens)
         with self._lock:
             db = self._db
             db.execute("BEGIN IMMEDIATE")
@@ -261,7 +263,8 @@ def _served(row: tuple) -> Reply:
     if error is not None:
         raise VlmError(error, attempts=attempts, kind=error_kind or "http")
     return Reply(text=text, finish_reason=finish_reason, prompt_tokens=prompt_tokens, completion_tokens=completion_tokens,
-                 latency_s=latency_s, attempts=attempts, raw=json.loads(body) if body else {})
+                 latency_s=latency_s, attempts=attempts, raw=json.loads(body) if body else {},
+                 reply_bytes=len(body.encode("utf-8")) if body else 0)
 
 
 def _miss_line(directory: Path, request: CanonicalRequest, call: CallTag | None, stream: str, occurrence: int,

@@ -14,14 +14,17 @@ llama.cpp server, hosted APIs), for VLM policies.
 * The API key is read from an environment variable and is never logged or returned.
 
 Every call returns a :class:`Reply` with the text, ``finish_reason``, token usage, latency and the
-number of HTTP attempts: retries are counted apart from decisions (DS never includes them).
+number of HTTP attempts: retries are counted apart from decisions (DS never includes them); and the
+sizes of the request body posted and of the reply body received (what ``--model-link`` carries).
 """
 
 from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import functools
+import json
 import os
 import random
 import time
@@ -89,11 +92,23 @@ class Reply:
     latency_s: float
     attempts: int
     raw: dict[str, Any] = field(default_factory=dict, repr=False)
+    request_bytes: int = 0
+    """The request body posted (:func:`request_body`), bytes."""
+    reply_bytes: int = 0
+    """The reply body received, bytes (a replayed reply: its stored body's, the same when it was
+    recorded by this version: agents/vlm/cache.py)."""
+    body_text: str | None = field(default=None, repr=False)
+    """The reply body as the endpoint sent it (UTF-8), for the cache; None when not UTF-8 or not from the endpoint."""
 
 
 def image_part(data: bytes, encoding: str) -> dict[str, Any]:
     mime = "image/jpeg" if encoding == "jpeg" else "image/png"
     return {"type": "image_url", "image_url": {"url": f"data:{mime};base64,{base64.b64encode(data).decode()}"}}
+
+
+def request_body(body: dict[str, Any]) -> bytes:
+    """The bytes posted for a request ``body``: compact UTF-8 JSON (what httpx's ``json=`` would send)."""
+    return json.dumps(body, ensure_ascii=False, separators=(",", ":"), allow_nan=False).encode("utf-8")
 
 
 TEMPERATURE = 0.0
@@ -182,15 +197,16 @@ class VlmClient:
         unanswered then is a VlmError of kind ``outage``, as when the retries run out."""
         body = self._body(messages, schema)
         send = self._send if deadline is None else functools.partial(self._send, deadline=deadline)
-        if self.cache is not None:
-            return await self.cache.complete(body, call, send)
-        return await send(body)
+        reply = await (self.cache.complete(body, call, send) if self.cache is not None else send(body))
+        reply.request_bytes = len(request_body(body))  # the same for a replayed reply: the body is the same
+        return reply
 
     async def _send(self, body: dict[str, Any], deadline: float | None = None) -> Reply:
         """``body`` posted to the endpoint, with retries (see the module docstring), within ``deadline``."""
         started = time.monotonic()
         last_error = "no attempt"
         made = 0
+        content = request_body(body)
         async with self._limit:
             for attempt in range(self.max_retries + 1):
                 response = None
@@ -199,7 +215,8 @@ class VlmClient:
                     break
                 made += 1
                 try:
-                    response = await self._http.post("/chat/completions", json=body,
+                    response = await self._http.post("/chat/completions", content=content,
+                                                      headers={"Content-Type": "application/json"},
                                                       timeout=self.timeout_s if left is None else min(self.timeout_s, left))
                     if response.status_code in RETRY_STATUS:
                         last_error = f"HTTP {response.status_code}"
@@ -211,7 +228,11 @@ class VlmClient:
                         raise VlmError(f"{self.base_url}: HTTP {response.status_code}: {self._redact(server_message(response))}",
                                        attempts=attempt + 1)
                     else:
-                        return self._reply(response.json(), started, attempt + 1)
+                        reply = self._reply(response.json(), started, attempt + 1)
+                        reply.reply_bytes = len(response.content)
+                        with contextlib.suppress(UnicodeDecodeError):
+                            reply.body_text = response.content.decode("utf-8")
+                        return reply
                 except httpx.HTTPError as exc:  # timeouts, connection and protocol errors, undecodable bodies
                     last_error = type(exc).__name__
                 except ValueError as exc:  # a 200 whose body is not JSON, or not a chat completion

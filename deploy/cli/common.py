@@ -59,6 +59,10 @@ def vlm_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vlm-timeout", type=float, help="seconds per HTTP attempt (default 60)")
     p.add_argument("--vlm-max-retries", type=int, help="HTTP retries per request (default 4)")
     p.add_argument("--vlm-no-structured", action="store_true", help="do not send a JSON schema (servers that mishandle it)")
+    p.add_argument("--vlm-image-max-px", type=int, metavar="PX",
+                   help="shrink every image sent to the model to at most PX on its longest side (default: as rendered)")
+    p.add_argument("--vlm-jpeg-quality", type=int, metavar="Q",
+                   help="re-encode every image sent to the model as JPEG at quality Q, 1-100 (default: as rendered)")
     p.add_argument("--vlm-trace", type=Path, help="also append every decision trace to this JSONL file")
     p.add_argument("--vlm-cache", type=Path, metavar="DIR",
                    help="record every model call in DIR and serve recorded ones from it (docs/AGENTS.md)")
@@ -86,6 +90,8 @@ def settings_of(args: argparse.Namespace) -> AgosConfig:
                 "api_key_env": getattr(args, "vlm_api_key_env", None), "timeout_s": getattr(args, "vlm_timeout", None),
                 "max_retries": getattr(args, "vlm_max_retries", None),
                 "structured": False if getattr(args, "vlm_no_structured", False) else None,
+                "image_max_px": getattr(args, "vlm_image_max_px", None),
+                "jpeg_quality": getattr(args, "vlm_jpeg_quality", None),
                 "trace_file": getattr(args, "vlm_trace", None), "cache_dir": getattr(args, "vlm_cache", None),
                 "cache_mode": getattr(args, "vlm_cache_mode", None)},
         "zenoh": {"connect": getattr(args, "connect", None), "listen": getattr(args, "listen", None),

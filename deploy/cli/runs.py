@@ -81,6 +81,10 @@ def _demo(args: argparse.Namespace, cfg: AgosConfig) -> int:
         return 2
 
 
+MODEL_LINK_HELP = ("where the model of VLM policies runs: onboard (default: no link), edge, lte, satellite "
+                   "(deploy/model_link) or a TOML file; its requests and replies then take simulated time (docs/COMMS.md)")
+POSE_ERROR_HELP = ("each role's localisation error: exact (default), gnss-2m, gnss-5m, gnss-10m, urban-gnss "
+                   "(deploy/sensing) or a TOML file (docs/COMMS.md)")
 POLICY_HELP = "a name (docs/AGENTS.md), one registered in the agos.policies entry points, or package.module:Class"
 
 
@@ -103,6 +107,8 @@ def _add_eval(sub: Any) -> None:
     ev.add_argument("--policy-ugv", help="the UGV's policy (default --policy)")
     ev.add_argument("--comm", default="ideal", help="comm profile name (deploy/comm) or TOML file")
     ev.add_argument("--timing", choices=["lockstep", "realtime"], default="lockstep")
+    ev.add_argument("--model-link", metavar="PLACEMENT", help=MODEL_LINK_HELP)
+    ev.add_argument("--pose-error", metavar="PROFILE", help=POSE_ERROR_HELP)
     ev.add_argument("--uav-verification", choices=["frozen", "active"],
                     help="the UAV while the UGV verifies its candidate: frozen (asked nothing; the paper's method "
                          "section) or active (may move or wait, with a message; its prompt appendix). Default [world] "
@@ -171,8 +177,9 @@ def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
                 run_dir = cfg.run.runs_dir / args.run_id
             plan = run_plan.new_plan(cfg, run_dir=run_dir, comm=args.comm, timing_mode=args.timing, stamp=True,
                                      vlm_standin=args.vlm_standin, workers=args.workers, check_vlm=not args.connect,
-                                     caps=caps, prices=prices)
-    except (run_plan.RunDirError, ProfileError, ValueError) as exc:
+                                     caps=caps, prices=prices, model_link=args.model_link,
+                                     pose_error=args.pose_error)
+    except (run_plan.RunDirError, ProfileError, ValueError) as exc:  # bad profiles of every kind are ValueErrors
         print(f"eval error: {exc}", file=sys.stderr)
         return 2
     if args.resume and args.workers is None:  # a resumed run keeps the worker count it was started with
@@ -198,10 +205,14 @@ def _add_sweep(sub: Any) -> None:
     sw.add_argument("--config", type=Path, help="TOML settings file: its [world] section shapes the episodes")
     sw.add_argument("--split", type=Path, required=True, help="JSONL episode file")
     sw.add_argument("--comm", default="ideal", help="base profile")
+    sw.add_argument("--model-link", metavar="PLACEMENT", help=MODEL_LINK_HELP)
+    sw.add_argument("--pose-error", metavar="PROFILE", help=POSE_ERROR_HELP)
     sw.add_argument("--param", default="loss.p",
                     help="dotted profile field (loss.p, latency.mean_s, bandwidth.bits_per_s, range.max_range_m, "
-                         "loss.p_bad_to_good ...), beacon_s, or loss.burst_len / blackouts.duration_s (docs/COMMS.md)")
-    sw.add_argument("--values", default="0,0.1,0.2,0.3,0.4,0.5", help="comma-separated values")
+                         "loss.p_bad_to_good, corruption.char_error_rate ...), beacon_s, loss.burst_len / "
+                         "blackouts.duration_s, or a profile axis: pose_error, model_link (docs/COMMS.md)")
+    sw.add_argument("--values", default="0,0.1,0.2,0.3,0.4,0.5",
+                    help="comma-separated values (profile names or TOML files for pose_error, model_link)")
     sw.add_argument("--seeds", default="0,1", help="comma-separated link seeds")
     sw.add_argument("--policy", default="heuristic", help=f"policy of both roles (default heuristic): {POLICY_HELP}")
     sw.add_argument("--policy-uav", help="the UAV's policy (default --policy)")
@@ -221,18 +232,19 @@ def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
     from agos.agents.contract import EndpointOutage, FatalPolicyError
     from agos.deploy.run.configure import episode_config
     from agos.deploy.run.launcher import print_death
-    from agos.deploy.run.sweep import check_sweep_endpoint, run_sweep, with_param
+    from agos.deploy.run.sweep import check_sweep_endpoint, point_config, run_sweep
     from agos.runtime.deaths import ChildDied
     from agos.runtime.links import ProfileError
     from agos.world.episodes.files import read_split
 
     try:  # everything that can be wrong with the command fails here, before the progress bar
-        values = [float(v) for v in args.values.split(",")]
+        values = [v.strip() for v in args.values.split(",")]
         seeds = [int(v) for v in args.seeds.split(",")]
         policies = {"uav": args.policy_uav or args.policy, "ugv": args.policy_ugv or args.policy}
-        config = episode_config(cfg, policies=policies, comm=args.comm)
+        config = episode_config(cfg, policies=policies, comm=args.comm, model_link=args.model_link,
+                                pose_error=args.pose_error)
         for value in values:
-            with_param(config.comm, args.param, value)  # an unknown --param, or a value it cannot take
+            point_config(config, args.param, value)  # an unknown --param, or a value it cannot take
         check_sweep_endpoint(policies.values(), cfg.vlm, args.vlm_standin)  # the model endpoint answers /models
         total = len(values) * len(seeds) * len(read_split(args.split, look=config.look))
         with Progress(TextColumn("[bold]sweep"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn()) as bar:

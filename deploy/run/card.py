@@ -7,7 +7,9 @@ it (evaluator/card.py).
       "endpoint": "http://host:8000/v1" | null,         # null: the stand-in (see models_answer) or a replay
       "models_answer": [{"id": ..., ...}] | {"error": "..."} | null,   # the endpoint's GET /models entries
       "sampling": {"temperature": 0.0, "max_tokens": 512, "structured_output": true, "reasks": 2,
-                   "max_retries": 4, "timeout_s": 60.0, "images": "all", "concurrency": 8},
+                   "max_retries": 4, "timeout_s": 60.0, "images": "all", "concurrency": 8,
+                   "image_max_px": null, "jpeg_quality": null},   # null: images as rendered
+      "model_link": {"placement": "lte", "description": "...", "profile": {...}} | {"placement": "onboard"},
       "prompts": {"sha256": "...", "file": "prompts.txt", "modules": ["agos.agents.vlm.agos_prompts", ...]},
       "cache": {"mode": "record", "dir": "/abs/cache"} | null,
       "split": {"file": "/abs/val.jsonl", "sha256": "..."} | null,      # null: generated episodes
@@ -27,6 +29,7 @@ import importlib.util
 from pathlib import Path
 from typing import Any
 
+from agos.runtime.model_link import ONBOARD, ModelLinkProfile
 from agos.runtime.settings import VlmOptions
 
 PROMPTS_FILE = "prompts.txt"
@@ -65,14 +68,16 @@ def sampling(options: VlmOptions) -> dict[str, Any]:
 
     return {"temperature": TEMPERATURE, "max_tokens": options.max_tokens, "structured_output": options.structured,
             "reasks": options.reasks, "max_retries": options.max_retries, "timeout_s": options.timeout_s,
-            "images": options.images, "concurrency": options.concurrency}
+            "images": options.images, "concurrency": options.concurrency, "image_max_px": options.image_max_px,
+            "jpeg_quality": options.jpeg_quality}
 
 
 def run_card(run_dir: Path, *, vlm: dict[str, Any], options: VlmOptions, models_answer: list[dict[str, Any]] | None,
-             split: Path | None) -> dict[str, Any]:
+             split: Path | None, model_link: ModelLinkProfile | None = None) -> dict[str, Any]:
     """The card of a new run whose ``episodes.jsonl`` is written (``vlm``: the plan's, see
-    deploy/run/plan.py::vlm_plan); writes ``prompts.txt`` for a run that asks a model."""
-    card: dict[str, Any] = {"model": vlm.get("model")}
+    deploy/run/plan.py::vlm_plan); writes ``prompts.txt`` for a run that asks a model. ``model_link``:
+    the configuration's placement of the model (None: onboard)."""
+    card: dict[str, Any] = {"model": vlm.get("model"), "model_link": model_link_card(model_link)}
     if vlm:
         endpoint = vlm.get("base_url")
         if "standin" in vlm:  # its address is the run's own; its /models answer is added once it listens
@@ -83,6 +88,13 @@ def run_card(run_dir: Path, *, vlm: dict[str, Any], options: VlmOptions, models_
     card["split"] = {"file": str(split.resolve()), "sha256": file_sha256(split)} if split is not None else None
     card["episodes_sha256"] = file_sha256(run_dir / "episodes.jsonl")
     return card
+
+
+def model_link_card(profile: ModelLinkProfile | None) -> dict[str, Any]:
+    """The card's ``model_link``: the placement's name, and for a link its description and profile."""
+    if profile is None:
+        return {"placement": ONBOARD}
+    return {"placement": profile.name, "description": profile.description, "profile": profile.model_dump(mode="json")}
 
 
 def models_answer(base_url: str, *, timeout_s: float = 5.0) -> list[dict[str, Any]] | dict[str, str]:

@@ -172,7 +172,8 @@ def _endpoint_check(options: VlmOptions, vlm: dict[str, Any]) -> tuple[str, list
 
 def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: str, stamp: bool,
              vlm_standin: str | None = None, workers: int | str | None = None, dataset_out: Path | None = None,
-             check_vlm: bool = False, caps: Caps | None = None, prices: PriceTable | None = None) -> RunPlan:
+             check_vlm: bool = False, caps: Caps | None = None, prices: PriceTable | None = None,
+             model_link: str | None = None, pose_error: str | None = None) -> RunPlan:
     """A new run directory with its run.json (the run card among it: deploy/run/card.py),
     episodes.jsonl and, for a VLM run, prompts.txt. ``workers``: the command's ``--workers`` (a count or
     ``auto``), stored for ``--resume``; ``dataset_out``: see :class:`RunPlan`. ``check_vlm``: the run
@@ -188,7 +189,8 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
     if (run_dir / "results.sqlite").exists():
         raise RunDirError(f"{run_dir}: already holds results; resume it with: agos eval --resume {run_dir}")
     policies = {"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv}
-    config = episode_config(cfg, policies=policies, comm=comm, timing_mode=timing_mode)  # bad names fail here
+    config = episode_config(cfg, policies=policies, comm=comm, timing_mode=timing_mode,  # bad names fail here
+                            model_link=model_link, pose_error=pose_error)
     vlm = vlm_plan(cfg, policies, vlm_standin)
     caps = caps or Caps()
     check_prices(caps, prices, vlm.get("model"))
@@ -202,10 +204,12 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
     write_episodes(run_dir / "episodes.jsonl", episodes)
     plan = RunPlan(run_dir, episodes, policies, config, vlm=vlm, workers=workers, dataset_out=dataset_out,
                    endpoint=endpoint, caps=caps, prices=prices)
-    card = run_card(run_dir, vlm=vlm, options=cfg.vlm, models_answer=models_answer, split=cfg.run.episodes_file)
+    card = run_card(run_dir, vlm=vlm, options=cfg.vlm, models_answer=models_answer, split=cfg.run.episodes_file,
+                    model_link=config.model_link)
     (run_dir / RUN_FILE).write_text(json.dumps({
         "run_id": plan.run_id, "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "policies": plan.policies, "comm": config.comm.name, "timing_mode": config.timing_mode, "episodes": len(episodes),
+        "policies": plan.policies, "comm": config.comm.name, "pose_error": config.pose_error.name,
+        "timing_mode": config.timing_mode, "episodes": len(episodes),
         "vlm": vlm, "workers": workers, "config_hash": config.config_hash(),
         **({"dataset_out": str(dataset_out)} if dataset_out is not None else {}),
         "episode_config": config.model_dump(mode="json"),

@@ -15,9 +15,12 @@ The parameter is any field of a profile section (``loss.p``, ``latency.mean_s``,
 the Gilbert-Elliott ``loss.p_good_to_bad`` ... on a Gilbert-Elliott base), ``beacon_s``, or one of
 two derived axes: ``loss.burst_len`` (mean stay in the bad state, in transmissions, at the base
 profile's share of time in the bad state, so the mean loss stays put while bursts lengthen) and
-``blackouts.duration_s`` (every blackout of the base profile lasts this long from its start).
+``blackouts.duration_s`` (every blackout of the base profile lasts this long from its start). Two
+axes take profile names instead of numbers: ``pose_error`` (each role's localisation error,
+deploy/sensing: ``exact,gnss-2m,gnss-5m``) and ``model_link`` (where the model runs, deploy/model_link:
+``onboard,edge,lte,satellite``); their values may also be TOML files.
 
-Besides SR, SPL and DS the table has the episode's simulated duration and the *handoff delay*: from
+Besides SR, SPL and DS the table has CErr and ACG, the episode's simulated duration and the *handoff delay*: from
 the UAV's first annotation to the UGV hearing of it, read from the ledger (the UAV's first sync or
 beacon that carries a candidate, and the first of those that was delivered), with how many
 episodes' first candidate never reached the UGV.
@@ -45,10 +48,38 @@ from agos.runtime.process import interruptible_imap
 from agos.runtime.schemas import EpisodeRecord
 from agos.runtime.settings import VlmOptions
 
-METRICS = ("SR", "SPL", "DS", "T", "handoff")
-LABELS = {"SR": "SR (%)", "SPL": "SPL (%)", "DS": "DS", "T": "episode sim time (s)", "handoff": "handoff delay (s)"}
+METRICS = ("SR", "SPL", "CErr", "ACG", "DS", "T", "handoff")
+LABELS = {"SR": "SR (%)", "SPL": "SPL (%)", "CErr": "CErr (m)", "ACG": "ACG (%)", "DS": "DS", "T": "episode sim time (s)",
+          "handoff": "handoff delay (s)"}
 GILBERT_ELLIOTT = ("p_good_to_bad", "p_bad_to_good", "loss_good", "loss_bad")
 DERIVED = ("loss.burst_len", "blackouts.duration_s")
+
+
+PROFILE_AXES = ("pose_error", "model_link")
+"""Axes whose values name profiles (or TOML files) rather than numbers."""
+
+
+def point_config(config: EpisodeConfig, param: str, value: str) -> EpisodeConfig:
+    """``config`` at one value of the sweep's axis: a pose-error profile, a model placement, or a number
+    for a comm-profile parameter (:func:`with_param`). Raises ValueError (one line) for what cannot be."""
+    if param == "pose_error":
+        from agos.runtime.sensing import load_pose_error
+
+        return config.model_copy(update={"pose_error": load_pose_error(value)})
+    if param == "model_link":
+        from agos.runtime.model_link import with_model_link
+
+        return with_model_link(config, value)
+    try:
+        number = float(value)
+    except ValueError:
+        raise ValueError(f"sweep parameter {param}: value {value!r} is not a number") from None
+    return config.model_copy(update={"comm": with_param(config.comm, param, number)})
+
+
+def value_label(param: str, value: str) -> str:
+    """How a value is written in tables and file names (numbers as ``:g``)."""
+    return value if param in PROFILE_AXES else f"{float(value):g}"
 
 
 def with_param(profile: CommProfile, param: str, value: float) -> CommProfile:
@@ -105,7 +136,7 @@ def _set_burst_len(profile: CommProfile, loss: dict[str, Any], burst: float) -> 
 
 @dataclass(frozen=True)
 class Point:
-    value: float
+    value: str
     seed: int
 
 
@@ -149,18 +180,18 @@ def check_sweep_endpoint(policies: Iterable[str], vlm: VlmOptions, vlm_standin: 
         check_endpoint(vlm, {"base_url": vlm.base_url, "model": vlm.model})
 
 
-def run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, param: str, values: list[float],
+def run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, param: str, values: list[str],
               seeds: list[int], policies: tuple[str, str], workers: int,
               progress: Callable[[], None] | None = None, vlm: VlmOptions | None = None,
               vlm_standin: str | None = None) -> list[dict]:
     """Run every episode at every (value, link seed) point: ``config`` (from
-    :func:`agos.deploy.run.configure.episode_config`) with its comm profile's ``param`` set to the value
-    and ``link_seed`` to the seed. VLM policies ask ``vlm``'s endpoint, or, with ``vlm_standin`` (a
+    :func:`agos.deploy.run.configure.episode_config`) at the axis value (:func:`point_config`) and
+    ``link_seed`` at the seed. VLM policies ask ``vlm``'s endpoint, or, with ``vlm_standin`` (a
     fault string, "" for none), a stand-in server started here for the sweep's duration."""
     from agos.agents.names import needs_vlm
 
     for value in values:  # a bad parameter or value fails before anything runs
-        with_param(config.comm, param, value)
+        point_config(config, param, value)
     options = (vlm or VlmOptions()) if any(needs_vlm(p) for p in policies) else None
     if options is None or vlm_standin is None:
         return _run_sweep(episodes_file, out_dir, config=config, param=param, values=values, seeds=seeds,
@@ -175,7 +206,7 @@ def run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, para
                           key_extra=f"standin:{vlm_standin}")
 
 
-def _run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, param: str, values: list[float],
+def _run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, param: str, values: list[str],
                seeds: list[int], policies: tuple[str, str], workers: int, progress: Callable[[], None] | None,
                vlm: VlmOptions | None, key_extra: str = "") -> list[dict]:
     from agos.agents.registry import make_policy
@@ -186,10 +217,11 @@ def _run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, par
     vlm_json = vlm.model_dump_json() if vlm is not None else ""
     if vlm is not None and not key_extra:
         key_extra = f"{vlm.base_url}|{vlm.model}"
+    if vlm is not None and (vlm.image_max_px, vlm.jpeg_quality) != (None, None):  # what the model is sent
+        key_extra += f"|images:{vlm.image_max_px}:{vlm.jpeg_quality}"
     episodes = read_episodes(episodes_file)
     points = [Point(v, s) for v in values for s in seeds]
-    point_configs = [config.model_copy(update={"comm": with_param(config.comm, param, p.value), "link_seed": p.seed})
-                     for p in points]
+    point_configs = [point_config(config, param, p.value).model_copy(update={"link_seed": p.seed}) for p in points]
     # Each finished episode is appended to its point's file in OUT/.episodes at once, so Ctrl-C loses
     # only the episodes in flight and the next run of the same sweep plays only what is missing.
     # A file's name carries the hash of everything that shapes its records (never reused wrongly).
@@ -215,8 +247,9 @@ def _run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, par
     rows = []
     for i, point in enumerate(points):
         lines = sorted(results[i])
-        (out_dir / "points" / f"{param}={point.value:g}_seed{point.seed}.jsonl").write_text("\n".join(lines) + "\n")
-        rows.append({"value": point.value, "seed": point.seed, "records": lines})
+        label = value_label(param, point.value)
+        (out_dir / "points" / f"{param}={Path(label).stem}_seed{point.seed}.jsonl").write_text("\n".join(lines) + "\n")
+        rows.append({"value": label, "seed": point.seed, "records": lines})
     table = summarize(rows, out_dir, param)
     shutil.rmtree(done_dir, ignore_errors=True)
     return table
@@ -253,21 +286,25 @@ def handoff_delay(record: dict[str, Any]) -> float | None:
 
 
 def summarize(rows: list[dict], out_dir: Path, param: str) -> list[dict]:
-    from agos.evaluator.metrics import decision_steps, spl, success
+    """One table row per axis value (in the order given), every metric with a 95 % bootstrap interval
+    over episodes; ``sweep.csv``, ``sweep.md`` and ``sweep.png`` in ``out_dir``. Columns that only a
+    localisation error or a link to the model fill appear when a record has them."""
+    from agos.evaluator.metrics import acg, decision_steps, spl, success
     from agos.evaluator.summary import EpisodeSummary
 
     rng = np.random.default_rng(0)
-    by_value: dict[float, list[tuple[EpisodeSummary, dict[str, Any]]]] = {}
+    by_value: dict[str, list[tuple[EpisodeSummary, dict[str, Any]]]] = {}
     for row in rows:
         raw = [json.loads(line) for line in row["records"]]
         by_value.setdefault(row["value"], []).extend((EpisodeSummary.from_valid(r), r) for r in raw)
     table = []
-    for value in sorted(by_value):
+    for value in by_value:
         pairs = [(e, r) for e, r in by_value[value] if e.status == "finished"]
         eps = [e for e, _ in pairs]
         entry: dict[str, Any] = {"value": value, "episodes": len(eps)}
-        for name, fn in (("SR", success), ("SPL", spl), ("DS", decision_steps)):
+        for name, fn in (("SR", success), ("SPL", spl), ("ACG", acg), ("DS", decision_steps)):
             entry.update(_mean_ci(name, np.array([fn(e) for e in eps], dtype=float), rng))
+        entry.update(_pooled_ci("CErr", [[c.center_error_m for c in e.candidates] for e in eps], rng))
         entry.update(_mean_ci("T", np.array([r["sim_time_s"] for _, r in pairs], dtype=float), rng))
         delays = [d for d in (handoff_delay(r) for _, r in pairs) if d is not None]
         entry.update(_mean_ci("handoff", np.array([d for d in delays if math.isfinite(d)], dtype=float), rng))
@@ -276,22 +313,58 @@ def summarize(rows: list[dict], out_dir: Path, param: str) -> list[dict]:
         entry["handoff_never_pct"] = 100.0 * entry["handoff_never"] / len(delays) if delays else None
         rates = [e.link["delivery_rate"] for e in eps if e.link and e.link.get("delivery_rate") is not None]
         entry["delivery_rate"] = float(np.mean(rates)) if rates else None
+        errors = [s["mean_m"] for _, r in pairs for s in (r.get("pose_error") or {}).values()]
+        entry["pose_error_m"] = float(np.mean(errors)) if errors else None
+        links = [r["model_link"] for _, r in pairs if r.get("model_link") and r["model_link"]["decisions"]]
+        decisions = sum(m["decisions"] for m in links)
+        entry["model_link_s"] = sum(m["link_time_s"] for m in links) / decisions if decisions else None
+        entry["model_up_kb"] = sum(m["bytes_up"] for m in links) / decisions / 1000 if decisions else None
+        entry["corrupted"] = sum((r.get("link") or {}).get("corrupted", 0) for _, r in pairs)
         table.append(entry)
     with (out_dir / "sweep.csv").open("w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(table[0]))
         writer.writeheader()
         writer.writerows(table)
-    lines = [f"| {param} | episodes | delivered % | SR % [95% CI] | SPL % [95% CI] | DS [95% CI] | time s [95% CI] "
-             "| handoff s [95% CI] (never/annotated) |",
-             "|---:|---:|---:|---|---|---|---|---|"]
-    for t in table:
-        delivered = "-" if t["delivery_rate"] is None else f"{100 * t['delivery_rate']:.1f}"
-        lines.append(f"| {t['value']:g} | {t['episodes']} | {delivered} | {_cell(t, 'SR', 100)} | {_cell(t, 'SPL', 100)} "
-                     f"| {_cell(t, 'DS')} | {_cell(t, 'T', fmt='.0f')} | {_cell(t, 'handoff')} "
-                     f"({t['handoff_never']}/{t['handoff_episodes']}) |")
-    (out_dir / "sweep.md").write_text("\n".join(lines) + "\n")
+    (out_dir / "sweep.md").write_text(markdown_table(table, param))
     _plots(table, out_dir, param)
     return table
+
+
+def markdown_table(table: list[dict], param: str) -> str:
+    """The sweep's table as Markdown (what ``sweep.md`` holds)."""
+    extra = [(key, head, fmt) for key, head, fmt in (("pose_error_m", "pose error m", ".2f"),
+                                                    ("model_link_s", "model link s/decision", ".2f"),
+                                                    ("model_up_kb", "kB up/decision", ".0f"),
+                                                    ("corrupted", "corrupted messages", "d"))
+             if any(t[key] for t in table)]
+    head = [param, "episodes", "delivered %", *(h for _, h, _ in extra), "SR % [95% CI]", "CErr m [95% CI]",
+            "ACG % [95% CI]", "SPL % [95% CI]", "DS [95% CI]", "time s [95% CI]", "handoff s [95% CI] (never/annotated)"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---:|" * (3 + len(extra)) + "---|" * 7]
+    for t in table:
+        delivered = "-" if t["delivery_rate"] is None else f"{100 * t['delivery_rate']:.1f}"
+        cells = [str(t["value"]), str(t["episodes"]), delivered,
+                 *("-" if t[key] is None else f"{t[key]:{fmt}}" for key, _, fmt in extra),
+                 _cell(t, "SR", 100), _cell(t, "CErr"), _cell(t, "ACG", 100), _cell(t, "SPL", 100), _cell(t, "DS"),
+                 _cell(t, "T", fmt=".0f"), f"{_cell(t, 'handoff')} ({t['handoff_never']}/{t['handoff_episodes']})"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _pooled_ci(name: str, per_episode: list[list[float]], rng: np.random.Generator,
+               resamples: int = 2000) -> dict[str, float | None]:
+    """The mean over every value of every episode (candidate-level pooling, as CErr), with a 95 % interval
+    from resampling episodes (their values stay together)."""
+    flat = [v for vs in per_episode for v in vs]
+    if not flat:
+        return {name: None, f"{name}_low": None, f"{name}_high": None}
+    sums = np.array([sum(vs) for vs in per_episode])
+    counts = np.array([len(vs) for vs in per_episode])
+    picks = rng.integers(0, len(per_episode), size=(resamples, len(per_episode)))
+    with np.errstate(invalid="ignore"):
+        means = sums[picks].sum(axis=1) / counts[picks].sum(axis=1)
+    means = means[np.isfinite(means)]
+    return {name: float(np.mean(flat)), f"{name}_low": float(np.percentile(means, 2.5)),
+            f"{name}_high": float(np.percentile(means, 97.5))}
 
 
 def _mean_ci(name: str, values: np.ndarray, rng: np.random.Generator) -> dict[str, float | None]:
@@ -313,26 +386,29 @@ def _plots(table: list[dict], out_dir: Path, param: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    x = np.array([t["value"] for t in table], dtype=float)
-    log_x = len(x) > 1 and x.min() > 0 and x.max() / x.min() >= 50
+    labels = [str(t["value"]) for t in table]
+    numeric = param not in PROFILE_AXES
+    xs = {t["value"]: (float(t["value"]) if numeric else float(i)) for i, t in enumerate(table)}
+    x = np.array(list(xs.values()))
+    log_x = numeric and len(x) > 1 and x.min() > 0 and x.max() / x.min() >= 50
     panels = [*METRICS, "handoff_never_pct"]
-    fig, axes = plt.subplots(2, 3, figsize=(11, 6), dpi=140)
+    fig, axes = plt.subplots(2, 4, figsize=(14, 6), dpi=140)
     for ax, name in zip(axes.flat, panels, strict=True):
         rows = [t for t in table if t[name] is not None]
         if name == "handoff_never_pct":
-            ax.plot([t["value"] for t in rows], [t[name] for t in rows], marker="o")
+            ax.plot([xs[t["value"]] for t in rows], [t[name] for t in rows], marker="o")
             ax.set_ylabel("first candidate never heard (%)")
             ax.set_title("UGV never heard of the first candidate", fontsize=9)
             ax.set_ylim(0, 105)
         else:
-            scale = 100.0 if name in ("SR", "SPL") else 1.0
+            scale = 100.0 if name in ("SR", "SPL", "ACG") else 1.0
             y = [scale * t[name] for t in rows]
             lo = [scale * (t[name] - t[f"{name}_low"]) for t in rows]
             hi = [scale * (t[f"{name}_high"] - t[name]) for t in rows]
-            ax.errorbar([t["value"] for t in rows], y, yerr=[lo, hi], marker="o", capsize=3)
+            ax.errorbar([xs[t["value"]] for t in rows], y, yerr=[lo, hi], marker="o", capsize=3)
             ax.set_ylabel(LABELS[name])
             ax.set_title(f"{LABELS[name]}{' of those heard' if name == 'handoff' else ''} (95% CI)", fontsize=9)
-            if name in ("SR", "SPL"):
+            if name in ("SR", "SPL", "ACG"):
                 ax.set_ylim(0, 105)
             else:
                 ax.set_ylim(bottom=0)
@@ -340,6 +416,8 @@ def _plots(table: list[dict], out_dir: Path, param: str) -> None:
         ax.grid(alpha=0.3)
         if log_x:
             ax.set_xscale("log")
+        if not numeric:
+            ax.set_xticks(x, labels, fontsize=8)
     fig.tight_layout()
     fig.savefig(out_dir / "sweep.png")
     plt.close(fig)

@@ -10,7 +10,18 @@ link models (:mod:`agos.runtime.links`):
   so a lost handoff is eventually repaired (a frozen UAV keeps beaconing);
 * agent text goes as a ``message`` once; lost is lost.
 
-Every transmission is written to the ledger.
+Every transmission is written to the ledger. The link's message faults (docs/COMMS.md, "Message
+faults") show there too:
+
+* a duplicated transmission is delivered twice; the copy is a ledger entry of its own right after
+  the original's (its own ``seq``, the same kind, sender, send time and size, ``fault =
+  "duplicate"``), arriving ``duplicate.delay_s`` after it and carrying what the original delivered
+  (a corrupted text stays corrupted). A duplicated sync or beacon merges idempotently; a duplicated
+  message reaches the receiver's message list twice.
+* a corrupted ``message`` arrives with some characters of its text replaced, its entry marked
+  ``fault = "corrupted"`` (only when a character actually changed). Syncs and beacons are never
+  corrupted: they are structured binary payloads, and a corrupted frame would fail its checksum
+  and be dropped, which the loss stage already models.
 """
 
 from __future__ import annotations
@@ -21,7 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from agos.runtime.codec import encode
-from agos.runtime.links import CommProfile, Delivery, links_for
+from agos.runtime.links import CommProfile, Delivery, corrupt_text, links_for
 from agos.runtime.schemas import Candidate, LedgerEntry, LinkStats, MessageRecord, Pose, Role
 
 TransmissionKind = Literal["sync", "beacon", "message"]
@@ -57,6 +68,15 @@ class RoleView:
             if mine is None or STATUS_RANK[cand.status] > STATUS_RANK[mine.status]:
                 self.candidates[cand.candidate_id] = copy.copy(cand)
                 changed = True
+        return changed
+
+    def receive_sync(self, payload: dict[str, Any]) -> bool:
+        """Adopt a sync or beacon (:func:`sync_payload`): merge its candidates and keep the teammate pose
+        with the newest send time. Idempotent, and the result does not depend on the order in which a
+        set of syncs arrives (duplicates included); True if a candidate changed."""
+        changed = self.merge(payload["candidates"])
+        if self.teammate_info_s is None or payload["t"] >= self.teammate_info_s:
+            self.teammate_pose, self.teammate_info_s = payload["pose"], payload["t"]
         return changed
 
     def active_candidate(self) -> Candidate | None:
@@ -104,13 +124,25 @@ class Channel:
         receiver: Role = "ugv" if sender == "uav" else "uav"
         distance, los = geometry
         d = self.links[(sender, receiver)].transmit(t, size, distance_m=distance, line_of_sight=los)
+        fault: Literal["corrupted"] | None = None
+        if kind == "message" and d.delivered and d.corrupt_seed is not None:  # text only (module docstring)
+            text = corrupt_text(payload["text"], self.profile.corruption.char_error_rate, d.corrupt_seed)
+            if text != payload["text"]:
+                payload, fault = {**payload, "text": text}, "corrupted"
         self._seq += 1
         self.ledger.append(LedgerEntry(
             seq=self._seq, kind=kind, sender=sender, receiver=receiver, sent_s=round(t, 4), size_bytes=size,
             delivered=d.delivered, arrive_s=None if d.arrive_s is None else round(d.arrive_s, 4),
-            delay_s=None if d.arrive_s is None else round(d.arrive_s - t, 4), drop_reason=d.reason))
+            delay_s=None if d.arrive_s is None else round(d.arrive_s - t, 4), drop_reason=d.reason, fault=fault))
         if d.delivered and d.arrive_s is not None:  # a delivered transmission always has its arrival time
             heapq.heappush(self._pending, _Pending(d.arrive_s, self._seq, receiver, kind, payload))
+            if d.duplicate_arrive_s is not None:  # the copy: its own entry, right after the original's
+                self._seq += 1
+                self.ledger.append(LedgerEntry(
+                    seq=self._seq, kind=kind, sender=sender, receiver=receiver, sent_s=round(t, 4), size_bytes=size,
+                    delivered=True, arrive_s=round(d.duplicate_arrive_s, 4),
+                    delay_s=round(d.duplicate_arrive_s - t, 4), fault="duplicate"))
+                heapq.heappush(self._pending, _Pending(d.duplicate_arrive_s, self._seq, receiver, kind, payload))
         return d
 
     def sync(self, sender: Role, t: float, pose: Pose, geometry: tuple[float, bool], *,
@@ -143,9 +175,7 @@ class Channel:
                 view.messages.append(record)
                 arrivals.append(Arrival(item.receiver, "message", True, record))
                 continue
-            changed = view.merge(item.payload["candidates"])
-            if view.teammate_info_s is None or item.payload["t"] >= view.teammate_info_s:
-                view.teammate_pose, view.teammate_info_s = item.payload["pose"], item.payload["t"]
+            changed = view.receive_sync(item.payload)
             arrivals.append(Arrival(item.receiver, item.kind, changed))
         return arrivals
 
@@ -159,10 +189,13 @@ class Channel:
 
     # ----- summary ------------------------------------------------------------------------------
     def stats(self, truth_candidates: list[Candidate]) -> LinkStats:
-        sent = len(self.ledger)
-        delivered = [e for e in self.ledger if e.delivered]
+        """The ledger summed up. Duplicate copies are counted in ``duplicated`` only: ``sent``,
+        ``delivered``, the delays and ``bytes_sent`` are about the transmissions the roles made."""
+        made = [e for e in self.ledger if e.fault != "duplicate"]
+        sent = len(made)
+        delivered = [e for e in made if e.delivered]
         dropped: dict[str, int] = {}
-        for e in self.ledger:
+        for e in made:
             if not e.delivered:
                 dropped[e.drop_reason or "unknown"] = dropped.get(e.drop_reason or "unknown", 0) + 1
         delays = [e.delay_s for e in delivered if e.delay_s is not None]
@@ -172,7 +205,9 @@ class Channel:
             delivery_rate=round(len(delivered) / sent, 4) if sent else None,
             mean_delay_s=round(sum(delays) / len(delays), 4) if delays else None,
             max_delay_s=round(max(delays), 4) if delays else None,
-            bytes_sent=sum(e.size_bytes for e in self.ledger),
+            bytes_sent=sum(e.size_bytes for e in made),
             mean_info_age_s={r: round(sum(a) / len(a), 3) if a else None for r, a in self._ages.items()},
             candidates_delivered=sum(c.candidate_id in known for c in truth_candidates),
-            candidates_lost=sum(c.candidate_id not in known for c in truth_candidates))
+            candidates_lost=sum(c.candidate_id not in known for c in truth_candidates),
+            duplicated=sum(e.fault == "duplicate" for e in self.ledger),
+            corrupted=sum(e.fault == "corrupted" for e in self.ledger))

@@ -54,11 +54,11 @@ from agos.runtime.schemas import (
     StepEvent,
     StoredTrace,
 )
-from agos.world.sim import capture, rules, sensors
+from agos.world.sim import capture, model_link, rules, sensors
 from agos.world.sim.comms import Channel
 from agos.world.sim.episode_vehicles import add_episode_vehicles
 from agos.world.sim.observations import coordination, observe, uav_waypoint
-from agos.world.sim.record import episode_record, logged_step, shortest_confirmable_path
+from agos.world.sim.record import decision_pose_error_m, episode_record, logged_step, shortest_confirmable_path
 from agos.world.sim.rules import IllegalAction
 from agos.world.sim.scene import STUDIO_OFFSET_M, Scene
 from agos.world.sim.state import EpisodeState, UavState, UgvState
@@ -170,7 +170,8 @@ class EpisodeRunner:
             if self._memo is not None:
                 self._memo[key] = memo
         st.references, st.teammate_reference, st.shortest_path_m = memo.references, memo.teammate, memo.shortest_path_m
-        st.channel = Channel(cfg.comm, spec.seed + 7919 * cfg.link_seed, {"uav": st.uav_pose(), "ugv": st.ugv_pose()})
+        st.channel = Channel(cfg.comm, spec.seed + 7919 * cfg.link_seed,
+                             {"uav": st.believed_pose("uav"), "ugv": st.believed_pose("ugv")})
         st.info_age = {"uav": None, "ugv": None}
 
     def teardown(self) -> None:
@@ -256,7 +257,7 @@ class EpisodeRunner:
             elif t_beacon <= now:
                 for role in ROLE_ORDER:
                     if st.channel.next_beacon[role] <= now:
-                        st.channel.sync(role, now, st.pose(role), st.link_geometry(), kind="beacon")
+                        st.channel.sync(role, now, st.believed_pose(role), st.link_geometry(), kind="beacon")
                         st.channel.next_beacon[role] += st.cfg.comm.beacon_s
             else:
                 due = [r for r in ROLE_ORDER if ready[r] <= now + 1e-9][:remaining]
@@ -300,12 +301,16 @@ class EpisodeRunner:
         st.decisions_used += 1
         route_before = len(st.ugv.route)
         uav_before = st.uav.position[:2]
+        decided_s = st.sim_time_s
         if st.cfg.timing_mode == "realtime" and action is not None and action.agent_wall_latency_s:
             # A slow decision takes effect late; the teammate's schedule is unaffected.
             st.sim_time_s += max(0.0, action.agent_wall_latency_s)
+        trip = model_link.exchange(st, role, action, st.sim_time_s - decided_s)  # the link to the model, both modes
+        if trip is not None:
+            st.sim_time_s += trip.link_s
         applied: ActionName = "WAIT"
         candidate_id: str | None = None
-        fallback = rules.refusal(role, obs, action)
+        fallback = model_link.failure(st, trip) or rules.refusal(role, obs, action)
         if fallback is None and action is not None:
             try:
                 candidate_id = rules.apply_action(st, role, action, obs)
@@ -321,15 +326,16 @@ class EpisodeRunner:
             st.traces.append(StoredTrace(role=role, decision_index=obs.decision_index, **msgspec.structs.asdict(action.trace)))
         if action is not None and action.message and fallback is None:
             st.channel.message(role, st.sim_time_s, action.message, st.link_geometry())
-        st.channel.sync(role, st.sim_time_s, st.pose(role), st.link_geometry())
-        st.step_log.append(logged_step(st, role, obs.decision_index, applied, candidate_id, route_before))
+        st.channel.sync(role, st.sim_time_s, st.believed_pose(role), st.link_geometry())
+        st.step_log.append(logged_step(st, role, obs.decision_index, applied, candidate_id, route_before, trip))
         self.sink.step(StepEvent(
             run_id=st.run_id, episode_id=st.spec.episode_id, role=role, decision_index=obs.decision_index,
             episode_step=st.decisions_used, sim_time_s=st.sim_time_s, requested=action, applied=applied,
             fallback_reason=fallback, pose_after=st.uav_pose() if role == "uav" else st.ugv_pose(),
             target_visible_uav=st.uav_target_px >= st.cfg.uav_visible_min_px() if role == "uav" else None,
             target_visible_ugv=st.ground_visible if role == "ugv" and applied == "STOP_OBSERVE" else None,
-            candidate_id=candidate_id, info_age_s=st.info_age[role]))
+            candidate_id=candidate_id, info_age_s=st.info_age[role], pose_error_m=decision_pose_error_m(st, role),
+            model_link_s=None if trip is None else round(trip.link_s, 4)))
 
     def _capture_move(self, role: Role, uav_before: tuple[float, float], route_before: int, every_m: float) -> None:
         """Dataset builds: the role's views along the move just applied, for its next observation."""

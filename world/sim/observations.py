@@ -32,8 +32,10 @@ from agos.runtime.schemas import (
     Role,
     Waypoint,
 )
+from agos.runtime.sensing import Fix
 from agos.world.sim import rules, sensors
 from agos.world.sim.confirm import check_confirm
+from agos.world.sim.localisation import believed_shot
 from agos.world.sim.options import uav_options, ugv_options
 from agos.world.sim.state import EpisodeState
 from agos.world.towns.asset import Town
@@ -47,15 +49,16 @@ def observe(st: EpisodeState, role: Role) -> Observation:
     if role == "uav":
         st.uav.decisions += 1
         shot = sensors.nadir(st.scene, st.uav.position[:2], st.uav.position[2], cam)
-        st.uav.last_nadir = shot
         st.uav_target_px = sensors.target_pixels(shot, st.target_uid)
+        shot = believed_shot(shot, _decision_fix(st, "uav"), st.uav.position[:2])
+        st.uav.last_nadir = shot  # E2A projects the annotated cell from where the UAV believes it looked
         if st.tau is None and st.uav_target_px >= st.cfg.uav_visible_min_px():
             st.tau = st.uav.decisions
         images = sensors.frames_of(shot, st.scene, cam, with_grid=True) + _map_frame(st, "uav")
         options = [uav_waypoint(st.town, n) for n in uav_options(st.town.uav_grid, st.uav.position[:2], st.active_uav)]
         return Observation(
             run_id=st.run_id, episode_id=st.spec.episode_id, role="uav",
-            decision_index=st.uav.decisions, sim_time_s=st.sim_time_s, pose=st.uav_pose(),
+            decision_index=st.uav.decisions, sim_time_s=st.sim_time_s, pose=st.believed_pose("uav"),
             mode="aerial", images=images, references=st.references, teammate_reference=st.teammate_reference,
             legal_actions=rules.uav_legal(st, options), waypoint_options=options,
             region_world_m=st.spec.region_world_m,
@@ -63,20 +66,27 @@ def observe(st: EpisodeState, role: Role) -> Observation:
             coordination=coordination(st, "uav"), grid_rows=sensors.GRID_ROWS, grid_cols=sensors.GRID_COLS,
             oracle=_oracle(st, "uav", st.uav_target_px >= st.cfg.uav_visible_min_px()), expert=_expert(st, "uav"))
     st.ugv.decisions += 1
-    if st.ugv.mode == "stop_6view":
-        images = [f for shot in st.ugv.six for f in sensors.frames_of(shot, st.scene, cam)] + _map_frame(st, "ugv")
-    else:
-        shot = sensors.ground_view(st.scene, "forward", st.ugv_xy(), st.ugv.heading_rad, cam)
-        images = sensors.frames_of(shot, st.scene, cam) + _map_frame(st, "ugv")
+    fix = _decision_fix(st, "ugv")
+    shots = st.ugv.six if st.ugv.mode == "stop_6view" else \
+        [sensors.ground_view(st.scene, "forward", st.ugv_xy(), st.ugv.heading_rad, cam)]
+    images = [f for shot in shots for f in sensors.frames_of(believed_shot(shot, fix, st.ugv_xy()), st.scene, cam)] \
+        + _map_frame(st, "ugv")
     road_options = _ugv_options(st)
     return Observation(
         run_id=st.run_id, episode_id=st.spec.episode_id, role="ugv",
-        decision_index=st.ugv.decisions, sim_time_s=st.sim_time_s, pose=st.ugv_pose(),
+        decision_index=st.ugv.decisions, sim_time_s=st.sim_time_s, pose=st.believed_pose("ugv"),
         mode="stop_6view" if st.ugv.mode == "stop_6view" else "driving", images=images,
         references=st.references, legal_actions=rules.ugv_legal(st, road_options), waypoint_options=road_options,
         region_world_m=st.spec.region_world_m, coordination=coordination(st, "ugv"),
         fresh_stop_observe=st.ugv.fresh_stop, oracle=_oracle(st, "ugv", bool(st.ground_visible)),
         expert=_expert(st, "ugv"))
+
+
+def _decision_fix(st: EpisodeState, role: Role) -> Fix:
+    """``role``'s localisation error for the decision being observed, kept for the record."""
+    fix = st.fix(role)
+    st.decision_fixes[role].append(fix)
+    return fix
 
 
 def uav_waypoint(town: Town, node_id: str) -> Waypoint:
@@ -96,7 +106,7 @@ def coordination(st: EpisodeState, role: Role | None = None) -> CoordinationStat
         candidates = [c for _, c in sorted(view.candidates.items())]
         messages = view.messages
         other = "ugv" if role == "uav" else "uav"
-        poses = {role: st.pose(role)}
+        poses = {role: st.believed_pose(role)}
         if view.teammate_pose is not None:
             poses[other] = view.teammate_pose
     return CoordinationState(
@@ -113,14 +123,15 @@ def _map_frame(st: EpisodeState, role: Role) -> list[ImageFrame]:
     carry what the link did not (docs/COMMS.md)."""
     if st.region_map is None:
         return []
-    own_xy = st.uav.position[:2] if role == "uav" else st.ugv_xy()
+    own = st.believed_pose(role)
+    own_xy = own.position_world_m[:2]
     reported = st.channel.views[role].teammate_pose
     mate_xy = None if reported is None else reported.position_world_m[:2]
     if role == "uav":
         rgb = st.region_map.render(uav_xy=own_xy, ugv_xy=mate_xy,
                                    ugv_yaw_rad=0.0 if reported is None else reported.yaw_rad)
     else:
-        rgb = st.region_map.render(uav_xy=mate_xy, ugv_xy=own_xy, ugv_yaw_rad=st.ugv.heading_rad)
+        rgb = st.region_map.render(uav_xy=mate_xy, ugv_xy=own_xy, ugv_yaw_rad=st.ugv.heading_rad + st.fix("ugv").dyaw_rad)
     return [ImageFrame(name="map", kind="map", encoding="png", data=encode_png(rgb),
                        metres_per_px=st.region_map.metres_per_px)]
 

@@ -14,8 +14,17 @@ import math
 
 from agos.runtime.episode_config import CameraConfig, ConfirmConfig
 from agos.runtime.geometry import distance_to_polygon
+from agos.runtime.model_link import Exchange
 from agos.runtime.provenance import provenance
-from agos.runtime.schemas import ActionName, CandidateOutcome, EpisodeRecord, LoggedStep, Role, VehicleSpec
+from agos.runtime.schemas import (
+    ActionName,
+    CandidateOutcome,
+    EpisodeRecord,
+    LoggedStep,
+    PoseErrorStats,
+    Role,
+    VehicleSpec,
+)
 from agos.runtime.traces import trace_stats, trace_usage
 from agos.world.sim.evidence import nearest_verifying_anchor
 from agos.world.sim.scene import Scene
@@ -53,6 +62,8 @@ def episode_record(st: EpisodeState, wall_time_s: float) -> EpisodeRecord:
         sim_time_s=round(st.sim_time_s, 3), wall_time_s=round(wall_time_s, 3), worker_id=st.worker_id,
         town_id=st.town.town_id, asset_sha256=st.town.sha256, seed=st.spec.seed,
         renderer=st.scene.renderer_name(), comm_profile=cfg.comm.name, timing_mode=cfg.timing_mode,
+        pose_error_profile=cfg.pose_error.name, pose_error=pose_error_stats(st),
+        model_link=None if st.model_link is None else st.model_link.stats(),
         link=st.channel.stats(st.candidates), ledger=st.channel.ledger, confirm_rejection=st.confirm_failure,
         tools=cfg.tools.model_dump(),
         config=cfg.model_dump(mode="json"), config_hash=cfg.config_hash(),
@@ -60,10 +71,30 @@ def episode_record(st: EpisodeState, wall_time_s: float) -> EpisodeRecord:
         decision_traces=st.traces, step_log=st.step_log, provenance=provenance())
 
 
+def pose_error_stats(st: EpisodeState) -> dict[str, PoseErrorStats]:
+    """Per role, the horizontal error of the pose it was shown at its decisions (empty when exact)."""
+    if st.cfg.pose_error.exact:
+        return {}
+    out: dict[str, PoseErrorStats] = {}
+    for role, fixes in st.decision_fixes.items():
+        if fixes:
+            errors = [f.horizontal_m for f in fixes]
+            out[role] = PoseErrorStats(mean_m=round(sum(errors) / len(errors), 3), max_m=round(max(errors), 3),
+                                       degraded_share=round(sum(f.degraded for f in fixes) / len(fixes), 3))
+    return out
+
+
+def decision_pose_error_m(st: EpisodeState, role: Role) -> float | None:
+    """The horizontal error of the pose ``role`` was shown at its latest decision (None when exact)."""
+    fixes = st.decision_fixes[role]
+    return round(fixes[-1].horizontal_m, 3) if fixes and not st.cfg.pose_error.exact else None
+
+
 def logged_step(st: EpisodeState, role: Role, decision_index: int, applied: ActionName, candidate_id: str | None,
-                route_before: int) -> LoggedStep:
+                route_before: int, trip: Exchange | None = None) -> LoggedStep:
     """The step log's entry for a decision just applied: where ``role`` is now, and for a UGV that
-    drove, the road it drove (its route had ``route_before`` nodes before the decision)."""
+    drove, the road it drove (its route had ``route_before`` nodes before the decision); ``trip``: what
+    its request and reply met on the link to the model (None: no link, or no model asked)."""
     x, y = st.uav.position[:2] if role == "uav" else st.ugv_xy()
     road: list[tuple[float, float]] = []
     if role == "ugv" and len(st.ugv.route) > route_before:
@@ -75,7 +106,11 @@ def logged_step(st: EpisodeState, role: Role, decision_index: int, applied: Acti
                         for c in st.candidates if c.candidate_id == candidate_id), [])
     return LoggedStep(role=role, decision_index=decision_index, sim_time_s=round(st.sim_time_s, 3), applied=applied,
                       position_world_m=(round(float(x), 3), round(float(y), 3)), road_path_world_m=road,
-                      candidate_id=candidate_id, candidate_polygon_world_m=polygon)
+                      candidate_id=candidate_id, candidate_polygon_world_m=polygon,
+                      pose_error_m=decision_pose_error_m(st, role),
+                      model_link_s=None if trip is None else round(trip.link_s, 4),
+                      model_bytes_up=0 if trip is None else trip.bytes_up,
+                      model_bytes_down=0 if trip is None else trip.bytes_down)
 
 
 def _simplified(points: list[tuple[float, float]], tolerance_m: float = 0.25) -> list[tuple[float, float]]:

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agos.runtime.episode_config import EpisodeConfig
+from agos.runtime.model_link import model_link_for
 from agos.runtime.schemas import (
     Candidate,
     EpisodeSpec,
@@ -38,8 +39,10 @@ from agos.runtime.schemas import (
     Termination,
     Waypoint,
 )
+from agos.runtime.sensing import Fix, PoseErrors
 from agos.world.sim import sensors
 from agos.world.sim.comms import Channel
+from agos.world.sim.localisation import in_degraded_zone
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import Town
 from agos.world.towns.roadgraph import RoadGraphs
@@ -118,6 +121,11 @@ class EpisodeState:
         """The expert's script per role, planned at the first observation (runs with the expert tool)."""
         self.passed: dict[Role, list[PassedView]] = {"uav": [], "ugv": []}
         """Views along each role's last move, until its next observation (``capture_every_m``)."""
+        self.localisation = PoseErrors(config.pose_error, spec.seed + 7919 * config.link_seed)
+        self.decision_fixes: dict[Role, list[Fix]] = {"uav": [], "ugv": []}
+        """Each role's localisation error at each of its decisions (the record's ``pose_error``)."""
+        self.model_link = model_link_for(config.model_link, spec.seed + 7919 * config.link_seed)
+        """The link to the model (None: onboard): what model-backed decisions pay in time."""
 
     # ----- views ----------------------------------------------------------------------------
     def ugv_xy(self) -> tuple[float, float]:
@@ -133,6 +141,25 @@ class EpisodeState:
 
     def pose(self, role: Role) -> Pose:
         return self.uav_pose() if role == "uav" else self.ugv_pose()
+
+    def fix(self, role: Role) -> Fix:
+        """``role``'s localisation error now (runtime/sensing.py; none with exact localisation)."""
+        def crowded() -> bool:
+            if role == "uav":
+                return in_degraded_zone(self.scene, self.uav.position)
+            x, y = self.ugv_xy()
+            return in_degraded_zone(self.scene, (x, y, sensors.UGV_CAMERA_HEIGHT_M))
+
+        return self.localisation.fix(role, self.sim_time_s, crowded)
+
+    def believed_pose(self, role: Role) -> Pose:
+        """The pose ``role`` believes it has now: what it is shown and sends its teammate."""
+        true, fix = self.pose(role), self.fix(role)
+        if fix.dx_m == fix.dy_m == fix.dyaw_rad == 0.0:
+            return true
+        x, y, z = true.position_world_m
+        return Pose(position_world_m=(round(x + fix.dx_m, 3), round(y + fix.dy_m, 3), z),
+                    yaw_rad=round(true.yaw_rad + fix.dyaw_rad, 6))
 
     def link_geometry(self) -> tuple[float, bool]:
         """Distance between the two agents and, where the profile uses it, line of sight."""

@@ -49,10 +49,12 @@ def cap_tokens(content: str | None, finish: str, max_tokens: int | None) -> tupl
 
 def completion_body(index: int, model: str, choices: list[tuple[str | None, str]], prompt_tokens: int) -> dict[str, Any]:
     """An OpenAI ``chat.completion`` object with one choice per ``(content, finish_reason)``;
-    ``completion_tokens`` counts every choice's content."""
+    ``completion_tokens`` counts every choice's content. Its id and time stamp have a fixed width, so
+    the body's size (a decision's ``reply_bytes`` on the link to the model) depends on the answer alone,
+    not on how many requests the server answered before."""
     completion = sum(text_tokens(content or "") for content, _ in choices)
     return {
-        "id": f"chatcmpl-standin-{index}", "object": "chat.completion", "created": int(time.time()), "model": model,
+        "id": f"chatcmpl-standin-{index:08d}", "object": "chat.completion", "created": int(time.time()), "model": model,
         "system_fingerprint": "agos-vlm-standin",
         "choices": [{"index": i, "message": {"role": "assistant", "content": content}, "logprobs": None, "finish_reason": finish}
                     for i, (content, finish) in enumerate(choices)],

@@ -1,0 +1,1 @@
+"""Localisation-error profiles (TOML), shipped as package data: ``--pose-error NAME``."""
