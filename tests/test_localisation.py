@@ -45,7 +45,7 @@ def test_a_bad_profile_is_one_line_naming_the_file_and_the_field(tmp_path: Path,
     with pytest.raises(PoseErrorProfileError) as caught:
         load_pose_error(path)
     assert str(caught.value).startswith(f"{path}: {field}:") and "\n" not in str(caught.value)
-    with pytest.raises(PoseErrorProfileError, match="no such file.*known profiles: exact"):
+    with pytest.raises(PoseErrorProfileError, match=r"no such file.*known profiles: exact"):
         load_pose_error("gnss-1km")
 
 
@@ -107,7 +107,8 @@ def test_an_episode_shows_each_role_its_believed_pose_and_records_the_error(worl
     for role in ("uav", "ugv"):
         errors = [e for r, e, _ in shown if r == role]
         stats = noisy["pose_error"][role]
-        assert stats["mean_m"] == pytest.approx(np.mean(errors), abs=2e-3) and stats["max_m"] == pytest.approx(max(errors), abs=2e-3)
+        assert stats["mean_m"] == pytest.approx(np.mean(errors), abs=2e-3)
+        assert stats["max_m"] == pytest.approx(max(errors), abs=2e-3)
         assert 1.0 < stats["mean_m"] < 40.0
     steps = [s for s in noisy["step_log"] if "pose_error_m" in s]
     assert len(steps) == len(noisy["step_log"]) and all(s["pose_error_m"] >= 0 for s in steps)
@@ -123,4 +124,4 @@ def test_the_sky_is_open_above_the_roofs_and_crowded_between_tall_blocks(world) 
     assert sky_blocked_share(scene, (0.0, 0.0, 400.0)) == 0.0 and not in_degraded_zone(scene, (0.0, 0.0, 400.0))
     anchors = town.roads.positions_world_m
     shares = [sky_blocked_share(scene, (float(p[0]), float(p[1]), 1.7)) for p in anchors[:: max(1, len(anchors) // 60)]]
-    assert 0.0 <= min(shares) and max(shares) <= 1.0 and max(shares) > 0.0  # grid-s7's blocks block some sky
+    assert min(shares) >= 0.0 and max(shares) <= 1.0 and max(shares) > 0.0  # grid-s7's blocks block some sky
