@@ -190,3 +190,19 @@ def test_an_episode_file_and_an_index(world, tmp_path: Path) -> None:
         Env(tmp_path / "bad.jsonl", config, scene=scene, town=town)
     with pytest.raises(ValueError, match="the scene was built with look 'flat' but the configuration's look is 'rich'"):
         Env(spec, EpisodeConfig(), scene=scene, town=town)
+
+
+def test_a_noisy_robot_on_a_faulty_link_gives_the_record_of_the_process_path(world, bus_path: BusPath,
+                                                                            tmp_path: Path) -> None:
+    """Localisation error (a degraded zone too) and duplicated, garbled messages: the same seed gives the
+    same record in one process as over the bus with the world and agents in their own processes."""
+    town, scene, spec = world
+    faulty = tmp_path / "faulty.toml"
+    faulty.write_text("[latency]\nmean_s = 0.05\n[duplicate]\np = 0.2\n[corruption]\nchar_error_rate = 0.05\n")
+    config = episode_config(policies="heuristic", comm=faulty, look="flat", decision_budget=BUDGET, cameras=SMALL,
+                            pose_error="urban-gnss")
+    with Env(spec, config, scene=scene, town=town) as env:
+        record = env.play({r: make_policy("heuristic", r) for r in ("uav", "ugv")})
+    over_bus = bus_path.play(spec, config, {"uav": "heuristic", "ugv": "heuristic"})
+    assert record.pose_error and record.link is not None and record.link.duplicated > 0
+    assert _summary(record) == _summary(over_bus)

@@ -125,3 +125,30 @@ def test_the_sky_is_open_above_the_roofs_and_crowded_between_tall_blocks(world) 
     anchors = town.roads.positions_world_m
     shares = [sky_blocked_share(scene, (float(p[0]), float(p[1]), 1.7)) for p in anchors[:: max(1, len(anchors) // 60)]]
     assert min(shares) >= 0.0 and max(shares) <= 1.0 and max(shares) > 0.0  # grid-s7's blocks block some sky
+
+
+@pytest.mark.parametrize("command", ["eval", "sweep"])
+@pytest.mark.parametrize(("flag", "text", "says"), [
+    ("--pose-error", "[ugv]\nnoise_m = -2.0\n", "ugv.noise_m: Input should be greater than or equal to 0"),
+    ("--comm", "[echo]\np = 0.1\n", "echo: Extra inputs are not permitted"),
+])
+def test_the_commands_refuse_a_bad_profile_in_one_line(tmp_path: Path, agos, command: str, flag: str, text: str,
+                                                       says: str) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text(text)
+    where = ["--run-dir", tmp_path / "run"] if command == "eval" else ["--split", tmp_path / "none.jsonl", "--out", tmp_path / "o"]
+    out = agos(command, flag, bad, *where)
+    assert (out.returncode, out.stderr.strip()) == (2, f"{command} error: {bad}: {says}")
+    assert not (tmp_path / "run").exists() and not (tmp_path / "o").exists()
+
+
+def test_a_settings_file_names_the_profile(tmp_path: Path) -> None:
+    from agos.runtime.settings import ConfigError, load_config
+
+    good, bad = tmp_path / "good.toml", tmp_path / "bad.toml"
+    good.write_text('[world]\npose_error = "urban-gnss"\n')
+    bad.write_text('[world]\npose_error = "gnss-1km"\n')
+    assert load_config(good, environ={}).world.pose_error == load_pose_error("urban-gnss")
+    with pytest.raises(ConfigError) as caught:
+        load_config(bad, environ={})
+    assert "world.pose_error" in str(caught.value) and "gnss-1km" in str(caught.value) and "\n" not in str(caught.value)
