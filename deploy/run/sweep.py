@@ -224,11 +224,17 @@ def _run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, par
     point_configs = [point_config(config, param, p.value).model_copy(update={"link_seed": p.seed}) for p in points]
     # Each finished episode is appended to its point's file in OUT/.episodes at once, so Ctrl-C loses
     # only the episodes in flight and the next run of the same sweep plays only what is missing.
-    # A file's name carries the hash of everything that shapes its records (never reused wrongly).
+    # A file's name is the hash of everything that shapes its records (never reused wrongly), and only
+    # that: a point already played is found again when the next run lists other values beside it.
     done_dir = out_dir / ".episodes"
     done_dir.mkdir(parents=True, exist_ok=True)
-    done_files = [done_dir / f"{i}-{_point_key(point_configs[i].model_dump_json(), policies, key_extra)}.jsonl"
-                  for i in range(len(points))]
+    keys = [_point_key(c.model_dump_json(), policies, key_extra) for c in point_configs]
+    if len(set(keys)) < len(keys):
+        raise ValueError(f"sweep parameter {param}: a value is given twice, or two values make the same episodes")
+    for i, key in enumerate(keys):  # what an earlier agos named by point index too
+        if (legacy := done_dir / f"{i}-{key}.jsonl").exists():
+            legacy.rename(done_dir / f"{key}.jsonl")
+    done_files = [done_dir / f"{key}.jsonl" for key in keys]
     results: dict[int, list[str]] = {i: (f.read_text().splitlines() if f.exists() else []) for i, f in enumerate(done_files)}
     finished = {(i, from_json(line, EpisodeRecord).episode_id) for i, lines in results.items() for line in lines}
     jobs = [(point_configs[i].model_dump_json(), to_json(e).decode(), list(policies), str(i), vlm_json)
