@@ -8,6 +8,19 @@
     obs, info = env.reset(seed=0)
     obs, reward, terminated, truncated, info = env.step(env.action_space.sample(mask=obs["action_mask"]))
 
+Importing this module registers both roles with Gymnasium's registry, as ``agos/UAV-v0`` and
+``agos/UGV-v0`` (:data:`ENV_IDS`); ``gymnasium.make`` passes its keyword arguments on to
+:class:`RoleEnv`:
+
+.. code-block:: python
+
+    import gymnasium
+    import agos.gymnasium
+
+    gymnasium.register_envs(agos.gymnasium)            # keeps the import: it registers the ids
+    env = gymnasium.make("agos/UGV-v0", partner="heuristic", episodes="val.jsonl")
+    # or, with no import of agos: gymnasium.make("agos.gymnasium:agos/UGV-v0", ...)
+
 It wraps :class:`agos.pettingzoo.AgosParallelEnv` (the same spaces, rewards, infos and ends; the
 learner's role's observation space and action space). A step is the learner's decision: the world
 plays on, with the partner answering whenever it alone is asked, until the learner is asked again
@@ -33,7 +46,7 @@ from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.runtime.schemas import Action, EpisodeRecord, EpisodeSpec, Role
 from agos.spaces import action_from_index
 
-__all__ = ["RoleEnv"]
+__all__ = ["ENV_IDS", "RoleEnv"]
 
 
 class RoleEnv(gymnasium.Env[dict[str, np.ndarray], np.int64]):
@@ -110,3 +123,11 @@ class RoleEnv(gymnasium.Env[dict[str, np.ndarray], np.int64]):
         if self._episode is not None:
             self.partner.end_episode(self._episode)
             self._episode = None
+
+
+ENV_IDS: dict[Role, str] = {"uav": "agos/UAV-v0", "ugv": "agos/UGV-v0"}
+"""The Gymnasium ids of the two roles (registered when this module is imported)."""
+
+for _role, _env_id in ENV_IDS.items():
+    if _env_id not in gymnasium.registry:  # importing twice (importlib.reload) registers once
+        gymnasium.register(_env_id, entry_point="agos.gymnasium:RoleEnv", kwargs={"role": _role})

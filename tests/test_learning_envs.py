@@ -163,3 +163,28 @@ def test_without_the_learn_extra_the_import_says_what_to_install(monkeypatch: py
     monkeypatch.delitem(sys.modules, "agos.spaces")  # imported afresh (put back after the test)
     with pytest.raises(ModuleNotFoundError, match=r"need gymnasium: pip install 'agos\[learn\]'"):
         importlib.import_module("agos.spaces")
+
+
+@pytest.mark.parametrize("role", ["uav", "ugv"])
+def test_gymnasium_make_builds_each_role_and_check_env_passes(role: str, episodes, scene) -> None:
+    """``gymnasium.make("agos/UAV-v0")`` and ``("agos/UGV-v0")``: the registry's role, the caller's
+    keyword arguments passed on; Gymnasium's own checker on the made environment."""
+    import gymnasium
+
+    import agos.gymnasium
+
+    gymnasium.register_envs(agos.gymnasium)
+    env = gymnasium.make(agos.gymnasium.ENV_IDS[role], partner="heuristic", episodes=episodes[:1], config=_config(),
+                         scene=scene)
+    assert isinstance(env.unwrapped, RoleEnv) and env.unwrapped.role == role
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(env.unwrapped, skip_render_check=True)
+    obs, _ = env.reset(seed=1)
+    obs, *_ = env.step(int(np.flatnonzero(obs["action_mask"])[0]))
+    assert env.observation_space.contains(obs)
+    env.close()
+    made = gymnasium.make(f"agos.gymnasium:{agos.gymnasium.ENV_IDS[role]}", episodes=episodes[:1], config=_config(),
+                          scene=scene)
+    assert made.spec is not None and made.spec.kwargs["role"] == role
+    made.close()
