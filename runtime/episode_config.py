@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import hashlib
 import json
+from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from agos.runtime.links import IDEAL, CommProfile, CorruptionSpec, DuplicateSpec
-from agos.runtime.model_link import ModelLinkProfile, placement
+from agos.runtime.model_link import ModelLinkProfile, load_model_link, placement
 from agos.runtime.sensing import EXACT, PoseErrorProfile, load_pose_error
 
 Look = Literal["flat", "rich"]
@@ -232,3 +233,10 @@ def differing_fields(a: dict[str, Any], b: dict[str, Any], prefix: str = "") -> 
         elif va != vb:
             out.append(f"{prefix}{key}")
     return out
+
+
+def with_model_link(config: EpisodeConfig, value: str | Path) -> EpisodeConfig:
+    """``config`` with the model placed by ``value`` (a name in deploy/model_link or a TOML file;
+    ``onboard``: no link, the configuration's default): for ``--model-link`` and the sweep axis
+    ``model_link``. Raises :class:`~agos.runtime.model_link.ModelLinkError` (one line)."""
+    return config.model_copy(update={"model_link": placement(load_model_link(value))})

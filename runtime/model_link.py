@@ -28,7 +28,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -36,9 +35,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from agos.runtime.links import BandwidthSpec, Blackout, CommProfile, LatencySpec, Link, LossSpec
 from agos.runtime.schemas import ModelLinkStats
 from agos.runtime.textfiles import TextFileError, one_line, read_toml
-
-if TYPE_CHECKING:
-    from agos.runtime.episode_config import EpisodeConfig
 
 PROFILE_DIR = Path(__file__).resolve().parents[1] / "deploy" / "model_link"
 MODEL_LINK_ENTROPY = 0x6D6F646C
@@ -134,13 +130,6 @@ def load_model_link(name_or_path: str | Path) -> ModelLinkProfile:
 def placement(profile: ModelLinkProfile | None) -> ModelLinkProfile | None:
     """What a configuration holds for ``profile``: None for the model onboard (no link), else the profile."""
     return None if profile is None or profile.onboard else profile
-
-
-def with_model_link(config: EpisodeConfig, value: str | Path) -> EpisodeConfig:
-    """``config`` with the model placed by ``value`` (a name in deploy/model_link or a TOML file;
-    ``onboard``: no link, the configuration's default): for ``--model-link`` and the sweep axis
-    ``model_link``. Raises :class:`ModelLinkError` (one line)."""
-    return config.model_copy(update={"model_link": placement(load_model_link(value))})
 
 
 def placement_name(profile: ModelLinkProfile | None) -> str:

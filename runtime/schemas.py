@@ -648,9 +648,9 @@ class VizFrame(Message, tag="viz_frame", kw_only=True):
     pose: Pose
     image: ImageFrame
     """On ``viz/<worker>/frame/<role>``: a JPEG of at most ``runtime.viz.THUMB_PX`` a side, the camera pose
-    as in the observation, no intrinsics. On ``viz/<worker>/full/<role>`` (only while a recorder asks for
-    full resolution): the observation's own image, as the agent got it. One frame per RGB view (six at
-    a STOP_OBSERVE); ``image.name`` says which."""
+    as in the observation, its intrinsics scaled to the thumbnail. On ``viz/<worker>/full/<role>`` (only
+    while a recorder asks for full resolution): the observation's own image, as the agent got it. One
+    frame per RGB view (six at a STOP_OBSERVE); ``image.name`` says which."""
 
 
 class EpisodeStarted(Message, tag="episode_started", kw_only=True):

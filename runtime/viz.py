@@ -33,7 +33,7 @@ import msgspec
 import numpy as np
 
 from agos.runtime.codec import decode
-from agos.runtime.schemas import ImageFrame, Observation, VizFrame
+from agos.runtime.schemas import CameraIntrinsics, ImageFrame, Observation, VizFrame
 
 if TYPE_CHECKING:
     from agos.runtime.bus import Bus
@@ -109,7 +109,18 @@ def _thumbnail(obs: Observation, frame: ImageFrame, size_px: int) -> VizFrame | 
     if not ok:
         return None
     return _viz_frame(obs, ImageFrame(name=frame.name, kind="rgb", encoding="jpeg", data=jpeg.tobytes(),
+                                      intrinsics=_scaled(frame.intrinsics, bgr.shape[1], bgr.shape[0]),
                                       world_from_camera=frame.world_from_camera))
+
+
+def _scaled(k: CameraIntrinsics | None, width_px: int, height_px: int) -> CameraIntrinsics | None:
+    """The intrinsics of the same camera at ``width_px`` x ``height_px`` (a thumbnail: MCAP recordings
+    give them as its CameraInfo)."""
+    if k is None or not k.width_px or not k.height_px:
+        return None
+    sx, sy = width_px / k.width_px, height_px / k.height_px
+    return CameraIntrinsics(width_px=width_px, height_px=height_px, fx_px=k.fx_px * sx, fy_px=k.fy_px * sy,
+                            cx_px=k.cx_px * sx, cy_px=k.cy_px * sy)
 
 
 class FrameStream:

@@ -24,13 +24,12 @@ from agos.agents.vlm.images import as_sent, sized
 from agos.agents.vlm.standin.server import DEFAULT_MODELS, StandinServer
 from agos.deploy.run.card import model_link_card, sampling
 from agos.runtime.codec import decode_image, encode_jpeg, encode_png
-from agos.runtime.episode_config import EpisodeConfig, config_hash
+from agos.runtime.episode_config import EpisodeConfig, config_hash, with_model_link
 from agos.runtime.model_link import (
     ModelLinkError,
     ModelLinkProfile,
     load_model_link,
     model_link_for,
-    with_model_link,
 )
 from agos.runtime.schemas import CameraIntrinsics, EpisodeRecord, ImageFrame
 from agos.runtime.settings import VlmOptions

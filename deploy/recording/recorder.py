@@ -1,8 +1,11 @@
 """``agos record``: the recorder process: a run's visualisation stream -> one rerun file per episode.
 
-    agos record --connect EP --run RUN --out DIR [--full]
+    agos record --connect EP --run RUN --out DIR [--full] [--format rrd|mcap]
 
 (``agos eval --record DIR`` and ``agos demo --record DIR`` start it for their run.)
+
+``--format mcap`` writes ``DIR/<episode>.mcap`` instead (deploy/recording/mcap_episode.py: ROS 2 message
+schemas and JSON, the same stream on the same terms); everything below holds for both formats.
 
 Contract: the recorder only subscribes, and only to ``agos/<run>/viz/...`` (on a secured bus it is
 the ``observer`` identity, which may hear nothing else), so it is never in the world's decision
@@ -49,6 +52,7 @@ from pathlib import Path
 from typing import Any
 
 from agos.deploy.recording.episode import MAP_PX, EpisodeRecording
+from agos.deploy.recording.mcap_episode import McapEpisodeRecording
 from agos.deploy.reports.episode_map import EpisodeMap, episode_map
 from agos.runtime import keys
 from agos.runtime.bus import Bus, Inbox, Sample, ZenohBus
@@ -65,6 +69,8 @@ QUEUE_BYTES = 128 * 2**20
 DRAIN_S = 5.0
 LATE_S = 2.0
 STATUS_FILE = "recorder.json"
+FORMATS = ("rrd", "mcap")
+"""File formats: rerun (the default) and MCAP (the ``robotics`` extra)."""
 STALL_ENV = "AGOS_FAULT_RECORDER_STALL_S"
 """The fault-injection variable (see the module docstring)."""
 
@@ -125,11 +131,14 @@ class Recorder:
     """Subscribes to one run's visualisation stream and keeps one :class:`EpisodeRecording` per episode."""
 
     def __init__(self, bus: Bus, run_id: str, out_dir: Path, *, full: bool = False,
-                 map_source: Callable[[EpisodeSpec], EpisodeMap] | None = None, inbox: BoundedInbox | None = None) -> None:
-        self.bus, self.run_id, self.out_dir, self.full = bus, run_id, out_dir, full
+                 map_source: Callable[[EpisodeSpec], EpisodeMap] | None = None, inbox: BoundedInbox | None = None,
+                 fmt: str = "rrd") -> None:
+        if fmt not in FORMATS:
+            raise ValueError(f"no recording format {fmt!r}: {' or '.join(FORMATS)}")
+        self.bus, self.run_id, self.out_dir, self.full, self.fmt = bus, run_id, out_dir, full, fmt
         self.map_source = map_source
         self.inbox = inbox or BoundedInbox()
-        self.open: dict[str, EpisodeRecording] = {}
+        self.open: dict[str, EpisodeRecording | McapEpisodeRecording] = {}
         self.closing: dict[str, float] = {}
         """Episode -> when (monotonic) to close its recording: its record has arrived."""
         self.finished: dict[str, dict[str, Any]] = {}
@@ -140,8 +149,8 @@ class Recorder:
         self._handles = [bus.subscribe(k, self.inbox) for k in keys.viz_light(run_id, full=full)]
 
     def serve(self, stop: StopFlag) -> int:
-        log.info("recording run %s to %s (%s)", self.run_id, self.out_dir,
-                 "full resolution" if self.full else "thumbnails")
+        log.info("recording run %s to %s (%s, %s files)", self.run_id, self.out_dir,
+                 "full resolution" if self.full else "thumbnails", self.fmt)
         self._status("recording")
         while not stop.is_set():
             sample = self.inbox.get(timeout_s=0.2)
@@ -239,10 +248,10 @@ class Recorder:
         else:
             self.rejections.reject(key, f"a {type(message).__name__} where none is expected")
 
-    def _recording(self, episode: str) -> EpisodeRecording:
+    def _recording(self, episode: str) -> EpisodeRecording | McapEpisodeRecording:
         if episode not in self.open:  # handle() has checked the id (a file name: nothing outside out_dir)
-            self.open[episode] = EpisodeRecording(self.out_dir, self.run_id, episode, full=self.full,
-                                                  map_source=self.map_source)
+            kind = McapEpisodeRecording if self.fmt == "mcap" else EpisodeRecording
+            self.open[episode] = kind(self.out_dir, self.run_id, episode, full=self.full, map_source=self.map_source)
         return self.open[episode]
 
     def _close(self, episode: str) -> None:
@@ -264,19 +273,19 @@ class Recorder:
 
     def _status(self, status: str, **extra: Any) -> None:
         """``DIR/recorder.json``: what the recorder is doing and, at exit, what it wrote and lost."""
-        doc = {"run_id": self.run_id, "status": status, "full_resolution": self.full, "pid": os.getpid(),
+        doc = {"run_id": self.run_id, "status": status, "full_resolution": self.full, "format": self.fmt, "pid": os.getpid(),
                "episodes": self.finished, "dropped_by_queue": dict(self._dropped_by_kind()), **extra}
         tmp = self.out_dir / f".{STATUS_FILE}.tmp"
         tmp.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
         tmp.replace(self.out_dir / STATUS_FILE)
 
 
-def main(cfg: AgosConfig, out_dir: Path, *, full: bool = False) -> int:
+def main(cfg: AgosConfig, out_dir: Path, *, full: bool = False, fmt: str = "rrd") -> int:
     setup_logging("record")
     stop = install_stop_handlers()
     with ZenohBus.from_settings(cfg.zenoh) as bus:
-        recorder = Recorder(bus, cfg.run.run_id, out_dir, full=full,
-                            map_source=lambda spec: episode_map(spec, size_px=MAP_PX))
+        recorder = Recorder(bus, cfg.run.run_id, out_dir, full=full, fmt=fmt,  # an MCAP file draws no town map
+                            map_source=None if fmt == "mcap" else lambda spec: episode_map(spec, size_px=MAP_PX))
         return recorder.serve(stop)
 
 

@@ -28,6 +28,8 @@ from pathlib import Path
 from agos.deploy.ops.ports import port_free, port_holder
 
 RRD_MAGIC = b"RRF2"
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+"""The first bytes of an MCAP file (``agos record --format mcap``), which this viewer does not open."""
 STOP_GRACE_S = 5.0
 """How long the viewer has to exit after it is told to, before it is killed."""
 
@@ -111,9 +113,13 @@ def main(path: Path, *, web: bool = False, web_port: int = 9090, grpc_port: int 
         print(f"agos view: no file {path}", file=sys.stderr)
         return 2
     with path.open("rb") as f:
-        if f.read(4) != RRD_MAGIC:
-            print(f"agos view: {path} is not a rerun recording (.rrd)", file=sys.stderr)
-            return 2
+        magic = f.read(len(MCAP_MAGIC))
+    if magic == MCAP_MAGIC:
+        print(f"agos view: {path} is an MCAP recording: open it in Foxglove (File > Open local file)", file=sys.stderr)
+        return 2
+    if magic[:4] != RRD_MAGIC:
+        print(f"agos view: {path} is not a rerun recording (.rrd)", file=sys.stderr)
+        return 2
     command = viewer()
     if web and command is not None:
         busy = busy_port({web_port: "--web-port", grpc_port: "--grpc-port"})

@@ -465,5 +465,7 @@ def _recording_summary(console: Console, recording: Recording) -> None:
     console.print(f"recordings: {len(files)} episode{'' if len(files) == 1 else 's'} in {recording.out_dir}"
                   + (f"; the recorder fell behind and dropped {dropped} visualisation samples" if dropped else ""),
                   highlight=False)
-    if files:
+    if files and files[0].endswith(".mcap"):
+        console.print(f"look at one in Foxglove (File > Open local file): {recording.out_dir / files[0]}", highlight=False)
+    elif files:
         console.print(f"look at one: agos view {recording.out_dir / files[0]}", highlight=False)

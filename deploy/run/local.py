@@ -44,10 +44,12 @@ RECORDER_START_S = 30.0
 
 @dataclass(frozen=True)
 class Recording:
-    """``--record DIR [--record-full]``: a recorder process writes one rerun file per episode to ``out_dir``."""
+    """``--record DIR [--record-full] [--record-format F]``: a recorder process writes one rerun (``rrd``) or
+    MCAP (``mcap``) file per episode to ``out_dir``."""
 
     out_dir: Path
     full: bool = False
+    fmt: str = "rrd"
 
 
 @dataclass(frozen=True)
@@ -80,8 +82,8 @@ def start_recorder(launcher: Launcher, recording: Recording, settings: AgosConfi
     """Start ``agos record`` (its own process and zenoh session, the observer identity on a secured
     bus); returns when it started (epoch seconds), for :func:`agos.deploy.recording.recorder.wait_ready`."""
     since = time.time()
-    launcher.start("recorder", ["record", "--out", str(recording.out_dir), *(["--full"] if recording.full else [])],
-                   settings)
+    launcher.start("recorder", ["record", "--out", str(recording.out_dir), *(["--full"] if recording.full else []),
+                                "--format", recording.fmt], settings)
     return since
 
 

@@ -67,7 +67,7 @@ def point_config(config: EpisodeConfig, param: str, value: str) -> EpisodeConfig
 
         return config.model_copy(update={"pose_error": load_pose_error(value)})
     if param == "model_link":
-        from agos.runtime.model_link import with_model_link
+        from agos.runtime.episode_config import with_model_link
 
         return with_model_link(config, value)
     try:
