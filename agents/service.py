@@ -289,7 +289,9 @@ def _stamped(action: Action, latency_s: float) -> bytes:
 
 
 async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, concurrency: int,
-                      reconnect_grace_s: float = 10.0) -> int:
+                      reconnect_grace_s: float = 10.0, worker: str = "*") -> int:
+    """Answer ``policy.role``'s decisions of run ``run_id`` until ``stop``: of every world worker's slot, or
+    only of ``worker``'s (``agos ros2 bridge --worker``). Returns the exit status."""
     loop = asyncio.get_running_loop()
     limit = asyncio.Semaphore(concurrency)
     executor = ThreadPoolExecutor(max_workers=concurrency, thread_name_prefix="policy")
@@ -319,7 +321,7 @@ async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, 
     agent_id = unique_id(policy.role)
     dispatch = _Dispatch(bus, policy, run_id, loop, on_loop)
     slots = _SlotSubscriptions(bus, run_id, policy.role, agent_id, dispatch, loop, reconnect_grace_s=reconnect_grace_s)
-    bus.watch_liveliness(keys.slot_live(run_id, "*"), slots)
+    bus.watch_liveliness(keys.slot_live(run_id, worker), slots)
     bus.declare_token(keys.live(run_id, "agent", agent_id))
     announce("agent", agent_id, run_id)
     log.info("%s agent (%s) serving run %s, up to %d decisions at once%s", policy.role, policy.name, run_id,

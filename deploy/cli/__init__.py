@@ -19,11 +19,12 @@
     agos view FILE.rrd              the rerun viewer on a recording
     agos plot episode|compare ...   trajectory figures from a run's records
     agos certs --out DIR            a CA and per-identity certificates for a secured bus
+    agos ros2 bridge --connect EP   a run as ROS 2 topics over rmw_zenoh; --drive ROLE from ROS 2
 
 Each command's parser lives in one module, by command group: runs (demo, eval, sweep, check),
 services (router, world, agent, human, evaluator, watch), recordings (record, view and the
 ``--record`` flags), reports (plot, metrics, compare, report, vlm-cache), datasets (dataset) and ops (health,
-certs). Two groups keep their parsers in their own layer, beside the code that runs them:
+certs), ros2 (the ROS 2 bridge). Two groups keep their parsers in their own layer, beside the code that runs them:
 ``agos map``/``agos episodes`` in world/cli.py, and ``agos vlm-standin`` in agents/vlm/standin/cli.py,
 whose own ``main`` needs it. :data:`COMMANDS` is the table that dispatches a parsed command.
 """
@@ -36,7 +37,7 @@ import os
 import sys
 
 try:  # a second or two of imports: Ctrl-C here is the same exit 130 as later, without a traceback
-    from agos.deploy.cli import datasets, ops, recordings, reports, runs, services
+    from agos.deploy.cli import datasets, ops, recordings, reports, ros2, runs, services
     from agos.deploy.cli.common import Command
     from agos.runtime.bus import RouterUnreachable
     from agos.runtime.deaths import ChildDied
@@ -75,7 +76,7 @@ COMMANDS: tuple[Command, ...] = (
     services.ROUTER, services.WORLD, services.AGENT, services.HUMAN, services.EVALUATOR,
     Command(("map", "episodes"), _add_world_parsers, _world_cli),
     reports.METRICS, reports.COMPARE, reports.REPORT, runs.CHECK, ops.HEALTH, ops.CERTS,
-    Command(("vlm-standin",), _add_standin_parser, _standin), reports.VLM_CACHE,
+    Command(("vlm-standin",), _add_standin_parser, _standin), reports.VLM_CACHE, ros2.ROS2,
 )
 """Every ``agos`` command, in the order ``agos --help`` lists them."""
 _BY_NAME = {name: command for command in COMMANDS for name in command.names}
