@@ -423,8 +423,11 @@ def _summary(console: Console, plan: RunPlan, orch: Orchestrator | None, attach:
         records = [orch.records[e] for e in sorted(orch.stored) if e in orch.records]
     if records:
         where = "attached" if attach else f"{processes} processes"
+        sensing = "".join(f", {what} {name}" for what, name, default in (
+            ("pose error", plan.config.pose_error.name, "exact"),
+            ("model", plan.config.model_link.name if plan.config.model_link else "onboard", "onboard")) if name != default)
         title = (f"{plan.run_id}: {len(records)} episodes, {plan.policies['uav']}/{plan.policies['ugv']} policies, "
-                 f"comm {plan.config.comm.name}, {where}")
+                 f"comm {plan.config.comm.name}{sensing}, {where}")
         console.print(results_table(by_difficulty(records), title=title))
         line = usage_line(records, plan)
         if line is not None:
