@@ -5,6 +5,8 @@ episode is assembled and resumed by the same command to the end, then a third bu
 Checks the issue's "Done when": trajectories, actions, messages, images and the JSONL export are
 written; every export line's answer validates against the action schema the agents send, and every
 image it names exists; the per-episode file hashes hold; a resumed build adds nothing and runs nothing.
+The directory loads with ``datasets`` (the card's Parquet configuration, images as ``Image``), and its
+card and LLaMA-Factory entry say what it holds (issue 41).
 """
 
 from __future__ import annotations
@@ -125,10 +127,54 @@ def test_every_export_line_is_a_valid_answer_with_its_images(built: tuple[Path, 
     assert {"MOVE_TO_UAV_WAYPOINT", "MOVE_TO_ROAD_WAYPOINT", "STOP_OBSERVE", "CONFIRM"} <= actions
 
 
+def test_the_directory_loads_with_datasets_and_its_card_counts_it(built: tuple[Path, Path, str], tmp_path: Path) -> None:
+    """Issue 41, item 1: ``datasets.load_dataset(DIR)`` through the card's ``configs``, images as the
+    ``Image`` feature; the card's YAML; LLaMA-Factory's entry. (LLaMA-Factory's and ms-swift's own loaders:
+    bench/dataset_loaders.py, outside the suite.)"""
+    import datasets
+    import yaml
+    from PIL import Image
+
+    _, out, _ = built
+    lines = [json.loads(x) for x in (out / "export.jsonl").read_text().splitlines()]
+    manifest = json.loads((out / "manifest.json").read_text())
+    card = (out / "README.md").read_text()
+    header = yaml.safe_load(card.split("---\n")[1])
+    assert header["license"] == "apache-2.0" and header["size_categories"] == ["n<1K"]
+    assert [c["config_name"] for c in header["configs"]] == ["default", "raw"]
+    for info in header["dataset_info"]:
+        assert info["splits"] == [{"name": "train", "num_bytes": info["splits"][0]["num_bytes"],
+                                   "num_examples": len(lines)}]
+    commit = manifest["provenance"]["commit"]
+    assert commit and f"`{commit}`" in card and f"`{manifest['config_hash']}`" in card
+    assert f"| all | 3 | {len(lines)} | {manifest['counts']['images']:,} | {manifest['counts']['bytes']:,} |" in card
+    assert f"agos dataset build --split {manifest['split']} --out DIR --capture-every 25" in card
+
+    ds = datasets.load_dataset(str(out), split="train", cache_dir=str(tmp_path / "hf"))
+    assert ds.num_rows == len(lines) and ds["id"] == [x["id"] for x in lines]  # the export's order
+    assert ds.features == datasets.Features._from_yaml_list(header["dataset_info"][0]["features"])
+    assert isinstance(ds.features["images"].feature, datasets.Image)
+    for row, line in zip(ds, lines, strict=True):
+        assert row["messages"] == line["messages"] and len(row["images"]) == len(line["images"])
+        for image, path in zip(row["images"], line["images"], strict=True):
+            with Image.open(out / path) as file:
+                assert isinstance(image, Image.Image) and image.size == file.size
+    raw = datasets.load_dataset(str(out), "raw", split="train", cache_dir=str(tmp_path / "hf"))
+    first = lines[0]["images"][0]
+    assert raw[0]["images"][0] == {"bytes": (out / first).read_bytes(), "path": first}
+
+    info = json.loads((out / "dataset_info.json").read_text())
+    assert info == {"agos": {"file_name": "export.jsonl", "formatting": "sharegpt",
+                             "columns": {"messages": "messages", "images": "images"},
+                             "tags": {"role_tag": "role", "content_tag": "content", "user_tag": "user",
+                                      "assistant_tag": "assistant", "system_tag": "system"}}}
+
+
 def test_the_same_command_again_resumes_and_adds_nothing(built: tuple[Path, Path, str]) -> None:
     split, out, _ = built
     before = json.loads((out / "manifest.json").read_text())
     export = (out / "export.jsonl").read_bytes()
+    card = (out / "README.md").read_bytes()
     again = subprocess.run([*AGOS, "dataset", "build", "--split", str(split), "--out", str(out), "--port", "7613",
                             "--capture-every", "25"],
                            capture_output=True, text=True, timeout=300)
@@ -136,7 +182,7 @@ def test_the_same_command_again_resumes_and_adds_nothing(built: tuple[Path, Path
     said = " ".join(again.stdout.split())  # rich wraps lines at the terminal's width
     assert "resuming the build" in said and "3 of 3 episodes already finished" in said, said
     assert json.loads((out / "manifest.json").read_text())["episodes"] == before["episodes"]
-    assert (out / "export.jsonl").read_bytes() == export
+    assert (out / "export.jsonl").read_bytes() == export and (out / "README.md").read_bytes() == card
 
 
 def test_another_split_in_the_same_directory_is_refused(built: tuple[Path, Path, str], tmp_path: Path) -> None:

@@ -7,7 +7,7 @@
     agos human --role uav|ugv|both  a person plays in the browser (the Human reference); --spectate: watch
     agos evaluator --connect EP     result store and metrics
     agos episodes sample|split|check  episode files
-    agos dataset build|stats        AGOS-Dataset: the expert's trajectories, actions, images, export
+    agos dataset build|stats|shard|merge  AGOS-Dataset: the expert's trajectories, actions, images, export
     agos map import|build|info|render town assets
     agos metrics PATH [--json]      every metric of a run (run dir, sqlite or JSONL summaries)
     agos compare RUN_A RUN_B        paired differences with bootstrap intervals and tests

@@ -2,6 +2,8 @@
 
     agos dataset build --split FILE --out DIR ...   the expert's trajectories, actions, messages and images
     agos dataset stats DIR                          counts and the statistics figure (reads files only)
+    agos dataset shard --split FILE --shards N --out DIR   the split as N shard files, one build each (Slurm array)
+    agos dataset merge DIR --out OUT                the shards' builds as one dataset, a one-host build's files
 """
 
 from __future__ import annotations
@@ -34,6 +36,18 @@ def _add_dataset(sub: Any) -> None:
     dss.add_argument("dir", type=Path, help="dataset directory (the --out of agos dataset build)")
     dss.add_argument("--out", type=Path, help="figure PNG (default DIR/stats.png)")
     dss.add_argument("--markdown", action="store_true", help="print the table as markdown (to paste)")
+    dsh = ds_sub.add_parser("shard", help="split an episode split into N shard files, each built on its own "
+                                          "(a Slurm array task), then merged with agos dataset merge")
+    dsh.add_argument("--split", type=Path, required=True, help="JSONL episode file (e.g. a split's train.jsonl)")
+    dsh.add_argument("--shards", type=int, required=True, metavar="N", help="how many shards (round-robin)")
+    dsh.add_argument("--out", type=Path, required=True,
+                     help="shard directory: DIR/shards.json, DIR/splits/<k>.jsonl; the builds go to DIR/shards/<k>")
+    dsm = ds_sub.add_parser("merge", help="merge the builds of agos dataset shard's shards into one dataset, the "
+                                          "files a one-host build of the split writes")
+    dsm.add_argument("dir", type=Path, help="shard directory (the --out of agos dataset shard)")
+    dsm.add_argument("--out", type=Path, required=True, help="dataset directory to write (run again to finish a merge)")
+    dsm.add_argument("--link", action="store_true",
+                     help="hard-link the episodes' files instead of copying them (same filesystem; leave both read-only)")
 
 
 def _build(args: argparse.Namespace, cfg: AgosConfig) -> int:
@@ -63,5 +77,30 @@ def _stats(args: argparse.Namespace) -> int:
     return stats.main(args.dir, args.out, markdown=args.markdown)
 
 
+def _shard(args: argparse.Namespace) -> int:
+    """``agos dataset shard``: reads and writes files only, no settings."""
+    from agos.deploy.dataset import shards
+
+    try:
+        plan = shards.shard(args.split, args.shards, args.out)
+    except shards.ShardError as exc:
+        print(f"dataset error: {exc}", file=sys.stderr)
+        return 2
+    print(shards.next_steps(plan, args.out))
+    return 0
+
+
+def _merge(args: argparse.Namespace) -> int:
+    """``agos dataset merge``: reads and writes files only, no settings."""
+    from agos.deploy.dataset import shards
+
+    try:
+        return shards.merge(args.dir, args.out, link=args.link)
+    except shards.ShardError as exc:
+        print(f"dataset error: {exc}", file=sys.stderr)
+        return 2
+
+
 DATASET = Command(("dataset",), _add_dataset, by_subcommand("dataset_command", {"build": with_settings(_build),
-                                                                             "stats": _stats}))
+                                                                             "stats": _stats, "shard": _shard,
+                                                                             "merge": _merge}))

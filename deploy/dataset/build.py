@@ -9,13 +9,16 @@ agents write every decision under
 ``DIR/.partial`` (agents/dataset/writer.py) and its world workers render each role's camera every
 ``--capture-every`` metres between decisions too. Each stored record is *assembled* here, on the
 build's thread: a successful episode whose two roles wrote every decision the record counts gets
-``episode.json`` (spec, outcome, the expert's trajectories) and ``files.sha256``, and its directory
+``episode.json`` (spec, outcome, the expert's trajectories), ``export.parquet`` (its examples with their
+images embedded, deploy/dataset/loading.py) and ``files.sha256``, and its directory
 is moved into ``DIR/episodes/<episode>`` in one rename, so an episode is either whole there or absent.
 An episode the expert failed (a bug in the dataset or the checker: the expert must succeed) is listed
 in ``failed.jsonl`` and left in ``.partial`` for a look. At the end (also after Ctrl-C) ``export.jsonl``
 (every decision's fine-tuning example, paths relative to ``DIR``) and ``manifest.json`` (counts, the
-split's sha256, the configuration hash, each episode's ``files.sha256`` hash) are written again from
-what is assembled.
+split's sha256, the configuration hash, the agos commit, each episode's ``files.sha256`` hash) are
+written again from what is assembled, and with them what trainers' loaders read: LLaMA-Factory's
+``dataset_info.json`` and the dataset card ``README.md``, whose ``configs`` point ``datasets`` at the
+Parquet files (deploy/dataset/loading.py).
 
 Run the same command again to resume: stored episodes are skipped, and a stored episode whose files
 were not assembled yet (the build stopped in between) is assembled from ``.partial``. On many hosts,
@@ -39,6 +42,7 @@ from typing import Any
 from rich.console import Console
 
 from agos.agents.dataset.writer import EPISODES, PARTIAL
+from agos.deploy.dataset import loading
 from agos.deploy.run import evaluate
 from agos.deploy.run import plan as run_plan
 from agos.runtime.schemas import EpisodeRecord, EpisodeSpec
@@ -94,6 +98,7 @@ class Assembler:
         expert = {role: json.loads((attempt / role / "expert.json").read_text()) for role in ROLES}
         spec = self.specs[record.episode_id]
         (attempt / EPISODE_FILE).write_text(json.dumps(_episode_doc(spec, record, expert), indent=1) + "\n")
+        _write_parquet(attempt, record.episode_id)
         (attempt / HASHES).write_text("".join(f"{digest}  {rel}\n" for rel, digest in _hashes(attempt)))
         if final.exists():
             shutil.rmtree(final)
@@ -110,6 +115,10 @@ def build(cfg: AgosConfig, split: Path, out_dir: Path, *, workers: int, capture_
     resumed build keeps the configuration it was started with (``run.json``)."""
     console = console or Console(soft_wrap=True)  # paths and commands it prints are never cut at the width
     out_dir = out_dir.resolve()
+    try:
+        loading.check_pyarrow()
+    except loading.LoadingFilesError as exc:
+        raise DatasetError(str(exc)) from None
     split_sha = _sha256(split)
     run_dir = out_dir / (cfg.run.run_id if attach else f"dataset-{split_sha[:8]}")
     made_from = json.loads((out_dir / MANIFEST).read_text()).get("split_sha256") if (out_dir / MANIFEST).exists() else None
@@ -135,13 +144,23 @@ def build(cfg: AgosConfig, split: Path, out_dir: Path, *, workers: int, capture_
                             resume=resume_command(split, out_dir, workers=workers, attach=attach, cfg=cfg,
                                                   config_path=config_path))
     finally:
-        manifest = _write_manifest(out_dir, plan, split, split_sha)
-        _write_export(out_dir, sorted(manifest["episodes"]))
+        manifest = finish(out_dir, plan, split, split_sha)
     c = manifest["counts"]
     console.print(f"dataset {out_dir}: {c['episodes']} of {len(plan.episodes)} episodes, {c['decisions']} decisions, "
                   f"{c['images']} images ({c['bytes'] / 1e6:.1f} MB); {c['failed']} failed; export: {out_dir / EXPORT}",
                   highlight=False)
     return code if code else (1 if c["failed"] else 0)
+
+
+def finish(out_dir: Path, plan: run_plan.RunPlan, split: Path, split_sha: str) -> dict[str, Any]:
+    """The top-level files, written again from what ``episodes/`` holds: ``manifest.json`` (returned),
+    ``export.jsonl`` and the loaders' files. ``agos dataset merge`` (shards.py) ends with this too, so a
+    merged build's files are a one-host build's: add a top-level file here, not in :func:`build`."""
+    _add_missing_parquet(out_dir)
+    manifest = _write_manifest(out_dir, plan, split, split_sha)
+    _write_export(out_dir, sorted(manifest["episodes"]))
+    loading.write_loading_files(out_dir, manifest, out_dir / EXPORT)
+    return manifest
 
 
 def resume_command(split: Path, out_dir: Path, *, workers: int, attach: bool, cfg: AgosConfig,
@@ -195,9 +214,12 @@ def _write_manifest(out_dir: Path, plan: run_plan.RunPlan, split: Path, split_sh
                                  "images": n_images, "bytes": n_bytes, "files_sha256": _sha256(hashes)}
         decisions, images, size = decisions + n_decisions, images + n_images, size + n_bytes
     failed = _lines(out_dir / FAILED)
+    run_file = plan.run_dir / run_plan.RUN_FILE
+    made_by = json.loads(run_file.read_text()).get("provenance", {}) if run_file.exists() else {}
     manifest = {
         "format": 1, "split": str(split), "split_sha256": split_sha, "run_dir": plan.run_dir.name,
         "config_hash": plan.config.config_hash(), "look": plan.config.look, "capture_every_m": plan.config.capture_every_m,
+        "provenance": {key: made_by.get(key) for key in ("agos", "commit", "dirty")},  # of the process that began it
         "counts": {"episodes": len(episodes), "decisions": decisions, "images": images, "bytes": size,
                    "failed": failed, "split": len(plan.episodes)},
         "episodes": episodes,
@@ -218,6 +240,21 @@ def _write_export(out_dir: Path, episodes: list[str]) -> None:
                 path = out_dir / EPISODES / episode / role / EXPORT
                 out.write(path.read_text())
     tmp.replace(out_dir / EXPORT)
+
+
+def _write_parquet(episode_dir: Path, episode_id: str) -> None:
+    """``export.parquet`` of an episode's directory (deploy/dataset/loading.py): both roles' examples, UAV
+    then UGV, as ``export.jsonl`` lists them, with their images."""
+    lines = [json.loads(line) for role in ROLES for line in (episode_dir / role / EXPORT).read_text().splitlines()]
+    loading.write_episode_parquet(lines, episode_dir, f"{EPISODES}/{episode_id}/", episode_dir / loading.PARQUET)
+
+
+def _add_missing_parquet(out_dir: Path) -> None:
+    """Episodes assembled before builds wrote ``export.parquet`` get it, and its line in ``files.sha256``."""
+    for ep_dir in sorted((out_dir / EPISODES).glob("*/")):
+        if (ep_dir / EPISODE_FILE).exists() and (ep_dir / HASHES).exists() and not (ep_dir / loading.PARQUET).exists():
+            _write_parquet(ep_dir, ep_dir.name)
+            (ep_dir / HASHES).write_text("".join(f"{digest}  {rel}\n" for rel, digest in _hashes(ep_dir)))
 
 
 def _stored_records(run_dir: Path) -> Iterator[EpisodeRecord]:

@@ -4,8 +4,8 @@ Not part of ``make test`` (pytest does not collect this file; it needs root and 
 munge, which .ci/run installs). The cluster (tests/support/slurm.py) starts once; phases, each timed:
 
   cluster     munged, slurmctld and three slurmd (nodes of 4 CPUs on this host, proctrack/cgroup)
-  split       two hard grid-s7 episodes of different lengths (flat look, seed 5); the dataset split is
-              the first of them
+  split       two hard grid-s7 episodes of different lengths (flat look, seed 5), the eval split and
+              the dataset split; `agos dataset shard` deals the dataset split into 2 shards
   local       beside the cluster, on one host: `agos eval` of the split (heuristic, flat look) and
               `agos dataset build` of the dataset split (flat look, views every 50 m)
   scancel     the eval job (-N3, one world worker per node) is cancelled once its first record is
@@ -16,6 +16,9 @@ munge, which .ci/run installs). The cluster (tests/support/slurm.py) starts once
               provenance aside); a world worker on every node joined
   dataset     the dataset build job (-N3, submitted beside the eval job) wrote the same files, byte for
               byte (sha256), as the one-host build; a world worker on every node joined
+  sharded     the sharded build: an array job (--array=0-1, -N1 a task, AGOS_DATASET_SHARDS) built one
+              shard per task, and a job depending on it (afterok) ran `agos dataset merge`: the merged
+              dataset has the same files, byte for byte, as the one-host build
   cleanup     the daemons stopped by pid, the nodes' cgroups removed, no process of the test left
 
 A step that cannot be done fails the test with the reason (exit 1); nothing is skipped. The cluster
@@ -68,7 +71,8 @@ def clean_env(**extra: str) -> dict[str, str]:
 
 
 def sample_split(work: Path) -> tuple[Path, Path, list[str]]:
-    """The eval split (two hard episodes: a short and a longer one) and the dataset split (the first)."""
+    """The eval split (two hard episodes: a short and a longer one) and the dataset split (the same two,
+    its own file: a dataset build's run id is its split's hash)."""
     split = work / "split.jsonl"
     out = subprocess.run([str(AGOS), "episodes", "sample", "--town", "grid-s7", "--difficulty", "hard", "-n", "2",
                           "--seed", "5", "--look", "flat", "--out", str(split)], env=clean_env(), capture_output=True,
@@ -77,7 +81,7 @@ def sample_split(work: Path) -> tuple[Path, Path, list[str]]:
         raise Failed(f"agos episodes sample: exit {out.returncode}\n{out.stdout}{out.stderr}")
     lines = split.read_text().splitlines()
     dataset = work / "dataset-split.jsonl"
-    dataset.write_text(lines[0] + "\n")
+    dataset.write_text("".join(line + "\n" for line in lines))
     return split, dataset, [json.loads(line)["episode_id"] for line in lines]
 
 
@@ -99,7 +103,7 @@ def processes_of(job_ids: set[int], folder: Path, *, but: Collection[int] = ()) 
     (SLURM_JOB_ID in their environment), or work in ``folder`` (their current directory or command line
     is there: the one-host runs and their children): 'pid command' each."""
     found = []
-    wanted = {f"SLURM_JOB_ID={j}".encode() for j in job_ids}
+    wanted = {f"SLURM_{kind}={j}".encode() for j in job_ids for kind in ("JOB_ID", "ARRAY_JOB_ID")}
     for proc in Path("/proc").iterdir():
         if not proc.name.isdigit() or int(proc.name) == os.getpid() or int(proc.name) in but:
             continue
@@ -195,23 +199,34 @@ def main() -> int:
                   flush=True)
         with phase("split"):
             split, dataset_split, episodes = sample_split(work)
-            print(f"eval split {episodes}; dataset split {episodes[:1]}", flush=True)
+            sharded = work / "ds-sharded"
+            cut = subprocess.run([str(AGOS), "dataset", "shard", "--split", str(dataset_split), "--shards", "2", "--out",
+                                  str(sharded)], env=clean_env(), capture_output=True, text=True, timeout=60, check=False)
+            if cut.returncode != 0:
+                raise Failed(f"agos dataset shard: exit {cut.returncode}\n{cut.stdout}{cut.stderr}")
+            print(f"eval split {episodes}; dataset split the same, in 2 shards: {sharded}", flush=True)
         run_dir = work / "runs" / "slurm-eval"
         eval_env = {"AGOS": str(AGOS), "AGOS_RUN_DIR": str(run_dir), "AGOS_SPLIT": str(split),
                     "AGOS_POLICY": "heuristic", "AGOS_WORLD__LOOK": "flat"}
         dataset_env = {"AGOS": str(AGOS), "AGOS_DATASET_OUT": str(work / "ds-slurm"), "AGOS_SPLIT": str(dataset_split),
                        "AGOS_DATASET_ARGS": " ".join(DATASET_ARGS)}
+        sharded_env = {"AGOS": str(AGOS), "AGOS_DATASET_SHARDS": str(sharded), "AGOS_DATASET_ARGS": " ".join(DATASET_ARGS)}
         sbatch_args = ["-N3", "--ntasks-per-node=1"]
-        with phase("submit: eval job, dataset job; one-host eval and build beside them"):
+        with phase("submit: eval job, dataset job, shards' array job and merge; one-host eval and build beside them"):
             first = cluster.sbatch(SCRIPT, *sbatch_args, env=eval_env, cwd=work)
             build = cluster.sbatch(SCRIPT, *sbatch_args, env=dataset_env, cwd=work)
-            jobs |= {first, build}
+            array = cluster.sbatch(SCRIPT, "--array=0-1", "-N1", "--ntasks-per-node=1", env=sharded_env, cwd=work)
+            merge = int(cluster.run("sbatch", "--parsable", f"--dependency=afterok:{array}", "-J", "agos-merge",
+                                    f"--output={work}/agos-%j.out", "--wrap",
+                                    f"{AGOS} dataset merge {sharded} --out {work / 'ds-merged'}").split(";")[0])
+            jobs |= {first, build, array, merge}
             local_eval_log, local_ds_log = work / "local-eval.out", work / "local-dataset.out"
             locals_.append(start_local(["eval", "--split", str(split), "--policy", "heuristic", "--workers", "2",
                                         "--run-dir", str(work / "local" / "eval")], local_eval_log, AGOS_WORLD__LOOK="flat"))
             locals_.append(start_local(["dataset", "build", "--split", str(dataset_split), "--out", str(work / "ds-local"),
                                         *DATASET_ARGS], local_ds_log))
-            print(f"eval job {first}, dataset job {build}; local eval and build started", flush=True)
+            print(f"eval job {first}, dataset job {build}, shards' array job {array}, merge job {merge}; local eval and "
+                  "build started", flush=True)
 
         db = run_dir / "results.sqlite"
         with phase("scancel mid-run"):
@@ -279,6 +294,32 @@ def main() -> int:
                 raise Failed(f"dataset job {build}: world workers joined from {sorted(nodes)}, not from every node")
             print(f"dataset job {build}: {len(on_slurm)} files, the same sha256 as the one-host build's; world workers "
                   f"on {sorted(nodes)}", flush=True)
+
+        with phase("sharded: 2 array tasks, merged, against the one-host build"):
+            try:
+                cluster.wait_gone(array, JOB_TIMEOUT_S)
+            except SlurmError as exc:
+                raise Failed(f"the shards' array job: {exc}") from None
+            tasks = cluster.array_tasks(array)
+            jobs |= {int(t["JobId"]) for t in tasks}
+            for t in tasks:
+                if t.get("JobState") != "COMPLETED" or t.get("ExitCode") != "0:0":
+                    out = work / f"agos-{t.get('JobId')}.out"
+                    raise Failed(f"array task {t.get('ArrayTaskId')} (job {t.get('JobId')}) ended {t.get('JobState')} "
+                                 f"exit {t.get('ExitCode')}; {out}:\n{tail(out)}")
+            if len(tasks) != 2:
+                raise Failed(f"array job {array}: {len(tasks)} tasks, not 2")
+            wait_job(cluster, merge, "the merge job", work)
+            merged = tree_hashes(work / "ds-merged", run_name)
+            if merged != on_host:
+                differ = sorted(k for k in merged.keys() | on_host.keys() if merged.get(k) != on_host.get(k))
+                raise Failed(f"the merged shards differ from the one-host build in {len(differ)} files: {differ[:10]}; "
+                             f"{work / f'agos-{merge}.out'}:\n{tail(work / f'agos-{merge}.out')}")
+            shard_episodes = [sorted(json.loads((sharded / "shards" / str(k) / "manifest.json").read_text())["episodes"])
+                              for k in (0, 1)]
+            print(f"array job {array}: tasks {[(t['ArrayTaskId'], t['JobId'], t['NodeList']) for t in tasks]} built "
+                  f"shards {shard_episodes}; merge job {merge}: {len(merged)} files, the same sha256 as the one-host "
+                  "build's", flush=True)
 
         with phase("no process left"):
             left = processes_of(jobs, work, but=cluster.daemon_pids())

@@ -199,8 +199,19 @@ class SlurmCluster:
         return dict(re.findall(r"(\w+)=(\S*)", out))
 
     def queued(self) -> list[int]:
-        """Jobs in the queue (pending, running or completing)."""
-        return [int(j) for j in self.run("squeue", "-h", "-o", "%i", timeout_s=10).split()]
+        """Jobs in the queue (pending, running or completing); an array job by its base id (squeue's
+        ``<base>_<task>`` or ``<base>_[0-1]``) while any of its tasks is."""
+        return sorted({int(j.split("_")[0]) for j in self.run("squeue", "-h", "-o", "%i", timeout_s=10).split()})
+
+    def array_tasks(self, job_id: int) -> list[dict[str, str]]:
+        """``scontrol show job``'s fields of each task of array job ``job_id`` (JobId, ArrayTaskId,
+        JobState, ExitCode, NodeList ...), in task order; [] once forgotten."""
+        try:
+            out = self.run("scontrol", "show", "job", "-o", str(job_id), timeout_s=10)
+        except SlurmError:
+            return []
+        tasks = [dict(re.findall(r"(\w+)=(\S*)", line)) for line in out.splitlines() if line.strip()]
+        return sorted(tasks, key=lambda t: int(t.get("ArrayTaskId", "0") or 0))
 
     def wait_gone(self, job_id: int, timeout_s: float) -> float:
         """Seconds until ``job_id`` left the queue (SlurmError after ``timeout_s``)."""
