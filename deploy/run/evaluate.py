@@ -28,7 +28,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from agos.deploy.ops.certs import RunCredentials
 from agos.deploy.run.budget import EXIT_CAPPED, Budget
 from agos.deploy.run.human import CONSOLE_NAMES
-from agos.deploy.run.launcher import ROUTER_PORT, Deaths, Launcher, free_port
+from agos.deploy.run.launcher import ROUTER_PORT, STOP_GRACE_S, Deaths, Launcher, free_port
 from agos.deploy.run.local import Recording, launch_all, start_attached_recorder
 from agos.deploy.run.orchestrator import STUCK_AFTER_S, Orchestrator
 from agos.deploy.run.plan import RunPlan, stored_episodes
@@ -366,10 +366,17 @@ def run(cfg: AgosConfig, plan: RunPlan, *, workers: int, attach: bool = False, p
         interrupted = True
     finally:
         deaths.report(console)  # one that died since the last look; nothing is stopped yet
+        # A recorder drains its queue for up to DRAIN_S after the stop and then writes its files: its
+        # time on top of the usual grace, or a loaded machine kills it with its episodes unwritten.
+        grace_s = STOP_GRACE_S
+        if recording is not None:
+            from agos.deploy.recording.recorder import DRAIN_S  # (rerun's import, only for runs that record)
+
+            grace_s += DRAIN_S
         if launcher.children:
-            launcher.stop_all(order=[n for n in launcher.children if n.startswith("world")] + STOP_ORDER)
+            launcher.stop_all(order=[n for n in launcher.children if n.startswith("world")] + STOP_ORDER, grace_s=grace_s)
         if side is not None:
-            side.stop_all()
+            side.stop_all(grace_s=grace_s)
         if bus is not None:
             bus.close()
         if creds is not None:
