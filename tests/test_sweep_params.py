@@ -157,3 +157,14 @@ def test_a_vlm_policy_without_an_endpoint_fails_before_anything_runs(tmp_path: P
         run_sweep(tmp_path / "missing.jsonl", tmp_path / "out", config=EpisodeConfig(), param="loss.q", values=[0.1],
                   seeds=[0], policies=("heuristic", "heuristic"), workers=1)
     assert not (tmp_path / "out").exists()
+
+
+def test_each_point_has_a_file_of_its_own() -> None:
+    """Numbers keep their dots (0.1 and 0.01 are two files), a profile file is named by its stem."""
+    from agos.deploy.run.sweep import point_file_name
+
+    names = {point_file_name("corruption.char_error_rate", v, 0) for v in ("0", "0.1", "0.01", "0.001")}
+    assert len(names) == 4 and "corruption.char_error_rate=0.01_seed0.jsonl" in names
+    assert point_file_name("pose_error", "gnss-5m", 1) == "pose_error=gnss-5m_seed1.jsonl"
+    assert point_file_name("pose_error", "my/urban.toml", 0) == "pose_error=urban_seed0.jsonl"
+    assert point_file_name("loss.p", "0.25", 0) == "loss.p=0.25_seed0.jsonl"

@@ -82,6 +82,13 @@ def value_label(param: str, value: str) -> str:
     return value if param in PROFILE_AXES else f"{float(value):g}"
 
 
+def point_file_name(param: str, label: str, seed: int) -> str:
+    """``points/<param>=<value>_seed<seed>.jsonl``; a profile given as a TOML file is named by its stem
+    (a number keeps its dots: ``loss.p=0.25``)."""
+    value = Path(label).stem if param in PROFILE_AXES and label.endswith(".toml") else label
+    return f"{param}={value}_seed{seed}.jsonl"
+
+
 def with_param(profile: CommProfile, param: str, value: float) -> CommProfile:
     """A copy of ``profile`` with one parameter set (see the module; ``loss.p`` also switches Bernoulli loss on).
 
@@ -254,7 +261,7 @@ def _run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, par
     for i, point in enumerate(points):
         lines = sorted(results[i])
         label = value_label(param, point.value)
-        (out_dir / "points" / f"{param}={Path(label).stem}_seed{point.seed}.jsonl").write_text("\n".join(lines) + "\n")
+        (out_dir / "points" / point_file_name(param, label, point.seed)).write_text("\n".join(lines) + "\n")
         rows.append({"value": label, "seed": point.seed, "records": lines})
     table = summarize(rows, out_dir, param)
     shutil.rmtree(done_dir, ignore_errors=True)
