@@ -38,9 +38,9 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from agos.runtime.textfiles import TextFileError, one_line, read_toml
+from agos.runtime.textfiles import read_profile
 
 PROFILE_DIR = Path(__file__).resolve().parents[1] / "deploy" / "comm"
 
@@ -129,24 +129,8 @@ class ProfileError(ValueError):
 def load_profile(name_or_path: str | Path) -> CommProfile:
     """A profile by name (``deploy/comm/<name>.toml``) or by file path; :class:`ProfileError` (one line)
     for a missing, unreadable or invalid one."""
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = PROFILE_DIR / f"{name_or_path}.toml"
-    elif not path.exists() and path.parent == Path(".") and (PROFILE_DIR / path.name).exists():
-        path = PROFILE_DIR / path.name
-    try:
-        data = read_toml(path)
-    except FileNotFoundError:
-        known = ", ".join(sorted(p.stem for p in PROFILE_DIR.glob("*.toml")))
-        raise ProfileError(one_line(f"comm profile {name_or_path}: no such file ({path}); known profiles: {known}")) from None
-    except TextFileError as exc:
-        raise ProfileError(one_line(f"{path}: {exc}")) from None
-    data.setdefault("name", path.stem)
-    try:
-        return CommProfile.model_validate(data)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        raise ProfileError(one_line(f"{path}: {'.'.join(str(p) for p in err['loc'])}: {err['msg']}")) from None
+    return read_profile(name_or_path, PROFILE_DIR, CommProfile, ProfileError, what="comm profile",
+                        known_as="known profiles")
 
 
 IDEAL = CommProfile(name="ideal")

@@ -30,11 +30,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from agos.runtime.links import BandwidthSpec, Blackout, CommProfile, LatencySpec, Link, LossSpec
 from agos.runtime.schemas import ModelLinkStats
-from agos.runtime.textfiles import TextFileError, one_line, read_toml
+from agos.runtime.textfiles import read_profile
 
 PROFILE_DIR = Path(__file__).resolve().parents[1] / "deploy" / "model_link"
 MODEL_LINK_ENTROPY = 0x6D6F646C
@@ -98,33 +98,12 @@ class ModelLinkError(ValueError):
     """A bad model-link profile; the message names the file and the field."""
 
 
-def _known() -> str:
-    return ", ".join(sorted(p.stem for p in PROFILE_DIR.glob("*.toml")))
-
 
 def load_model_link(name_or_path: str | Path) -> ModelLinkProfile:
     """A placement by name (``deploy/model_link/<name>.toml``) or by file path; :class:`ModelLinkError`
     (one line naming the file and the field) for a missing, unreadable or invalid one."""
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = PROFILE_DIR / f"{name_or_path}.toml"
-    elif not path.exists() and path.parent == Path(".") and (PROFILE_DIR / path.name).exists():
-        path = PROFILE_DIR / path.name
-    try:
-        data = read_toml(path)
-    except FileNotFoundError:
-        raise ModelLinkError(one_line(f"model link {name_or_path}: no such file ({path}); known placements: "
-                                      f"{_known()}")) from None
-    except TextFileError as exc:
-        raise ModelLinkError(one_line(f"{path}: {exc}")) from None
-    data.setdefault("name", path.stem)
-    try:
-        return ModelLinkProfile.model_validate(data)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        where = ".".join(str(p) for p in err["loc"])
-        msg = str(err["msg"]).removeprefix("Value error, ")
-        raise ModelLinkError(one_line(f"{path}: {where + ': ' if where else ''}{msg}")) from None
+    return read_profile(name_or_path, PROFILE_DIR, ModelLinkProfile, ModelLinkError, what="model link",
+                        known_as="known placements")
 
 
 def placement(profile: ModelLinkProfile | None) -> ModelLinkProfile | None:

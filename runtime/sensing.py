@@ -27,9 +27,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field
 
-from agos.runtime.textfiles import TextFileError, one_line, read_toml
+from agos.runtime.textfiles import read_profile
 
 PROFILE_DIR = Path(__file__).resolve().parents[1] / "deploy" / "sensing"
 
@@ -81,23 +81,8 @@ class PoseErrorProfileError(ValueError):
 def load_pose_error(name_or_path: str | Path) -> PoseErrorProfile:
     """A profile by name (``deploy/sensing/<name>.toml``) or file path; :class:`PoseErrorProfileError`
     (one line) for a missing, unreadable or invalid one."""
-    path = Path(name_or_path)
-    if not path.suffix:
-        path = PROFILE_DIR / f"{name_or_path}.toml"
-    try:
-        data = read_toml(path)
-    except FileNotFoundError:
-        known = ", ".join(sorted(p.stem for p in PROFILE_DIR.glob("*.toml")))
-        raise PoseErrorProfileError(one_line(
-            f"pose-error profile {name_or_path}: no such file ({path}); known profiles: {known}")) from None
-    except TextFileError as exc:
-        raise PoseErrorProfileError(one_line(f"{path}: {exc}")) from None
-    data.setdefault("name", path.stem)
-    try:
-        return PoseErrorProfile.model_validate(data)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        raise PoseErrorProfileError(one_line(f"{path}: {'.'.join(str(p) for p in err['loc'])}: {err['msg']}")) from None
+    return read_profile(name_or_path, PROFILE_DIR, PoseErrorProfile, PoseErrorProfileError, what="pose-error profile",
+                        known_as="known profiles")
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import tomllib
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
+
+from pydantic import BaseModel, ValidationError
 
 
 class TextFileError(ValueError):
@@ -44,3 +46,33 @@ def read_toml(path: Path) -> dict[str, Any]:
         raise TextFileError(one_line(f"not valid TOML ({exc})")) from None
     except RecursionError:
         raise TextFileError("not valid TOML (nested too deeply)") from None
+
+
+ProfileT = TypeVar("ProfileT", bound=BaseModel)
+
+
+def read_profile(name_or_path: str | Path, folder: Path, model: type[ProfileT], error: type[Exception], *,
+                 what: str, known_as: str) -> ProfileT:
+    """A profile (comm, model link, pose error) by name (``folder/<name>.toml``) or file path, its
+    ``name`` defaulting to the file's stem; ``error`` (one line naming the file and the field) for a
+    missing, unreadable or invalid one. ``what`` and ``known_as`` word the missing-file line."""
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = folder / f"{name_or_path}.toml"
+    elif not path.exists() and path.parent == Path(".") and (folder / path.name).exists():
+        path = folder / path.name
+    try:
+        data = read_toml(path)
+    except FileNotFoundError:
+        known = ", ".join(sorted(p.stem for p in folder.glob("*.toml")))
+        raise error(one_line(f"{what} {name_or_path}: no such file ({path}); {known_as}: {known}")) from None
+    except TextFileError as exc:
+        raise error(one_line(f"{path}: {exc}")) from None
+    data.setdefault("name", path.stem)
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err["loc"])
+        msg = str(err["msg"]).removeprefix("Value error, ")
+        raise error(one_line(f"{path}: {where + ': ' if where else ''}{msg}")) from None
