@@ -112,10 +112,6 @@ def test_an_episode_shows_each_role_its_believed_pose_and_records_the_error(worl
         assert 1.0 < stats["mean_m"] < 40.0
     steps = [s for s in noisy["step_log"] if "pose_error_m" in s]
     assert len(steps) == len(noisy["step_log"]) and all(s["pose_error_m"] >= 0 for s in steps)
-    # What the UAV believes moves the candidate it projects: E2A from its believed camera pose.
-    if exact["candidates"] and noisy["candidates"]:
-        assert exact["candidates"][0]["center_world_m"] != noisy["candidates"][0]["center_world_m"]
-    # The teammate hears believed poses: the UGV's first sync carries the UAV's believed start.
     assert exact["config_hash"] != noisy["config_hash"]
 
 
