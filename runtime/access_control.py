@@ -33,7 +33,11 @@ rules, generated from it, do not change with episodes either.
 How zenoh's rules read: a message *into* the router from a client is ``ingress``; one the router
 sends *out* to a client is ``egress``. Publishing is ``put`` ingress, and hearing it is ``put``
 egress plus ``declare_subscriber`` ingress. A publisher also learns of matching subscribers
-(``declare_subscriber`` egress), which agos uses to wait for a receiver (ZENOH_NOTES).
+(``declare_subscriber`` egress), which agos uses to wait for a receiver. So a subscriber
+declares keys inside each publisher's grant (a world worker: ``act/<slot>/uav`` and ``.../ugv``, not
+``act/*/*``): the router tells no publisher of a wider subscription, and a zenoh 1.10 client that never
+heard of a subscriber drops its own puts (seen: 1 run in 10, whenever the declaration reached the router
+after the publisher's session opened).
 """
 
 from __future__ import annotations

@@ -160,7 +160,10 @@ def _relay_checks(router_a: zenoh.Session, stranger_router: zenoh.Session, world
     obs, act = keys.obs(RUN, "w1", "uav"), keys.act(RUN, "w1", "uav")
     uav_hears, world_hears, orch_hears = Inbox(), Inbox(), Inbox()
     uav.subscribe(keys.obs(RUN, "*", "uav"), uav_hears)
-    world.subscribe(keys.act(RUN, "*", "*"), world_hears)
+    # One key per role, as a world worker subscribes: a wider one (act/*/*) is more than the UAV agent's
+    # grant lets A tell it of, so its client would never learn of a subscriber and drop its own puts.
+    for role in keys.ROLES:
+        world.subscribe(keys.act(RUN, "w1", role), world_hears)
     for key in (keys.result(RUN, "*"), keys.result_ack(RUN, "*")):
         orchestrator.subscribe(key, orch_hears)
 
@@ -171,7 +174,7 @@ def _relay_checks(router_a: zenoh.Session, stranger_router: zenoh.Session, world
 
     heard = _until(uav_hears, obs, both)
     assert set(heard) == {obs}
-    # A's agent forges the UGV's action before its own: A drops it, B's world hears only the UAV's.
+    # A's agent forges the UGV's action before its own: it never reaches B's world, only the UAV's does.
     for _ in range(5):
         uav.publish(keys.act(RUN, "w1", "ugv"), b"forged")
     assert set(_until(world_hears, act, lambda: uav.publish(act, b"a"))) == {act}
