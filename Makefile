@@ -48,14 +48,14 @@ check: $(STAMP)
 # test: what check runs, and every loopback and e2e test too, in one pytest session on two workers
 # (each file on one worker, so a module's running system is started once; every test takes free
 # ports), beside ruff, the contracts and mypy. One session lets the CPU-bound unit tests fill the time
-# the e2e tests spend waiting on processes and timers.
+# the e2e tests spend waiting on processes and timers. It lists its 25 slowest tests: where CI's time goes.
 test: $(STAMP)
 	$(MAKE) --no-print-directory -j2 --output-sync=target static all-tests
 
 static: lint contracts typecheck
 
 all-tests: $(STAMP)
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=25
 
 # The layer contracts in pyproject.toml: runtime at the bottom; world, agents, evaluator beside each
 # other; the library (agos/ itself) on them; deploy on top; no import cycles. Run in .typecheck/, where
