@@ -42,7 +42,7 @@ from agos.runtime.health import announce, unique_id
 from agos.runtime.process import StopFlag, install_stop_handlers, setup_logging
 from agos.runtime.rejections import Rejections, non_finite_field
 from agos.runtime.schemas import Action, Observation, Role
-from agos.runtime.settings import AgosConfig
+from agos.runtime.settings import DEFAULTS, AgosConfig
 
 log = logging.getLogger("agos.agent")
 
@@ -181,7 +181,7 @@ class _SlotSubscriptions:
     threads; the (un)subscribing is done on the asyncio loop, outside zenoh's callbacks."""
 
     def __init__(self, bus: Bus, run_id: str, role: Role, agent_id: str, dispatch: _Dispatch,
-                 loop: asyncio.AbstractEventLoop, *, reconnect_grace_s: float = 10.0) -> None:
+                 loop: asyncio.AbstractEventLoop, *, reconnect_grace_s: float) -> None:
         self.bus, self.run_id, self.role, self.agent_id = bus, run_id, role, agent_id
         self.dispatch, self.loop, self.reconnect_grace_s = dispatch, loop, reconnect_grace_s
         self.handles: dict[str, tuple[Any, Any]] = {}  # worker -> (subscription, ready token)
@@ -289,7 +289,7 @@ def _stamped(action: Action, latency_s: float) -> bytes:
 
 
 async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, concurrency: int,
-                      reconnect_grace_s: float = 10.0, worker: str = "*") -> int:
+                      reconnect_grace_s: float = DEFAULTS.run.reconnect_grace_s, worker: str = "*") -> int:
     """Answer ``policy.role``'s decisions of run ``run_id`` until ``stop``: of every world worker's slot, or
     only of ``worker``'s (``agos ros2 bridge --worker``). Returns the exit status."""
     loop = asyncio.get_running_loop()
@@ -338,7 +338,7 @@ async def serve_async(bus: Bus, policy: Policy, run_id: str, stop: StopFlag, *, 
     return fatal[0].exit_code if fatal else 0
 
 
-def main(cfg: AgosConfig, *, role: Role, policy_name: str | None = None, concurrency: int = 32,
+def main(cfg: AgosConfig, *, role: Role, policy_name: str | None = None, concurrency: int,
          dataset_out: Path | None = None) -> int:
     setup_logging(f"agent-{role}")
     stop = install_stop_handlers()

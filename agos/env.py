@@ -57,6 +57,7 @@ from agos.runtime.episode_config import EpisodeConfig, ToolConfig
 from agos.runtime.links import load_profile
 from agos.runtime.model_link import load_model_link
 from agos.runtime.schemas import (
+    DIFFICULTIES,
     Action,
     AgentMessage,
     Candidate,
@@ -68,6 +69,7 @@ from agos.runtime.schemas import (
     Role,
     StepEvent,
 )
+from agos.runtime.settings import DEFAULT_TOWN
 from agos.world.sim import rules
 from agos.world.sim.engine import ROLE_ORDER, DecisionSource, EpisodeRunner, EpisodeSink, SetupMemo
 from agos.world.sim.scene import Scene
@@ -78,8 +80,6 @@ __all__ = ["ROLES", "Env", "EnvStateError", "IllegalActionError", "StepResult", 
 ROLES: tuple[Role, Role] = ROLE_ORDER
 """The two roles, in the order the world applies a round's actions."""
 IllegalMode = Literal["raise", "wait"]
-DEFAULT_TOWN = "grid-s7"
-"""The town :meth:`Env.generated` samples from unless told another (``agos demo``'s)."""
 MOVES = {"uav": "MOVE_TO_UAV_WAYPOINT", "ugv": "MOVE_TO_ROAD_WAYPOINT"}
 MEMO_EPISODES = 256
 """Episodes whose setup renders an Env keeps (a few small images each)."""
@@ -220,7 +220,7 @@ class Env:
         """An Env on an episode sampled now, as ``agos episodes sample --town TOWN --seed SEED`` samples
         the first of ``difficulty`` (checked solvable by rendering; a second or so). ``kwargs``: as
         :class:`Env` takes them."""
-        from agos.world.episodes.sampling import DIFFICULTIES, sample_episode
+        from agos.world.episodes.sampling import sample_episode
 
         config = config or EpisodeConfig()
         built = open_town(town)

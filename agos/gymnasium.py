@@ -43,7 +43,9 @@ from agos.agents.registry import make_policy
 from agos.env import EnvStateError
 from agos.pettingzoo import AgosParallelEnv
 from agos.runtime.episode_config import EpisodeConfig, ToolConfig
+from agos.runtime.keys import ROLES
 from agos.runtime.schemas import Action, EpisodeRecord, EpisodeSpec, Role
+from agos.runtime.settings import DEFAULT_POLICY
 from agos.spaces import action_from_index
 
 __all__ = ["ENV_IDS", "RoleEnv"]
@@ -57,10 +59,10 @@ class RoleEnv(gymnasium.Env[dict[str, np.ndarray], np.int64]):
 
     metadata = {"render_modes": []}  # noqa: RUF012 - gymnasium.Env declares it so
 
-    def __init__(self, role: Role = "uav", partner: str | Policy = "heuristic",
+    def __init__(self, role: Role = "uav", partner: str | Policy = DEFAULT_POLICY,
                  episodes: Sequence[EpisodeSpec] | str | os.PathLike[str] | None = None,
                  config: EpisodeConfig | None = None, **kwargs: Any) -> None:
-        if role not in ("uav", "ugv"):
+        if role not in ROLES:
             raise ValueError(f"role={role!r}: give 'uav' or 'ugv'")
         self.role: Role = role
         self.other: Role = "ugv" if role == "uav" else "uav"

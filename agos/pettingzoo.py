@@ -48,9 +48,11 @@ try:
 except ModuleNotFoundError as missing:
     raise ModuleNotFoundError(f"agos.pettingzoo needs {missing.name}: pip install 'agos[learn]' (docs/LIBRARY.md)",
                               name=missing.name) from None
-from agos.env import DEFAULT_TOWN, Env, EnvStateError
+from agos.env import Env, EnvStateError
 from agos.runtime.episode_config import EpisodeConfig
-from agos.runtime.schemas import Action, Difficulty, EpisodeRecord, EpisodeSpec, Observation, Role, StepEvent
+from agos.runtime.keys import ROLES
+from agos.runtime.schemas import DIFFICULTIES, Action, Difficulty, EpisodeRecord, EpisodeSpec, Observation, Role, StepEvent
+from agos.runtime.settings import DEFAULT_TOWN
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import Town, open_town, town_for
 
@@ -61,7 +63,6 @@ STEP_COST = 0.01
 SEEN_BONUS = 0.2
 FALSE_CONFIRM = -0.5
 TERMINATING = ("confirmed", "false_confirm")
-ROLES: tuple[Role, Role] = ("uav", "ugv")
 
 
 def parallel_env(episodes: Sequence[EpisodeSpec] | str | os.PathLike[str] | None = None,
@@ -86,7 +87,7 @@ class AgosParallelEnv(ParallelEnv[Role, dict[str, np.ndarray], int]):
 
     def __init__(self, episodes: Sequence[EpisodeSpec] | str | os.PathLike[str] | None = None,
                  config: EpisodeConfig | None = None, *, town: str = DEFAULT_TOWN,
-                 difficulties: Sequence[Difficulty] = ("easy", "mid", "hard"), depth: bool = False,
+                 difficulties: Sequence[Difficulty] = DIFFICULTIES, depth: bool = False,
                  semantic: bool = False, reward: Reward = "sparse", text: bool = True,
                  render_mode: str | None = None, scene: Scene | None = None) -> None:
         if reward not in ("sparse", "shaped"):
@@ -213,7 +214,7 @@ class AgosParallelEnv(ParallelEnv[Role, dict[str, np.ndarray], int]):
         assert self._rng is not None
         if self._episodes:
             return self._episodes[int(self._rng.integers(len(self._episodes)))]
-        from agos.world.episodes.sampling import DIFFICULTIES, sample_episode
+        from agos.world.episodes.sampling import sample_episode
 
         difficulty = self.difficulties[int(self._rng.integers(len(self.difficulties)))]
         seed = int(self._rng.integers(2**31 - 1))

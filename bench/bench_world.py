@@ -4,14 +4,16 @@
    and a six-view observation (six renders + frames) against bare ``getCameraImage`` calls of
    the same views. Goal: at most 1.15x. In the flat look, so that the ratio is agos's own overhead;
    what the rich (default) look costs against the flat one is ``bench/bench_look.py``.
-2. Import time of the largest CARLA town (OpenDRIVE -> frozen asset), against parsing its XML.
+2. Import time of the largest CARLA town against parsing its XML: its lane network (the OpenDRIVE
+   importer, what tests/test_opendrive.py loads for every CARLA town; goal: at most 5x) and, in the
+   full run, the whole import (OpenDRIVE -> frozen asset).
 3. World-process memory: peak RSS of a process holding the largest CARLA town's scene against
    a process that imported agos and PyBullet only.
 
     .venv/bin/python bench/bench_world.py [--repeats 15] [--carla ../shared/maps/carla/Town04.xodr]
 
-``--quick`` (``make bench``): 5 rounds, observation costs only. ``--json``: also one machine-readable
-line per figure (bench/figures.py).
+``--quick`` (``make bench``): 5 rounds of the observation costs, 3 of the lane network. ``--json``: also
+one machine-readable line per figure (bench/figures.py).
 """
 
 from __future__ import annotations
@@ -93,6 +95,22 @@ def observation_costs(repeats: int, figures: Figures) -> None:
                         f"{ratio:.3f}x ({1000 * t_obs:.1f} vs {1000 * t_bare:.1f} ms)", "<= 1.15x", ratio <= 1.15)
 
 
+LANES_GOAL = 5.0
+"""The largest CARLA town's lane network against parsing its XML, at most (2.3-2.9x on the 2-core VM
+at load 5): an importer that turned quadratic in a town's size would miss it by far."""
+
+
+def lane_network_cost(path: Path, repeats: int, figures: Figures) -> None:
+    from agos.world.towns.opendrive import load_lane_network
+
+    t_xml, t_lanes = paired_medians(lambda: ET.parse(path), lambda: load_lane_network(path), repeats)
+    ratio = t_lanes / t_xml
+    print(f"lane network {path.stem:10s} {t_lanes:7.2f} s vs XML parse only {t_xml:.2f} s: {ratio:.2f}x "
+          f"(goal <= {LANES_GOAL:g}: {'met' if ratio <= LANES_GOAL else 'NOT met'})")
+    figures.add(f"{path.stem} lane network vs parsing its XML", ratio, f"{ratio:.2f}x ({t_lanes:.2f} vs {t_xml:.2f} s)",
+                f"<= {LANES_GOAL:g}x", ratio <= LANES_GOAL)
+
+
 def import_cost(path: Path) -> None:
     from agos.world.towns.asset import freeze
     from agos.world.towns.imported import imported_layout
@@ -135,17 +153,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--carla", type=Path, default=Path(__file__).resolve().parents[2] / "shared/maps/carla/Town04.xodr")
-    parser.add_argument("--quick", action="store_true", help="5 rounds, observation costs only")
+    parser.add_argument("--quick", action="store_true", help="5 rounds of the observation costs, 3 of the lane network; "
+                        "not the whole import or the memory")
     parser.add_argument("--json", action="store_true", help="also print each figure as a BENCH-FIGURE line")
     args = parser.parse_args()
-    observation_costs(5 if args.quick else args.repeats, Figures(args.json))
-    if args.quick:
+    figures = Figures(args.json)
+    observation_costs(5 if args.quick else args.repeats, figures)
+    if not args.carla.exists():
+        print(f"skipped the lane network, import and memory: {args.carla} not found")
         return
-    if args.carla.exists():
+    lane_network_cost(args.carla, 3 if args.quick else 5, figures)
+    if not args.quick:
         import_cost(args.carla)
         memory(args.carla)
-    else:
-        print(f"skipped import and memory: {args.carla} not found")
 
 
 if __name__ == "__main__":

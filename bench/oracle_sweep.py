@@ -109,7 +109,7 @@ def _progress(console: Console) -> Progress:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from agos.deploy.run.configure import episode_config
+    from agos.deploy.run.configure import run_episode_config
     from agos.runtime.settings import load_config
     from agos.world.towns.procedural import TOWNS
 
@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     sampled_file = out / ".sampled.jsonl"
     done = {(r["town"], r["difficulty"]): r["lines"] for r in map(json.loads, sampled_file.read_text().splitlines())} \
         if sampled_file.exists() else {}
-    config = episode_config(load_config(), policies=POLICIES)  # episodes are sampled in the run's look
+    config = run_episode_config(load_config(), policies=POLICIES)  # episodes are sampled in the run's look
     jobs = [(t, d, args.per_cell, args.seed, str(out / "towns"), config.look) for t in args.towns for d in DIFFICULTIES
             if (t, d) not in done]
     with _progress(console) as bar:

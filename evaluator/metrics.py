@@ -19,9 +19,12 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
+from agos.runtime.schemas import DIFFICULTIES
+
 R_M = 50.0
 """Benchmark spatial scale R of ACG (metres)."""
-DIFFICULTY_ORDER = ("easy", "mid", "hard")
+DIFFICULTY_ORDER: tuple[str, ...] = DIFFICULTIES
+"""The difficulties in the order of tables and figures."""
 METRIC_KEYS = ("SR", "OSR", "SPL", "NE", "FD", "ASE", "ACG", "GVA", "GVA_support", "DS", "DS_UAV", "DS_UGV", "CErr")
 
 

@@ -98,7 +98,7 @@ class Evaluator:
 
     def _refusal(self, key: str, message: object) -> str:
         """Why ``message`` heard on ``key`` must not be acted on ('' when it may)."""
-        expected = {"result": EpisodeRecord, "lease": LeaseNotice, "manifest": RunManifest}.get(key.rsplit("/", 1)[-1])
+        expected = {"result": EpisodeRecord, "lease": LeaseNotice, "manifest": RunManifest}.get(keys.leaf(key))
         if expected is None or not isinstance(message, expected):
             return "wrong message type for the key"
         try:

@@ -13,10 +13,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal, NotRequired
+from typing import Annotated, Any, NotRequired
 
 from pydantic import ConfigDict, Field, TypeAdapter, ValidationError, with_config
 from typing_extensions import TypedDict  # pydantic needs this TypedDict before Python 3.12
+
+from agos.runtime.schemas import Difficulty
 
 NonNegative = Annotated[float, Field(ge=0)]
 Count = Annotated[int, Field(ge=0)]
@@ -51,7 +53,7 @@ class _TraceIn(TypedDict):
 @with_config(ConfigDict(strict=True, extra="ignore"))
 class _SummaryIn(TypedDict):
     episode_id: str
-    difficulty: Literal["easy", "mid", "hard"]
+    difficulty: Difficulty
     success: bool
     ground_observed: bool
     n_confirm: Count

@@ -16,14 +16,13 @@ import json
 import os
 import secrets
 import socket
-import tempfile
 import time
 from pathlib import Path
 from typing import Literal
 
 from agos.runtime import keys
 from agos.runtime.bus import ZenohBus
-from agos.runtime.settings import ZenohSettings
+from agos.runtime.settings import ZenohSettings, local_dirs
 
 HealthKind = Literal["router", "world", "agent", "evaluator", "orchestrator"]
 HEALTH_KINDS: tuple[HealthKind, ...] = ("router", "world", "agent", "evaluator", "orchestrator")
@@ -41,7 +40,7 @@ def host_prefix() -> str:
 
 
 def health_dir() -> Path:
-    return Path(os.environ.get("AGOS_HEALTH_DIR") or Path(tempfile.gettempdir()) / "agos-health")
+    return local_dirs().health_dir
 
 
 def announce(kind: HealthKind, ident: str, run: str | None = None) -> None:

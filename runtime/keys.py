@@ -1,7 +1,9 @@
 """The zenoh key space of agos, built in one place (a contract: docs/ARCHITECTURE.md §2).
 
 No other module writes a key literal: every publisher, subscriber, queryable and liveliness
-token asks this module for its key, so the layout can be read (and changed) here alone.
+token asks this module for its key, so the layout can be read (and changed) here alone; and none
+takes a key apart by position: it asks :func:`parse_slot`, :func:`ready_of`, :func:`live_of`,
+:func:`asset_of`, :func:`run_of` or :func:`leaf` for the part it needs.
 
 The key space is bounded: no key names an episode. A router keeps a node in its routing tree for
 every key a run ever used, and routes a sample on a key without a node of its own by scanning its
@@ -45,7 +47,7 @@ from __future__ import annotations
 
 import functools
 import re
-from typing import Literal
+from typing import Literal, NamedTuple
 
 ROOT = "agos"
 Role = Literal["uav", "ugv"]
@@ -208,18 +210,80 @@ def asset(sha256: str) -> str:
     return f"{ROOT}/assets/{sha256 if sha256 == '*' else check_chunk(sha256, what='asset hash')}"
 
 
-def slot_of(key: str) -> str:
-    """The worker id of a key under ``agos/<run>/slot/<worker>/...`` or ``agos/<run>/viz/<worker>/...``."""
+class SlotKey(NamedTuple):
+    """A key under ``agos/<run>/slot/<worker>/...`` or ``agos/<run>/viz/<worker>/...``, read back."""
+
+    run: str
+    worker: str
+    kind: str
+    """Its first part after ``<worker>/``: ``obs``, ``act``, ``coord``, ``msg``, ``events``, ``result``,
+    ``ack``, ``live``, ``ready`` (slot); ``events``, ``coord``, ``frame``, ``full``, ``spec``, ``result`` (viz)."""
+    args: tuple[str, ...]
+    """The parts after the kind: ``(role,)`` of obs, act, frame and full; ``("truth",)`` or ``("view", role)``
+    of a slot's coord; ``(sender, receiver)`` of msg; ``(role, agent)`` of ready; none for the others."""
+    viz: bool
+    """Under ``viz/`` (the visualisation stream), not ``slot/``."""
+
+
+def parse_slot(key: str) -> SlotKey:
+    """The parts of a slot or viz key; ``ValueError`` for any other key."""
     parts = key.split("/")
     if len(parts) < 5 or parts[0] != ROOT or parts[2] not in ("slot", "viz"):
         raise ValueError(f"key {key!r} is not a slot key")
-    return parts[3]
+    return SlotKey(parts[1], parts[3], parts[4], tuple(parts[5:]), parts[2] == "viz")
+
+
+def slot_of(key: str) -> str:
+    """The worker id of a key under ``agos/<run>/slot/<worker>/...`` or ``agos/<run>/viz/<worker>/...``."""
+    return parse_slot(key).worker
 
 
 def kind_of(key: str) -> str:
     """What a slot or viz key carries: its part after ``<worker>/`` (``obs/uav``, ``frame/ugv``, ``result``)."""
-    slot_of(key)
-    return key.split("/", 4)[4]
+    parsed = parse_slot(key)
+    return "/".join((parsed.kind, *parsed.args))
+
+
+class Ready(NamedTuple):
+    role: str
+    agent: str
+
+
+def ready_of(key: str) -> Ready:
+    """The role and agent of a ready token (:func:`slot_ready`); ``ValueError`` for any other key."""
+    parsed = parse_slot(key)
+    if parsed.viz or parsed.kind != "ready" or len(parsed.args) != 2:
+        raise ValueError(f"key {key!r} is not a ready token")
+    return Ready(*parsed.args)
+
+
+class LiveToken(NamedTuple):
+    run: str
+    kind: str
+    ident: str
+
+
+def live_of(key: str) -> LiveToken:
+    """The run, kind and id of a process's liveliness token (:func:`live`); ``ValueError`` for any other key."""
+    parts = key.split("/")
+    if len(parts) != 5 or parts[0] != ROOT or parts[2] != "live":
+        raise ValueError(f"key {key!r} is not a liveliness token of a run's process")
+    return LiveToken(parts[1], parts[3], parts[4])
+
+
+def asset_of(key: str) -> str:
+    """The hash an asset key (:func:`asset`) names, checked as :func:`asset` checks it; ``ValueError`` for
+    any other key."""
+    parts = key.split("/")
+    if len(parts) != 3 or parts[0] != ROOT or parts[1] != "assets":
+        raise ValueError(f"key {key!r} is not an asset key")
+    return check_chunk(parts[2], what="asset hash")
+
+
+def leaf(key: str) -> str:
+    """A key's last segment: what a ctl or slot key carries (``manifest``, ``lease``, ``result``,
+    ``events``), the role of ``obs/<role>``."""
+    return key.rsplit("/", 1)[-1]
 
 
 def run_of(key: str) -> str:

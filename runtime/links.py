@@ -40,6 +40,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from agos.runtime.keys import ROLES
 from agos.runtime.textfiles import read_profile
 
 PROFILE_DIR = Path(__file__).resolve().parents[1] / "deploy" / "comm"
@@ -256,5 +257,6 @@ def links_for(profile: CommProfile, seed: int) -> dict[tuple[str, str], Link]:
     stages 1-5 and one per direction for the fault stages."""
     streams = np.random.SeedSequence([seed, 0x6C696E6B]).spawn(2)
     faults = np.random.SeedSequence([seed, FAULT_ENTROPY]).spawn(2)
-    return {("uav", "ugv"): Link(profile, np.random.default_rng(streams[0]), np.random.default_rng(faults[0])),
-            ("ugv", "uav"): Link(profile, np.random.default_rng(streams[1]), np.random.default_rng(faults[1]))}
+    uav, ugv = ROLES
+    return {(uav, ugv): Link(profile, np.random.default_rng(streams[0]), np.random.default_rng(faults[0])),
+            (ugv, uav): Link(profile, np.random.default_rng(streams[1]), np.random.default_rng(faults[1]))}

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from agos.runtime.keys import ROLES
 from agos.runtime.links import BandwidthSpec, Blackout, CommProfile, LatencySpec, Link, LossSpec
 from agos.runtime.schemas import ModelLinkStats
 from agos.runtime.textfiles import read_profile
@@ -109,11 +110,6 @@ def load_model_link(name_or_path: str | Path) -> ModelLinkProfile:
 def placement(profile: ModelLinkProfile | None) -> ModelLinkProfile | None:
     """What a configuration holds for ``profile``: None for the model onboard (no link), else the profile."""
     return None if profile is None or profile.onboard else profile
-
-
-def placement_name(profile: ModelLinkProfile | None) -> str:
-    """The placement's name, ``onboard`` for none."""
-    return ONBOARD if profile is None else profile.name
 
 
 @dataclass(frozen=True)
@@ -217,6 +213,7 @@ def model_link_for(profile: ModelLinkProfile | None, seed: int) -> ModelLink | N
         return None
     streams = np.random.SeedSequence([seed, MODEL_LINK_ENTROPY]).spawn(4)
     up, down = profile.up.comm_profile(f"{profile.name}/up"), profile.down.comm_profile(f"{profile.name}/down")
-    pairs = {role: _Pair(Link(up, np.random.default_rng(streams[2 * i])), Link(down, np.random.default_rng(streams[2 * i + 1])))
-             for i, role in enumerate(("uav", "ugv"))}
+    pairs: dict[str, _Pair] = {
+        role: _Pair(Link(up, np.random.default_rng(streams[2 * i])), Link(down, np.random.default_rng(streams[2 * i + 1])))
+        for i, role in enumerate(ROLES)}
     return ModelLink(profile, pairs)

@@ -19,6 +19,8 @@ from typing import Any
 import msgspec
 import msgspec.inspect
 
+from agos.runtime import keys
+
 LOG_FIRST = 5
 LOG_EVERY = 100
 
@@ -33,7 +35,7 @@ class Rejections:
     def reject(self, key: str, reason: str, detail: object = "") -> None:
         """Count one refused message on ``key`` (its last segment is the kind) under ``reason`` (a
         short fixed phrase: the counts' category) and maybe log it with ``detail``."""
-        kind = key.rsplit("/", 1)[-1]
+        kind = keys.leaf(key)
         self.counts[(kind, reason)] += 1
         n = self.counts[(kind, reason)]
         if n <= LOG_FIRST or n % LOG_EVERY == 0:

@@ -21,6 +21,8 @@ from typing import Any, Final, Literal
 
 import msgspec
 
+from agos.runtime.keys import Role
+
 SCHEMA_VERSION: Final = 3
 """The version every live process writes and the only one it accepts from the bus
 (runtime/codec.py ``decode``: another is refused in one line naming both). Stored messages (records
@@ -40,8 +42,9 @@ for a new field, say), tested with a payload of each older version (tests/test_c
 SchemaVersion = Literal[1, 2, 3]
 """Every ``v`` a stored message may carry."""
 
-Role = Literal["uav", "ugv"]
 Difficulty = Literal["easy", "mid", "hard"]
+DIFFICULTIES: tuple[Difficulty, ...] = ("easy", "mid", "hard")
+"""The difficulties, easiest first: the order of sampling streams, tables and figures."""
 Vec2 = tuple[float, float]
 Vec3 = tuple[float, float, float]
 

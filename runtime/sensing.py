@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from agos.runtime.keys import ROLES
 from agos.runtime.textfiles import read_profile
 
 PROFILE_DIR = Path(__file__).resolve().parents[1] / "deploy" / "sensing"
@@ -131,8 +132,8 @@ class PoseErrors:
     def __init__(self, profile: PoseErrorProfile, seed: int) -> None:
         self.profile = profile
         streams = np.random.SeedSequence([seed, 0x706F7365]).spawn(2)  # "pose": apart from the link streams
-        self._roles = {role: _RoleStream(profile.of(role), np.random.default_rng(s))
-                       for role, s in zip(("uav", "ugv"), streams, strict=True)}
+        self._roles: dict[str, _RoleStream] = {role: _RoleStream(profile.of(role), np.random.default_rng(s))
+                                               for role, s in zip(ROLES, streams, strict=True)}
 
     def fix(self, role: str, t_s: float, crowded: Callable[[], bool] = lambda: False) -> Fix:
         """The role's error at ``t_s``; the same fix for a second call at the same instant. ``crowded``

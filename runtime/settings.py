@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import os
 import re
+import tempfile
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
@@ -106,17 +108,23 @@ class ZenohSettings(_Section):
         return endpoint_list(self.connect)
 
 
+DEFAULT_TOWN = "grid-s7"
+"""The town a run, the library's generated episodes and ``agos episodes sample`` use unless told another."""
+DEFAULT_POLICY = "heuristic"
+"""The policy of each role unless told another (``[run] policy_uav``, ``policy_ugv``, ``--policy``)."""
+
+
 class RunSettings(_Section):
     run_id: str = "demo"
     runs_dir: Path = Path("runs")
-    town: str = "grid-s7"
+    town: str = DEFAULT_TOWN
     """Town of generated episodes: a procedural id (grid-s7, curved-s13 ...) or an asset directory."""
     episode_seed: int = 1
     per_difficulty: int = Field(2, ge=1)
     episodes_file: Path | None = None
     """JSONL episode file; when set, it replaces the generated episodes."""
-    policy_uav: str = "heuristic"
-    policy_ugv: str = "heuristic"
+    policy_uav: str = DEFAULT_POLICY
+    policy_ugv: str = DEFAULT_POLICY
     agent_wait_s: float = Field(30.0, gt=0)
     """How long a world worker waits for both agent services at an episode's first decision
     before it records the episode as failed, naming the missing role."""
@@ -196,6 +204,34 @@ class AgosConfig(_Section):
     the run's comm profile, timing and tools set, is what every world worker runs with."""
     vlm: VlmOptions = Field(default_factory=VlmOptions)
     render: RenderSettings = Field(default_factory=RenderSettings)
+
+
+DEFAULTS = AgosConfig()
+"""Every setting at its default, to be read, never changed: a function below the settings whose keyword
+stands for a setting takes its default from here (``DEFAULTS.run.reconnect_grace_s``), so each default
+is written once, in the models above."""
+
+
+class LocalDirs(BaseModel):
+    """Folders of this host, not settings of a run: each from its own environment variable (the field's
+    alias; empty counts as unset), else its default. Read when asked (:func:`local_dirs`), so a variable
+    set after start counts."""
+
+    model_config = ConfigDict(extra="ignore", frozen=True)
+
+    asset_cache: Path = Field(default_factory=lambda: Path.home() / ".cache" / "agos" / "assets",
+                              validation_alias="AGOS_ASSET_CACHE")
+    """Town assets, meshes and textures built or fetched before (world/towns/asset.py)."""
+    health_dir: Path = Field(default_factory=lambda: Path(tempfile.gettempdir()) / "agos-health",
+                             validation_alias="AGOS_HEALTH_DIR")
+    """The files ``agos health`` reads (runtime/health.py)."""
+
+
+def local_dirs(environ: Mapping[str, str] | None = None) -> LocalDirs:
+    """:class:`LocalDirs` from ``environ`` (default: this process's environment)."""
+    env = os.environ if environ is None else environ
+    names = [str(field.validation_alias) for field in LocalDirs.model_fields.values()]
+    return LocalDirs.model_validate({name: env[name] for name in names if env.get(name)})
 
 
 def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+from agos.runtime.keys import ROLES
 from agos.runtime.schemas import EpisodeRecord, ModelUsage, RoleTraceStats, StoredTrace
 
 
@@ -11,7 +12,7 @@ def trace_stats(traces: list[StoredTrace]) -> dict[str, RoleTraceStats]:
 
     Roles without traces (scripted policies) are absent."""
     out: dict[str, RoleTraceStats] = {}
-    for role in ("uav", "ugv"):
+    for role in ROLES:
         mine = [t for t in traces if t.role == role]
         if not mine:
             continue

@@ -20,7 +20,6 @@ ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", ROOT / "bench" / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 FOLDERS = ("runtime", "world", "agents", "evaluator", "deploy", "examples", "tests", "bench", "docs", ".ci")
 # (not "agos/": the key space is written agos/<run>/..., and the library's own files are few: agos/*.py)
-TOP_FILES = ("Makefile", "Dockerfile", "pyproject.toml", "uv.lock")
 
 # A folder name at a word start (not inside another path or a URL), then path characters.
 PATH_RE = re.compile(r"(?<![\w/.\-~])((?:" + "|".join(re.escape(f) for f in FOLDERS) + r")/[\w./*\-<>{},]*)")

@@ -38,7 +38,8 @@ def built(tmp_path_factory) -> tuple[Path, Path, str]:
     args = ["dataset", "build", "--split", str(split), "--out", str(out), "--port", "7611", "--capture-every", "25"]
     # captures every 25 m, not the default 10: the same code path with fewer renders (test time)
     # Ctrl-C mid-work (issue 30, item 3; the other moments: tests/test_ctrl_c.py): every process stops
-    # within 10 s, exit 130, and the assembled episode stays, untouched by the build that resumes.
+    # (a hang bound, not a speed: support/interrupt.py), exit 130, and the assembled episode stays,
+    # untouched by the build that resumes.
     first = Interruptible(root, args)
     first.wait_for(lambda: any((out / "episodes").glob("*/episode.json")), timeout_s=300)
     first.ctrl_c()

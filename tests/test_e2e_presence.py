@@ -19,6 +19,10 @@ FAST_CHECKS = {"AGOS_RUN__PRESENCE_CHECK_S": "3"}
 """Presence checks 3 s apart rather than 15, for the tests that wait for three of them."""
 FIRST_CHECK_SOONER = {"AGOS_RUN__PRESENCE_CHECK_S": "6"}
 """For the tests that read the first check's lines and then press Ctrl-C (before the third check stops the run)."""
+HANG_BOUND_S = 120.0
+"""A hang, not a speed: how long a test waits for a command's line or its exit before it fails. The
+lines come at the first presence check, 3-6 s in here; bounds of 30 s failed at load 10 on 2 cores and
+seven commands starting at once once took 46 s to exit."""
 
 
 def test_eval_names_the_missing_processes_and_runs_with_agents(tmp_path, sample_mid_episodes, running_system) -> None:
@@ -35,7 +39,7 @@ def test_eval_names_the_missing_processes_and_runs_with_agents(tmp_path, sample_
         seen = ""
         assert ev.stdout is not None
         while "other runs" not in seen:
-            assert time.monotonic() - started < 60 and ev.poll() is None, seen
+            assert time.monotonic() - started < HANG_BOUND_S and ev.poll() is None, seen
             seen += ev.stdout.readline()
         text = " ".join(seen.split())
         assert f"no world worker serves run mine: start one with `agos world --connect {endpoint} --run mine`" in text
@@ -44,7 +48,7 @@ def test_eval_names_the_missing_processes_and_runs_with_agents(tmp_path, sample_
         assert "mine-typo (uav)" in text
         assert "no evaluator" not in text  # the evaluator serves every run
         ev.send_signal(signal.SIGINT)
-        ev.wait(timeout=30)
+        ev.wait(timeout=HANG_BOUND_S)
         assert ev.returncode == 130
     finally:
         for p in procs:
@@ -118,7 +122,7 @@ class _Procs:
 
 def test_eval_without_an_evaluator_says_so_and_stops(tmp_path, sample_mid_episodes) -> None:
     """World and agents but no evaluator: the console names the missing evaluator and its start command
-    within 30 s, and once records have waited unstored for three checks the run stops with exit 3
+    at a presence check, and once records have waited unstored for three checks the run stops with exit 3
     (checks 3 s apart here: ``[run] presence_check_s``)."""
     procs = _Procs(tmp_path, 17900)
     try:
@@ -134,9 +138,9 @@ def test_eval_without_an_evaluator_says_so_and_stops(tmp_path, sample_mid_episod
         assert ev.stdout is not None
         seen = ""
         while "no evaluator stores run unstored" not in " ".join(seen.split()):
-            assert time.monotonic() - started < 30 and ev.poll() is None, seen
+            assert time.monotonic() - started < HANG_BOUND_S and ev.poll() is None, seen
             seen += ev.stdout.readline()
-        out, _ = ev.communicate(timeout=120)
+        out, _ = ev.communicate(timeout=HANG_BOUND_S)
         text = " ".join((seen + out).split())
         assert f"start one with `agos evaluator --connect {procs.endpoint} --run unstored`" in text
         assert ev.returncode == 3, text
@@ -147,7 +151,7 @@ def test_eval_without_an_evaluator_says_so_and_stops(tmp_path, sample_mid_episod
 
 def test_demo_connect_names_what_is_missing(tmp_path) -> None:
     """``agos demo --connect`` on a router with nothing else: the same lines as ``agos eval``, at its first
-    presence check (the 60 s limit only catches a hang: 30 s failed once at load 10 on 2 cores)."""
+    presence check."""
     procs = _Procs(tmp_path, 18000)
     try:
         started = time.monotonic()
@@ -158,13 +162,13 @@ def test_demo_connect_names_what_is_missing(tmp_path) -> None:
         assert demo.stdout is not None
         seen = ""
         while "no UGV agent" not in seen:
-            assert time.monotonic() - started < 60 and demo.poll() is None, seen
+            assert time.monotonic() - started < HANG_BOUND_S and demo.poll() is None, seen
             seen += demo.stdout.readline()
         text = " ".join(seen.split())
         assert f"start one with `agos world --connect {procs.endpoint} --run handmade`" in text
         assert "no evaluator stores run handmade" in text
         demo.send_signal(signal.SIGINT)
-        demo.wait(timeout=30)
+        demo.wait(timeout=HANG_BOUND_S)
         assert demo.returncode == 130
     finally:
         procs.close()
@@ -185,8 +189,7 @@ def test_check_agent_names_the_start_command_and_other_runs(tmp_path, running_sy
 
 def test_a_wrong_port_is_one_line_and_exit_2_in_every_command(tmp_path, sample_mid_episodes) -> None:
     """Nothing listens on the port: each command says so in one line naming the endpoint and what to
-    check, and exits 2 (the 60 s limit only catches a hang: a wall-clock bound on seven processes
-    starting at once on a loaded 2-core machine failed CI once, at 46 s)."""
+    check, and exits 2."""
     endpoint = f"tcp/127.0.0.1:{free_port(18200)}"
     split = str(sample_mid_episodes(1, 3))
     commands = {
@@ -201,7 +204,7 @@ def test_a_wrong_port_is_one_line_and_exit_2_in_every_command(tmp_path, sample_m
     procs = {name: subprocess.Popen([*AGOS, *argv], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                     text=True) for name, argv in commands.items()}
     for name, proc in procs.items():
-        out, err = proc.communicate(timeout=60)
+        out, err = proc.communicate(timeout=HANG_BOUND_S)
         assert proc.returncode == 2, (name, out, err)
         errors = [line for line in err.splitlines() if line.strip() and " INFO " not in line]  # one line, no more
         assert len(errors) == 1 and f"agos {name}: cannot reach the zenoh router at {endpoint}" in errors[0], err
@@ -209,8 +212,8 @@ def test_a_wrong_port_is_one_line_and_exit_2_in_every_command(tmp_path, sample_m
 
 
 def test_eval_without_a_world_worker_stops_after_three_checks(tmp_path, sample_mid_episodes, running_system) -> None:
-    """Evaluator and agents but no world worker (the shared system): the start command within 30 s,
-    exit 3 after three presence checks (5 s apart here), with the resume command."""
+    """Evaluator and agents but no world worker (the shared system): the start command at a presence
+    check, exit 3 after three presence checks (3 s apart here), with the resume command."""
     endpoint, run = running_system.endpoint, running_system.run
     out = subprocess.run([*AGOS, "eval", "--connect", endpoint, "--run", run, "--split",
                           str(sample_mid_episodes(1, 7)), "--runs-dir", "runs"], cwd=tmp_path,

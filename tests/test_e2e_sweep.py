@@ -17,6 +17,7 @@ from agos.runtime.deaths import ChildDied
 from agos.runtime.process import interruptible_imap
 
 from support.crash import fail_on, segfault_on
+from support.interrupt import HANG_BOUND_S
 
 pytestmark = pytest.mark.e2e
 AGOS = [sys.executable, "-m", "agos.deploy.cli"]
@@ -39,9 +40,8 @@ def test_interrupted_sweep_resumes_to_the_same_table(tmp_path, sample_mid_episod
         assert time.monotonic() < deadline and proc.poll() is None
         time.sleep(0.05)
     proc.send_signal(signal.SIGINT)
-    stopped = time.monotonic()
-    proc.wait(timeout=10)
-    assert proc.returncode == 130 and time.monotonic() - stopped < 10
+    proc.wait(timeout=HANG_BOUND_S)  # it stops (a hang, not a speed: tests/support/interrupt.py)
+    assert proc.returncode == 130
     assert "Traceback" not in proc.stderr.read()
     kept = sum(len(f.read_text().splitlines()) for f in (out / ".episodes").glob("*.jsonl"))
     assert kept == 1  # the first point's episode; the second was in play

@@ -17,7 +17,7 @@ import pytest
 from agos import Env, EnvStateError, IllegalActionError, episode_config
 from agos.agents.contract import Policy, action_for
 from agos.agents.registry import make_policy
-from agos.deploy.run.configure import episode_config as eval_config
+from agos.deploy.run.configure import run_episode_config as eval_config
 from agos.runtime.episode_config import EpisodeConfig
 from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role
 from agos.runtime.settings import AgosConfig

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from agos.deploy.run.configure import episode_config
+from agos.deploy.run.configure import run_episode_config
 from agos.evaluator.pooling import mixed_configurations
 from agos.evaluator.store import ResultStore
 from agos.evaluator.summary import read_run
@@ -36,11 +36,11 @@ def test_defaults_layered_file_env_flags(tmp_path: Path) -> None:
 
 def test_builder_sets_comm_timing_tools_and_budget() -> None:
     cfg = load_config(None, environ={})
-    config = episode_config(cfg, policies={"uav": "baseline", "ugv": "oracle"}, comm="lossy", timing_mode="realtime",
-                            decision_budget=16)
+    config = run_episode_config(cfg, policies={"uav": "baseline", "ugv": "oracle"}, comm="lossy", timing_mode="realtime",
+                                decision_budget=16)
     assert config.comm.name == "lossy" and config.timing_mode == "realtime" and config.decision_budget == 16
     assert config.tools.candidates is False and config.tools.oracle is True
-    assert episode_config(cfg, policies={"uav": "heuristic", "ugv": "heuristic"}).tools.candidates is True
+    assert run_episode_config(cfg, policies={"uav": "heuristic", "ugv": "heuristic"}).tools.candidates is True
 
 
 def test_hash_is_stable_and_tells_configurations_apart() -> None:

@@ -9,7 +9,6 @@ missing split's. Nothing starts: these are unit tests (tests/process_guard.py)."
 
 from __future__ import annotations
 
-import time
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,9 @@ from support.episodes import grid_episodes
 from support.mutations import jsonl_mutation, toml_mutation
 
 EPISODE_CASES, PROFILE_CASES, CONFIG_CASES = 1000, 600, 600
-"""2,200 generated cases in all, in about 20 s on one loaded core."""
+"""2,200 generated cases in all, in about 20 s on one loaded core: what they cost is the suite's time
+(``make check``), not a promise of these tests; a hang is pytest-timeout's (``timeout = 300`` in
+pyproject.toml, 15 times that)."""
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -86,10 +87,8 @@ def test_fuzzed_episode_files_end_in_one_line_or_are_accepted(quick_cli, valid_e
             assert out.returncode == 2, out
             assert _one_line(out.stderr).startswith(f"episodes error: {path}"), out
 
-    started = time.monotonic()
     case()
     assert sum(seen.values()) >= EPISODE_CASES and seen[0] and seen[2], seen
-    assert time.monotonic() - started < 60
 
 
 def _eval_reading(quick_cli, tmp_path: Path, *flags: str | Path):

@@ -124,3 +124,45 @@ def test_slot_of_rejects_other_keys(key: str) -> None:
 def test_run_of_rejects_non_agos_keys(key: str) -> None:
     with pytest.raises(ValueError, match="not an agos key"):
         keys.run_of(key)
+
+
+def test_parse_slot_names_every_part_of_built_keys() -> None:
+    assert keys.parse_slot(keys.obs(RUN, W, "uav")) == keys.SlotKey(RUN, W, "obs", ("uav",), False)
+    assert keys.parse_slot(keys.coord_view(RUN, W, "ugv")) == keys.SlotKey(RUN, W, "coord", ("view", "ugv"), False)
+    assert keys.parse_slot(keys.message(RUN, W, "ugv", "uav")).args == ("ugv", "uav")
+    assert keys.parse_slot(keys.result(RUN, W)) == keys.SlotKey(RUN, W, "result", (), False)
+    assert keys.parse_slot(keys.viz_frame(RUN, W, "uav")) == keys.SlotKey(RUN, W, "frame", ("uav",), True)
+    assert keys.parse_slot(keys.viz_coord(RUN, W)).kind == "coord"
+    with pytest.raises(ValueError, match="not a slot key"):
+        keys.parse_slot(keys.live(RUN, "world", W))
+
+
+def test_ready_of_reads_a_ready_token() -> None:
+    ready = keys.ready_of(keys.slot_ready(RUN, W, "ugv", "ugv-9-ff00"))
+    assert ready == ("ugv", "ugv-9-ff00") and ready.role == "ugv" and ready.agent == "ugv-9-ff00"
+    for other in (keys.obs(RUN, W, "uav"), keys.slot_live(RUN, W), keys.viz_frame(RUN, W, "uav"), keys.jobs(RUN)):
+        with pytest.raises(ValueError):
+            keys.ready_of(other)
+
+
+def test_live_of_reads_a_process_token() -> None:
+    token = keys.live_of(keys.live(RUN, "agent", "uav-12-ab01"))
+    assert token == keys.LiveToken(RUN, "agent", "uav-12-ab01") and token.ident == "uav-12-ab01"
+    assert keys.live_of(keys.live(RUN, "world", W)).kind == "world"
+    for other in (keys.slot_live(RUN, W), keys.router_live("z1"), keys.manifest(RUN), "agos/r/live/world/w/x"):
+        with pytest.raises(ValueError, match="not a liveliness token"):
+            keys.live_of(other)
+
+
+def test_asset_of_reads_and_checks_the_hash() -> None:
+    assert keys.asset_of(keys.asset("ab" * 32)) == "ab" * 32
+    with pytest.raises(ValueError, match="asset hash"):
+        keys.asset_of(keys.asset("*"))
+    for other in (keys.manifest(RUN), "agos/assets/a/b", "other/assets/ab"):
+        with pytest.raises(ValueError, match="not an asset key"):
+            keys.asset_of(other)
+
+
+def test_leaf_is_the_last_segment() -> None:
+    assert [keys.leaf(k) for k in (keys.manifest(RUN), keys.lease(RUN), keys.result(RUN, W), keys.obs(RUN, W, "uav"))] \
+        == ["manifest", "lease", "result", "uav"]

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 
 import networkx as nx
@@ -320,9 +319,9 @@ def _scc_fraction(net: LaneNetwork, *, lane_changes: bool) -> float:
 @pytest.mark.skipif(not (MAPS / "carla").is_dir(), reason="shared CARLA maps not available")
 @pytest.mark.parametrize("town", sorted(TOWNS))
 def test_carla_towns_load_connected(town):
-    t0 = time.perf_counter()
+    """How fast they load is a benchmark figure, not a test: bench/bench_world.py, the lane network of the
+    largest against parsing its XML (``make bench``)."""
     net = load_lane_network(MAPS / "carla" / f"{town}.xodr")
-    assert time.perf_counter() - t0 < 20
     assert len(net.lanes) > TOWNS[town]
     assert all(_spacing(lane.centre_m).max() <= 0.6 for lane in net.lanes.values())
     assert _scc_fraction(net, lane_changes=True) > 0.8

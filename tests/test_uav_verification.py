@@ -11,7 +11,7 @@ from agos import Env
 from agos.agents.contract import action_for
 from agos.deploy.cli import build_parser
 from agos.deploy.cli.common import settings_of
-from agos.deploy.run.configure import episode_config
+from agos.deploy.run.configure import run_episode_config
 from agos.runtime.episode_config import EpisodeConfig, StoredConfigError, ToolConfig, config_hash, read_config
 from agos.runtime.schemas import Action, Observation, Role, StepEvent
 from agos.runtime.settings import load_config
@@ -140,7 +140,7 @@ def test_the_setting_is_reachable_from_flag_file_and_environment(tmp_path) -> No
     args = build_parser().parse_args(["eval", "--uav-verification", "active"])
     cfg = settings_of(args)
     assert cfg.world.uav_during_verification == "active"
-    run_config = episode_config(cfg, policies={"uav": "agos-agent", "ugv": "agos-agent"})
+    run_config = run_episode_config(cfg, policies={"uav": "agos-agent", "ugv": "agos-agent"})
     assert run_config.uav_during_verification == "active"
     assert settings_of(build_parser().parse_args(["eval"])).world.uav_during_verification == "frozen"
     toml = tmp_path / "c.toml"

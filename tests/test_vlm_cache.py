@@ -19,10 +19,14 @@ from agos.agents.vlm.cache import (
     CACHE_FILE,
     CacheError,
     CacheMiss,
+    CacheStats,
     CallTag,
+    ModelStats,
     ReplyCache,
     cache_stats,
     canonical_request,
+    size_line,
+    stats_table,
 )
 from agos.agents.vlm.client import Reply, VlmClient, VlmError, image_part
 from agos.deploy.run.evaluate import exited_children
@@ -351,3 +355,21 @@ def test_agos_eval_refuses_a_cache_it_cannot_replay_before_anything_starts(flags
     assert result.returncode == 2, result.stdout + result.stderr
     assert said in result.stderr and len(result.stderr.strip().splitlines()) == 1, result.stderr
     assert not (tmp_path / "runs").exists()  # nothing made
+
+
+def test_the_stats_table_has_a_row_per_model_with_separated_counts() -> None:
+    from rich.console import Console
+
+    stats = CacheStats([ModelStats("a-long-model-name", 1200, 1300, 2, 1_234_567, 89_000, 40, 1300),
+                        ModelStats("m", 0, 0, 0, 0, 0, 3, 0)], images=1500, image_bytes=2_500_000, file_bytes=12_340_000)
+    table = stats_table(stats, title="VLM cache d")
+    assert table.title == "VLM cache d" and [c.header for c in table.columns] == [
+        "model", "requests", "replies", "errors", "hits", "misses", "tokens in", "tokens out"]
+    console = Console(width=200, record=True)
+    console.print(table)
+    rows = [[cell.strip() for cell in line.strip("│").split("│")] for line in console.export_text().splitlines()
+            if line.startswith("│")]
+    assert rows == [["a-long-model-name", "1,200", "1,300", "2", "40", "1,300", "1,234,567", "89,000"],
+                        ["m", "0", "0", "0", "3", "0", "0", "0"]]
+    assert size_line(stats) == ("size: 12.3 MB (1,500 images, 2.5 MB); hits and misses count every lookup of every run, "
+                                "replies errors included")

@@ -7,13 +7,12 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from agos.runtime.schemas import Difficulty, EpisodeSpec
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
+    from agos.runtime.schemas import DIFFICULTIES
+    from agos.runtime.settings import DEFAULT_TOWN
+
     maps = sub.add_parser("map", help="town assets: import OpenDRIVE maps, inspect, render")
     map_sub = maps.add_subparsers(dest="map_command", required=True)
     imp = map_sub.add_parser("import", help="build a frozen town asset from an OpenDRIVE .xodr file")
@@ -35,8 +34,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     episodes = sub.add_parser("episodes", help="episode files")
     ep_sub = episodes.add_subparsers(dest="episodes_command", required=True)
     sample = ep_sub.add_parser("sample", help="sample solvable episodes on one town")
-    sample.add_argument("--town", default="grid-s7", help="procedural town id, asset directory or .xodr file")
-    sample.add_argument("--difficulty", choices=["easy", "mid", "hard"], help="one difficulty (with -n)")
+    sample.add_argument("--town", default=DEFAULT_TOWN, help="procedural town id, asset directory or .xodr file")
+    sample.add_argument("--difficulty", choices=DIFFICULTIES, help="one difficulty (with -n)")
     sample.add_argument("-n", type=int, default=1, help="episodes of --difficulty")
     sample.add_argument("--per-difficulty", type=int, help="episodes of every difficulty instead")
     sample.add_argument("--seed", type=int, default=1)
@@ -186,90 +185,27 @@ def _episodes(args: argparse.Namespace) -> int:
 
 
 def _sample(args: argparse.Namespace) -> int:
-    """``agos episodes sample``: each episode is appended to ``OUT.partial`` as soon as it is sampled,
-    and ``OUT`` is written whole at the end. Ctrl-C leaves what is in ``OUT.partial`` and says so (exit
-    130); the same command again goes on from there (sampling is deterministic per episode, so the file
-    is the one an uninterrupted run writes). What is kept is only ever appended to, never rewritten."""
-    from agos.runtime.codec import to_json
-    from agos.world.episodes.sampling import DIFFICULTIES, sample_episode, write_episodes
+    """``agos episodes sample``, resumable (world/episodes/resumable_sampling.py): Ctrl-C leaves what is
+    in ``OUT.partial`` and says so (exit 130); the same command again goes on from there."""
+    from agos.world.episodes.resumable_sampling import ResumableSampling, SamplingInterrupted, sample_plan
     from agos.world.episodes.splits import resolve_town
-    from agos.world.sim.scene import Scene
     from agos.world.towns.asset import open_town
 
-    plan = _sample_plan(args, DIFFICULTIES)  # before the town is built: a wrong count costs nothing
+    # the plan before the town is built: a wrong count costs nothing
+    plan = sample_plan(difficulty=args.difficulty, n=args.n, per_difficulty=args.per_difficulty)
     town = open_town(resolve_town(args.town).source)
-    todo = [(d, i) for d, n in plan for i in range(n)]
-    partial = args.out.with_name(args.out.name + PARTIAL_SUFFIX)
-    header = json.dumps({"sampling": {"town": town.town_id, "asset_sha256": town.sha256, "seed": args.seed,
-                                      "look": args.look, "plan": [[d, n] for d, n in plan]}}).encode() + b"\n"
-    episodes, end = _kept_episodes(partial, header)
-    if episodes:
-        print(f"going on from {partial}: {len(episodes)} of {len(todo)} episodes sampled before", flush=True)
-        fh = partial.open("r+b")
-        fh.truncate(end)  # a line cut short by the interruption
-        fh.seek(end)
-    else:
-        partial.parent.mkdir(parents=True, exist_ok=True)
-        fh = partial.open("wb")
-        fh.write(header)
-    with fh:
-        try:
-            if len(episodes) < len(todo):
-                with Scene(town.layout, look=args.look) as scene:
-                    for d, i in todo[len(episodes):]:
-                        episodes.append(sample_episode(town, scene, d, i, seed=args.seed, stream=DIFFICULTIES.index(d)))
-                        fh.write(to_json(episodes[-1]) + b"\n")
-                        fh.flush()
-        except KeyboardInterrupt:
-            print(f"interrupted: {len(episodes)} of {len(todo)} episodes kept in {partial}; run the same command "
-                  "again to go on", file=sys.stderr, flush=True)
-            raise
-    write_episodes(args.out, episodes[:len(todo)])
-    partial.unlink()
-    print(f"wrote {len(todo)} solvable episodes on {town.town_id} (asset {town.sha256[:12]}, {args.look} look) "
+    job = ResumableSampling(town, plan, args.out, seed=args.seed, look=args.look)
+    if job.kept:
+        print(f"going on from {job.partial}: {job.kept} of {job.total} episodes sampled before", flush=True)
+    try:
+        job.run()
+    except SamplingInterrupted as stop:
+        print(f"interrupted: {stop.kept} of {job.total} episodes kept in {job.partial}; run the same command "
+              "again to go on", file=sys.stderr, flush=True)
+        raise
+    print(f"wrote {job.total} solvable episodes on {town.town_id} (asset {town.sha256[:12]}, {args.look} look) "
           f"to {args.out}")
     return 0
-
-
-PARTIAL_SUFFIX = ".partial"
-"""``agos episodes sample --out OUT`` keeps the episodes sampled so far in ``OUT`` + this."""
-
-
-def _kept_episodes(partial: Path, header: bytes) -> tuple[list[EpisodeSpec], int]:
-    """The episodes an interrupted run of the same sampling (``header``, the file's first line) left in
-    ``partial``, in order, and where the last whole one ends; none when there is no such file or it is
-    another sampling's."""
-    import msgspec
-
-    from agos.runtime.schemas import EpisodeSpec as Spec
-
-    try:
-        data = partial.read_bytes()
-    except OSError:
-        return [], 0
-    if not data.startswith(header):
-        return [], 0
-    kept, end = [], len(header)
-    while (stop := data.find(b"\n", end)) >= 0:
-        try:
-            kept.append(msgspec.json.decode(data[end:stop], type=Spec))
-        except msgspec.DecodeError:
-            break
-        end = stop + 1
-    return kept, end
-
-
-def _sample_plan(args: argparse.Namespace, difficulties: tuple[Difficulty, ...]) -> list[tuple[Difficulty, int]]:
-    """``agos episodes sample``'s (difficulty, count) pairs; ValueError (one line) for counts below 1 or none."""
-    if args.per_difficulty is not None:
-        if args.per_difficulty < 1:
-            raise ValueError(f"--per-difficulty {args.per_difficulty}: give at least 1 episode per difficulty")
-        return [(d, args.per_difficulty) for d in difficulties]
-    if args.difficulty:
-        if args.n < 1:
-            raise ValueError(f"-n {args.n}: give at least 1 episode of --difficulty {args.difficulty}")
-        return [(args.difficulty, args.n)]
-    raise ValueError("give --difficulty D -n N or --per-difficulty N: how many episodes to sample")
 
 
 def _split(args: argparse.Namespace) -> int:

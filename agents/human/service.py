@@ -60,7 +60,7 @@ class HumanPolicy(Policy):
 
 
 async def serve_async(bus: Bus, board: DecisionBoard, run_id: str, stop: StopFlag, *,
-                      reconnect_grace_s: float = 10.0) -> int:
+                      reconnect_grace_s: float) -> int:
     """Serve every role of ``board`` on the bus until ``stop``."""
     loop = asyncio.get_running_loop()
     tasks: set[asyncio.Task[None]] = set()

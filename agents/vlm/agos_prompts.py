@@ -38,6 +38,7 @@ from agos.agents.vlm.request import (
     xy,
 )
 from agos.runtime.schemas import Observation
+from agos.runtime.settings import DEFAULTS
 
 ARRIVAL_RADIUS_M = 12.0
 """Without road-graph planning (no_rgpp), the UGV counts as arrived this close to the centre."""
@@ -86,7 +87,7 @@ a failure.
 Keep messages to the UAV short and factual."""
 
 
-def uav_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prompt:
+def uav_prompt(obs: Observation, memory: Memory, *, images: str = DEFAULTS.vlm.images) -> Prompt:
     active, candidates, rejected = candidate_facts(obs)
     stage = "candidate_active" if active else ("post_rejection" if rejected else "search")
     c = obs.coordination
@@ -142,7 +143,7 @@ def ugv_stage(obs: Observation, active: dict[str, Any] | None, rejected: list[li
     return "post_rejection" if rejected else "free_exploration"
 
 
-def ugv_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prompt:
+def ugv_prompt(obs: Observation, memory: Memory, *, images: str = DEFAULTS.vlm.images) -> Prompt:
     active, candidates, rejected = candidate_facts(obs)
     rgpp = "GO_TO_CANDIDATE" in obs.legal_actions or active is None
     stage = ugv_stage(obs, active, rejected, rgpp=rgpp)

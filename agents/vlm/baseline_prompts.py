@@ -34,6 +34,7 @@ from agos.agents.vlm.request import (
     xy,
 )
 from agos.runtime.schemas import Observation
+from agos.runtime.settings import DEFAULTS
 
 STALL_WAITS = 3
 """After this many WAITs in one place the UAV prompt tells it to move on."""
@@ -67,7 +68,7 @@ none does, REJECT and carry on. A \
 wrong CONFIRM ends the task as a failure. Never use candidate ids, grid cells, boxes or target coordinates."""
 
 
-def uav_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prompt:
+def uav_prompt(obs: Observation, memory: Memory, *, images: str = DEFAULTS.vlm.images) -> Prompt:
     b = PromptBuilder(images)
     p = obs.pose.position_world_m
     nadir = frame(obs, "nadir")
@@ -112,7 +113,7 @@ def anchor_from_messages(obs: Observation, memory: Memory) -> tuple[float, float
     return None
 
 
-def ugv_prompt(obs: Observation, memory: Memory, *, images: str = "all") -> Prompt:
+def ugv_prompt(obs: Observation, memory: Memory, *, images: str = DEFAULTS.vlm.images) -> Prompt:
     b = PromptBuilder(images)
     p = obs.pose.position_world_m
     anchor = anchor_from_messages(obs, memory)

@@ -39,10 +39,13 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from agos.agents.contract import FatalPolicyError
 from agos.agents.vlm.client import CallTag, Reply, VlmError
+
+if TYPE_CHECKING:
+    from rich.table import Table
 
 CACHE_FILE = "vlm-cache.sqlite"
 FORMAT_NAME = "agos-vlm-cache"
@@ -325,3 +328,23 @@ def cache_stats(directory: Path) -> CacheStats:
     files = [path, path.with_name(path.name + "-wal"), path.with_name(path.name + "-shm")]
     return CacheStats(sorted(per_model.values(), key=lambda s: s.model), images, int(image_bytes),
                       sum(f.stat().st_size for f in files if f.exists()))
+
+
+def stats_table(stats: CacheStats, *, title: str) -> Table:
+    """``agos vlm-cache stats``' table: one row per model, every count with thousands separators."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    table.add_column("model", no_wrap=True, min_width=max([5, *(len(m.model) for m in stats.models)]))
+    for name in ("requests", "replies", "errors", "hits", "misses", "tokens in", "tokens out"):
+        table.add_column(name, justify="right")
+    for m in stats.models:
+        table.add_row(m.model, *(f"{v:,}" for v in (m.requests, m.replies, m.errors, m.hits, m.misses, m.prompt_tokens,
+                                                     m.completion_tokens)))
+    return table
+
+
+def size_line(stats: CacheStats) -> str:
+    """The line under :func:`stats_table`: the cache's size on disk and its images'."""
+    return (f"size: {stats.file_bytes / 1e6:.1f} MB ({stats.images:,} images, {stats.image_bytes / 1e6:.1f} MB); "
+            "hits and misses count every lookup of every run, replies errors included")

@@ -35,6 +35,10 @@ from typing import Any, Protocol
 import httpx
 
 from agos.agents.vlm.endpoint import key_failure, listing_failure, model_failure, server_message, transport_failure
+from agos.runtime.settings import DEFAULTS
+
+_VLM = DEFAULTS.vlm
+"""The ``[vlm]`` defaults, which a client made without options takes."""
 
 
 @dataclass(frozen=True)
@@ -116,8 +120,9 @@ TEMPERATURE = 0.0
 
 
 class VlmClient:
-    def __init__(self, base_url: str, model: str, *, api_key_env: str = "OPENAI_API_KEY", timeout_s: float = 60.0,
-                 max_retries: int = 4, concurrency: int = 8, structured: bool = True, max_tokens: int = 512,
+    def __init__(self, base_url: str, model: str, *, api_key_env: str = _VLM.api_key_env,
+                 timeout_s: float = _VLM.timeout_s, max_retries: int = _VLM.max_retries, concurrency: int = _VLM.concurrency,
+                 structured: bool = _VLM.structured, max_tokens: int = _VLM.max_tokens,
                  backoff_base_s: float = 0.5, backoff_max_s: float = 20.0, transport: httpx.AsyncBaseTransport | None = None,
                  rng: random.Random | None = None, cache: ReplyCache | None = None) -> None:
         self.base_url = base_url.rstrip("/")

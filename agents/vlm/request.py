@@ -59,7 +59,7 @@ class Prompt:
 class PromptBuilder:
     """Accumulates a user message: text, captioned images and the state block."""
 
-    def __init__(self, images: str = "all") -> None:
+    def __init__(self, images: str) -> None:
         self.parts: list[dict[str, Any]] = []
         self.image_bytes: dict[str, int] = {}
         self.images = images
@@ -271,10 +271,6 @@ def panel_cameras(obs: Observation) -> dict[str, Any]:
 def reference_scale(obs: Observation) -> float | None:
     top = next((r for r in obs.references if r.name == "ref_top"), None)
     return None if top is None else top.metres_per_px
-
-
-def nearest_option(obs: Observation, goal: tuple[float, float]) -> Waypoint | None:
-    return min(obs.waypoint_options, key=lambda w: (math.dist(w.position_world_m[:2], goal), w.waypoint_id), default=None)
 
 
 REPLY_FORMAT = (

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from agos.runtime.settings import AgosConfig, load_config
+from agos.runtime.settings import DEFAULTS, AgosConfig, load_config
 
 Handler = Callable[[argparse.Namespace], int]
 """Runs a parsed command; returns its exit status."""
@@ -55,9 +55,9 @@ def vlm_flags(p: argparse.ArgumentParser) -> None:
     """The ``[vlm]`` settings as flags, for the commands whose VLM policies ask a model."""
     p.add_argument("--vlm-base-url", help="OpenAI-compatible endpoint of VLM policies, e.g. http://HOST:8000/v1")
     p.add_argument("--model", help="model name at that endpoint")
-    p.add_argument("--vlm-api-key-env", help="environment variable holding the API key (default OPENAI_API_KEY)")
-    p.add_argument("--vlm-timeout", type=float, help="seconds per HTTP attempt (default 60)")
-    p.add_argument("--vlm-max-retries", type=int, help="HTTP retries per request (default 4)")
+    p.add_argument("--vlm-api-key-env", help=f"environment variable holding the API key (default {DEFAULTS.vlm.api_key_env})")
+    p.add_argument("--vlm-timeout", type=float, help=f"seconds per HTTP attempt (default {DEFAULTS.vlm.timeout_s:g})")
+    p.add_argument("--vlm-max-retries", type=int, help=f"HTTP retries per request (default {DEFAULTS.vlm.max_retries})")
     p.add_argument("--vlm-no-structured", action="store_true", help="do not send a JSON schema (servers that mishandle it)")
     p.add_argument("--vlm-image-max-px", type=int, metavar="PX",
                    help="shrink every image sent to the model to at most PX on its longest side (default: as rendered)")

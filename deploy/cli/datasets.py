@@ -14,6 +14,8 @@ from pathlib import Path
 from typing import Any
 
 from agos.deploy.cli.common import Command, by_subcommand, with_settings
+from agos.deploy.dataset import DEFAULT_CAPTURE_EVERY_M
+from agos.runtime.episode_config import DEFAULT_LOOK
 from agos.runtime.settings import AgosConfig
 
 
@@ -25,10 +27,10 @@ def _add_dataset(sub: Any) -> None:
     dsb.add_argument("--split", type=Path, required=True, help="JSONL episode file (e.g. a split's train.jsonl)")
     dsb.add_argument("--out", type=Path, required=True, help="dataset directory (run the command again to resume)")
     dsb.add_argument("--workers", type=int, default=1, help="local world worker processes (default 1)")
-    dsb.add_argument("--look", choices=["rich", "flat"], default="rich",
-                     help="how the world draws the episodes (default rich: the textured city the dataset is for)")
-    dsb.add_argument("--capture-every", type=float, default=10.0, metavar="M",
-                     help="also render each role's camera every M metres between decisions (default 10)")
+    dsb.add_argument("--look", choices=["rich", "flat"], default=DEFAULT_LOOK,
+                     help=f"how the world draws the episodes (default {DEFAULT_LOOK}: the textured city the dataset is for)")
+    dsb.add_argument("--capture-every", type=float, default=DEFAULT_CAPTURE_EVERY_M, metavar="M",
+                     help=f"also render each role's camera every M metres between decisions (default {DEFAULT_CAPTURE_EVERY_M:g})")
     dsb.add_argument("--connect", help="attach to a router and processes started by hand (agents with --dataset-out DIR)")
     dsb.add_argument("--run", dest="run_id", help="run id (with --connect)")
     dsb.add_argument("--port", type=int)

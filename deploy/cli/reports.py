@@ -95,26 +95,17 @@ def _add_vlm_cache(sub: Any) -> None:
 
 def _vlm_cache_stats(args: argparse.Namespace) -> int:
     from rich.console import Console
-    from rich.table import Table
 
-    from agos.agents.vlm.cache import CacheError, cache_stats
+    from agos.agents.vlm.cache import CacheError, cache_stats, size_line, stats_table
 
     try:
         stats = cache_stats(args.dir)
     except CacheError as exc:
         print(f"vlm-cache error: {exc}", file=sys.stderr)
         return 2
-    table = Table(title=f"VLM cache {args.dir}")
-    table.add_column("model", no_wrap=True, min_width=max([5, *(len(m.model) for m in stats.models)]))
-    for name in ("requests", "replies", "errors", "hits", "misses", "tokens in", "tokens out"):
-        table.add_column(name, justify="right")
-    for m in stats.models:
-        table.add_row(m.model, *(f"{v:,}" for v in (m.requests, m.replies, m.errors, m.hits, m.misses, m.prompt_tokens,
-                                                     m.completion_tokens)))
     console = Console(soft_wrap=True)
-    console.print(table)
-    console.print(f"size: {stats.file_bytes / 1e6:.1f} MB ({stats.images:,} images, {stats.image_bytes / 1e6:.1f} MB); "
-                  "hits and misses count every lookup of every run, replies errors included", highlight=False)
+    console.print(stats_table(stats, title=f"VLM cache {args.dir}"))
+    console.print(size_line(stats), highlight=False)
     return 0
 
 

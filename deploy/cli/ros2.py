@@ -12,6 +12,7 @@ import sys
 from typing import Any
 
 from agos.deploy.cli.common import Command, by_subcommand, connection_flags, with_settings
+from agos.runtime.keys import ROLES
 from agos.runtime.settings import AgosConfig
 
 
@@ -24,7 +25,7 @@ def _add(sub: Any) -> None:
     bridge = groups.add_parser("bridge", help="a run as ROS 2 topics; --drive: a role driven from ROS 2", description=what)
     connection_flags(bridge)
     bridge.add_argument("--worker", metavar="W", help="only this world worker's slot (default: every worker's)")
-    bridge.add_argument("--drive", choices=["uav", "ugv", "both"],
+    bridge.add_argument("--drive", choices=[*ROLES, "both"],
                         help="serve this role's decisions from the ROS 2 topic ROLE/action (instead of an agos agent)")
     bridge.add_argument("--namespace", default="", metavar="NS", help="prefix of every topic, e.g. /agos_run (default none)")
     bridge.add_argument("--domain-id", type=int, help="ROS domain id (default $ROS_DOMAIN_ID, else 0)")

@@ -9,14 +9,13 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
 from agos.deploy.cli.common import Command, by_subcommand, connection_flags, price_flags, vlm_flags, with_settings
 from agos.deploy.cli.recordings import add_record_flags, recording_of
 from agos.deploy.run.orchestrator import STUCK_AFTER_S
-from agos.runtime.settings import AgosConfig
+from agos.runtime.settings import DEFAULT_POLICY, DEFAULT_TOWN, DEFAULTS, AgosConfig
 
 
 def _duration(value: str) -> float:
@@ -72,13 +71,13 @@ def _add_demo(sub: Any) -> None:
 
 def _demo(args: argparse.Namespace, cfg: AgosConfig) -> int:
     from agos.deploy.run import demo
+    from agos.deploy.run.exits import refused
 
     try:
         return demo.main(cfg, config_path=args.config, port=args.port, attach=args.connect is not None,
                          secure=args.secure, recording=recording_of(args))
     except ValueError as exc:  # a policy or profile name, a run directory: before any process starts
-        print(f"demo error: {exc}", file=sys.stderr)
-        return 2
+        return refused("demo", exc)
 
 
 MODEL_LINK_HELP = ("where the model of VLM policies runs: onboard (default: no link), edge, lte, satellite "
@@ -88,25 +87,15 @@ POSE_ERROR_HELP = ("each role's localisation error: exact (default), gnss-2m, gn
 POLICY_HELP = "a name (docs/AGENTS.md), one registered in the agos.policies entry points, or package.module:Class"
 
 
-def _locate_here(args: argparse.Namespace, policies: Any) -> None:
-    """A run that starts its agents here (not ``--connect``): their policies' modules must be found
-    here, before any process starts (agents/registry.py::locate_policy; raises ValueError)."""
-    if not args.connect:
-        from agos.agents.registry import locate_policy
-
-        for name in policies:
-            locate_policy(name)
-
-
 def _add_eval(sub: Any) -> None:
     ev = sub.add_parser("eval", help="evaluate policies on an episode file: leases, fault tolerance, resume")
     ev.add_argument("--config", type=Path)
     ev.add_argument("--split", type=Path, help="JSONL episode file (e.g. a split's val.jsonl); default: generate")
-    ev.add_argument("--policy", help=f"policy of both roles (default heuristic): {POLICY_HELP}")
+    ev.add_argument("--policy", help=f"policy of both roles (default {DEFAULT_POLICY}): {POLICY_HELP}")
     ev.add_argument("--policy-uav", help="the UAV's policy (default --policy)")
     ev.add_argument("--policy-ugv", help="the UGV's policy (default --policy)")
-    ev.add_argument("--comm", default="ideal", help="comm profile name (deploy/comm) or TOML file")
-    ev.add_argument("--timing", choices=["lockstep", "realtime"], default="lockstep")
+    ev.add_argument("--comm", default=DEFAULTS.world.comm.name, help="comm profile name (deploy/comm) or TOML file")
+    ev.add_argument("--timing", choices=["lockstep", "realtime"], default=DEFAULTS.world.timing_mode)
     ev.add_argument("--model-link", metavar="PLACEMENT", help=MODEL_LINK_HELP)
     ev.add_argument("--pose-error", metavar="PROFILE", help=POSE_ERROR_HELP)
     ev.add_argument("--uav-verification", choices=["frozen", "active"],
@@ -145,56 +134,23 @@ def _add_eval(sub: Any) -> None:
     price_flags(ev)  # kept in run.json: agos metrics and report use them
 
 
-def _budget(args: argparse.Namespace) -> tuple[Any, Any]:
-    """The command's caps and price table (ValueError: one line)."""
-    from agos.deploy.run.budget import Caps
-    from agos.evaluator.cost import price_table
-
-    prices = price_table(prices_file=args.prices, price_in=args.price_in, price_out=args.price_out)
-    caps = Caps(None if args.max_cost_usd in (None, "none") else args.max_cost_usd,
-                None if args.max_tokens in (None, "none") else args.max_tokens)
-    return caps, prices
-
-
 def _eval(args: argparse.Namespace, cfg: AgosConfig) -> int:
     from agos.deploy.run import evaluate
-    from agos.deploy.run import plan as run_plan
-    from agos.runtime.links import ProfileError
+    from agos.deploy.run.eval_plan import eval_plan, eval_workers
+    from agos.deploy.run.exits import REFUSED, refused
 
     recording = recording_of(args)  # a bad flag fails before a run directory is made
     try:
-        caps, prices = _budget(args)
-        if args.resume:
-            plan = run_plan.resume_plan(args.resume)
-            if not args.connect:  # its agents start here: their endpoint is checked first, as a new run's
-                plan.endpoint = run_plan.check_endpoint(cfg.vlm, plan.vlm)
-            _locate_here(args, plan.policies.values())
-            run_plan.resume_with(plan, max_cost_usd=args.max_cost_usd, max_tokens=args.max_tokens, prices=prices)
-        else:
-            _locate_here(args, (cfg.run.policy_uav, cfg.run.policy_ugv))
-            run_dir = args.run_dir
-            if run_dir is None and args.connect and args.run_id:
-                run_dir = cfg.run.runs_dir / args.run_id
-            plan = run_plan.new_plan(cfg, run_dir=run_dir, comm=args.comm, timing_mode=args.timing, stamp=True,
-                                     vlm_standin=args.vlm_standin, workers=args.workers, check_vlm=not args.connect,
-                                     caps=caps, prices=prices, model_link=args.model_link,
-                                     pose_error=args.pose_error)
-    except (run_plan.RunDirError, ProfileError, ValueError) as exc:  # bad profiles of every kind are ValueErrors
-        print(f"eval error: {exc}", file=sys.stderr)
-        return 2
-    if args.resume and args.workers is None:  # a resumed run keeps the worker count it was started with
-        args.workers = plan.workers
-    workers = args.workers if isinstance(args.workers, int) else cfg.run.workers
-    if args.workers == "auto" and not args.connect:
-        from agos.agents.names import needs_vlm
-        from agos.deploy.run.concurrency import choose_workers
-
-        to_run = len(plan.episodes) - len(run_plan.stored_episodes(plan.run_dir))
-        asks_model = any(needs_vlm(p) for p in plan.policies.values())  # at most [vlm] concurrency requests at once
-        choice = choose_workers(plan.policies, to_run, model_latency_s=args.model_latency,
-                                model_concurrency=cfg.vlm.concurrency if asks_model else None)
-        workers = choice.workers
-        print(f"world workers: {workers} ({choice.why})")
+        plan = eval_plan(cfg, resume=args.resume, run_dir=args.run_dir, run_id=args.run_id, attach=bool(args.connect),
+                         comm=args.comm, timing_mode=args.timing, vlm_standin=args.vlm_standin, workers=args.workers,
+                         model_link=args.model_link, pose_error=args.pose_error, max_cost_usd=args.max_cost_usd,
+                         max_tokens=args.max_tokens, prices_file=args.prices, price_in=args.price_in,
+                         price_out=args.price_out)
+    except REFUSED as exc:
+        return refused("eval", exc)
+    workers, why = eval_workers(cfg, plan, args.workers, attach=bool(args.connect), model_latency_s=args.model_latency)
+    if why is not None:
+        print(f"world workers: {workers} ({why})")
     return evaluate.run(cfg, plan, workers=workers, attach=args.connect is not None, port=args.port,
                         config_path=args.config, stuck_after_s=args.stuck_after, secure=args.secure,
                         recording=recording)
@@ -204,7 +160,7 @@ def _add_sweep(sub: Any) -> None:
     sw = sub.add_parser("sweep", help="a comm-profile parameter grid x link seeds: table and plots with CIs")
     sw.add_argument("--config", type=Path, help="TOML settings file: its [world] section shapes the episodes")
     sw.add_argument("--split", type=Path, required=True, help="JSONL episode file")
-    sw.add_argument("--comm", default="ideal", help="base profile")
+    sw.add_argument("--comm", default=DEFAULTS.world.comm.name, help="base profile")
     sw.add_argument("--model-link", metavar="PLACEMENT", help=MODEL_LINK_HELP)
     sw.add_argument("--pose-error", metavar="PROFILE", help=POSE_ERROR_HELP)
     sw.add_argument("--param", default="loss.p",
@@ -214,7 +170,7 @@ def _add_sweep(sub: Any) -> None:
     sw.add_argument("--values", default="0,0.1,0.2,0.3,0.4,0.5",
                     help="comma-separated values (profile names or TOML files for pose_error, model_link)")
     sw.add_argument("--seeds", default="0,1", help="comma-separated link seeds")
-    sw.add_argument("--policy", default="heuristic", help=f"policy of both roles (default heuristic): {POLICY_HELP}")
+    sw.add_argument("--policy", default=DEFAULT_POLICY, help=f"policy of both roles (default {DEFAULT_POLICY}): {POLICY_HELP}")
     sw.add_argument("--policy-uav", help="the UAV's policy (default --policy)")
     sw.add_argument("--policy-ugv", help="the UGV's policy (default --policy)")
     sw.add_argument("--workers", type=int, default=2)
@@ -226,23 +182,19 @@ def _add_sweep(sub: Any) -> None:
 
 
 def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
-    from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from agos.agents.contract import EndpointOutage, FatalPolicyError
-    from agos.deploy.run.configure import episode_config
-    from agos.deploy.run.launcher import print_death
+    from agos.deploy.run.configure import run_episode_config
+    from agos.deploy.run.exits import SWEEP_STOPS, sweep_exit
     from agos.deploy.run.sweep import check_sweep_endpoint, point_config, run_sweep
-    from agos.runtime.deaths import ChildDied
-    from agos.runtime.links import ProfileError
     from agos.world.episodes.files import read_split
 
     try:  # everything that can be wrong with the command fails here, before the progress bar
         values = [v.strip() for v in args.values.split(",")]
         seeds = [int(v) for v in args.seeds.split(",")]
         policies = {"uav": args.policy_uav or args.policy, "ugv": args.policy_ugv or args.policy}
-        config = episode_config(cfg, policies=policies, comm=args.comm, model_link=args.model_link,
-                                pose_error=args.pose_error)
+        config = run_episode_config(cfg, policies=policies, comm=args.comm, model_link=args.model_link,
+                                    pose_error=args.pose_error)
         for value in values:
             point_config(config, args.param, value)  # an unknown --param, or a value it cannot take
         check_sweep_endpoint(policies.values(), cfg.vlm, args.vlm_standin)  # the model endpoint answers /models
@@ -252,20 +204,8 @@ def _sweep(args: argparse.Namespace, cfg: AgosConfig) -> int:
             table = run_sweep(args.split, args.out, config=config, param=args.param, values=values, seeds=seeds,
                               policies=(policies["uav"], policies["ugv"]), workers=args.workers,
                               progress=lambda: bar.advance(task), vlm=cfg.vlm, vlm_standin=args.vlm_standin)
-    except (ProfileError, ValueError) as exc:
-        print(f"sweep error: {exc}", file=sys.stderr)
-        return 2
-    except FatalPolicyError as exc:  # a replay (--vlm-cache-mode replay) that lacks a recorded call
-        print(f"sweep error: {exc}", file=sys.stderr)
-        return exc.exit_code
-    except EndpointOutage as exc:  # never scored as the model's WAIT: the sweep stops
-        print(f"sweep error: the model endpoint gave no answer: {exc}; finished episodes are kept, the same sweep "
-              "plays the rest once it answers", file=sys.stderr)
-        return 6
-    except ChildDied as exc:  # a worker process died (a signal, an exit): which, how, its log's last lines
-        print_death(Console(stderr=True, soft_wrap=True), exc.name, exc.returncode, exc.log, exc.tail,
-                    note="; the sweep stops (its finished episodes are kept: the same command plays the rest)")
-        return 1
+    except SWEEP_STOPS as exc:  # a bad flag or profile, a replay lacking a call, no model answer, a worker died
+        return sweep_exit(exc)
     print((args.out / "sweep.md").read_text())
     print(f"{len(table)} points -> {args.out}/sweep.csv, sweep.md, sweep.png")
     return 0
@@ -277,24 +217,25 @@ def _add_check(sub: Any) -> None:
     check_agent = check_sub.add_parser("agent", help="a short conformance episode against attached agent services")
     connection_flags(check_agent)
     check_agent.add_argument("--budget", type=int, default=16, help="decisions in the check episode (default 16)")
-    check_agent.add_argument("--town", default="grid-s7", help="procedural town of the check episode")
-    check_agent.add_argument("--policy", default="heuristic",
+    check_agent.add_argument("--town", default=DEFAULT_TOWN, help="procedural town of the check episode")
+    check_agent.add_argument("--policy", default=DEFAULT_POLICY,
                              help="policy the agents run, for the world's tools (baseline: no candidates; ablations; "
                                   "package.module:Class: every tool)")
     check_agent.add_argument("--policy-uav", help="the UAV agent's policy, for the world's tools (default --policy)")
     check_agent.add_argument("--policy-ugv", help="the UGV agent's policy, for the world's tools (default --policy)")
-    check_agent.add_argument("--agent-wait", type=float, help="seconds to wait for each role's service (default 30)")
+    check_agent.add_argument("--agent-wait", type=float,
+                             help=f"seconds to wait for each role's service (default {DEFAULTS.run.agent_wait_s:g})")
 
 
 def _check_agent(args: argparse.Namespace, cfg: AgosConfig) -> int:
     from agos.deploy.run.check import run_check
+    from agos.deploy.run.exits import refused
 
     policies = {"uav": args.policy_uav or args.policy, "ugv": args.policy_ugv or args.policy}
     try:
         return run_check(cfg, budget=args.budget, town_name=args.town, policies=policies)
     except ValueError as exc:  # a policy name that names none: before the bus is opened
-        print(f"check error: {exc}", file=sys.stderr)
-        return 2
+        return refused("check", exc)
 
 
 DEMO = Command(("demo",), _add_demo, with_settings(_demo))

@@ -17,7 +17,8 @@ from typing import Any
 
 from agos.deploy.cli.common import Command, connection_flags, vlm_flags, with_settings
 from agos.deploy.run.children import AGENT_CONCURRENCY
-from agos.runtime.settings import AgosConfig
+from agos.runtime.keys import ROLES
+from agos.runtime.settings import DEFAULT_POLICY, DEFAULTS, AgosConfig
 
 
 def _add_watch(sub: Any) -> None:
@@ -57,7 +58,8 @@ def _add_world(sub: Any) -> None:
     world = sub.add_parser("world", help="world worker: simulates leased episodes")
     connection_flags(world)
     world.add_argument("--worker-id")
-    world.add_argument("--agent-wait", type=float, help="seconds to wait for both agent services (default 30)")
+    world.add_argument("--agent-wait", type=float,
+                       help=f"seconds to wait for both agent services (default {DEFAULTS.run.agent_wait_s:g})")
 
 
 def _world(args: argparse.Namespace, cfg: AgosConfig) -> int:
@@ -71,8 +73,8 @@ def _world(args: argparse.Namespace, cfg: AgosConfig) -> int:
 def _add_agent(sub: Any) -> None:
     agent = sub.add_parser("agent", help="agent service for one role")
     connection_flags(agent)
-    agent.add_argument("--role", choices=["uav", "ugv"], required=True)
-    agent.add_argument("--policy", help="policy name (default from config: heuristic), one registered in the "
+    agent.add_argument("--role", choices=ROLES, required=True)
+    agent.add_argument("--policy", help=f"policy name (default from config: {DEFAULT_POLICY}), one registered in the "
                        "agos.policies entry points, or package.module:Class (docs/AGENTS.md)")
     agent.add_argument("--concurrency", type=int, default=AGENT_CONCURRENCY,
                        help=f"decisions answered at once (default {AGENT_CONCURRENCY})")
@@ -100,7 +102,7 @@ def _add_human(sub: Any) -> None:
                                          "a run read-only (docs/HUMAN.md)")
     connection_flags(human)
     play = human.add_mutually_exclusive_group(required=True)
-    play.add_argument("--role", choices=["uav", "ugv", "both"], help="the role(s) the person plays")
+    play.add_argument("--role", choices=[*ROLES, "both"], help="the role(s) the person plays")
     play.add_argument("--spectate", action="store_true", help="a read-only view of the run's visualisation stream")
     human.add_argument("--host", default="127.0.0.1",
                        help="interface the page is served on (default loopback; 0.0.0.0: every interface)")
@@ -112,7 +114,6 @@ def _add_human(sub: Any) -> None:
 def _human(args: argparse.Namespace, cfg: AgosConfig) -> int:
     from agos.agents.human import service as human_service
     from agos.deploy.run.human import CONSOLE_PORT, SPECTATOR_PORT
-    from agos.runtime.keys import ROLES
     from agos.runtime.schemas import Role
 
     if args.spectate:

@@ -45,6 +45,8 @@ from agos.agents.dataset.writer import EPISODES, PARTIAL
 from agos.deploy.dataset import loading
 from agos.deploy.run import evaluate
 from agos.deploy.run import plan as run_plan
+from agos.runtime.episode_config import DEFAULT_LOOK
+from agos.runtime.keys import ROLES
 from agos.runtime.schemas import EpisodeRecord, EpisodeSpec
 from agos.runtime.settings import AgosConfig
 
@@ -53,8 +55,6 @@ EXPORT = "export.jsonl"
 FAILED = "failed.jsonl"
 EPISODE_FILE = "episode.json"
 HASHES = "files.sha256"
-ROLES = ("uav", "ugv")
-DEFAULT_CAPTURE_EVERY_M = 10.0
 
 
 class DatasetError(ValueError):
@@ -95,7 +95,7 @@ class Assembler:
             if written != counts[role]:
                 return f"{role}: {written} decisions written, the record has {counts[role]} (an agent restarted " \
                        "mid-episode?); rebuild it"
-        expert = {role: json.loads((attempt / role / "expert.json").read_text()) for role in ROLES}
+        expert: dict[str, Any] = {role: json.loads((attempt / role / "expert.json").read_text()) for role in ROLES}
         spec = self.specs[record.episode_id]
         (attempt / EPISODE_FILE).write_text(json.dumps(_episode_doc(spec, record, expert), indent=1) + "\n")
         _write_parquet(attempt, record.episode_id)
@@ -108,7 +108,7 @@ class Assembler:
         return None
 
 
-def build(cfg: AgosConfig, split: Path, out_dir: Path, *, workers: int, capture_every_m: float, look: str = "rich",
+def build(cfg: AgosConfig, split: Path, out_dir: Path, *, workers: int, capture_every_m: float, look: str = DEFAULT_LOOK,
           attach: bool = False, port: int | None = None, config_path: Path | None = None,
           console: Console | None = None) -> int:
     """Build (or resume) the dataset of ``split`` in ``out_dir`` drawn with ``look``; the exit code. A

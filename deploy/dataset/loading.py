@@ -26,6 +26,10 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+from agos.deploy.dataset import DEFAULT_CAPTURE_EVERY_M
+from agos.runtime.episode_config import DEFAULT_LOOK
+from agos.runtime.schemas import DIFFICULTIES
+
 PARQUET = "export.parquet"
 LLAMAFACTORY_INFO = "dataset_info.json"
 CARD = "README.md"
@@ -156,9 +160,9 @@ def dataset_card(manifest: dict[str, Any], *, examples: int, export_bytes: int, 
     dirty = prov.get("dirty")
     split = Path(manifest["split"])
     rebuild = ["agos", "dataset", "build", "--split", str(manifest["split"]), "--out", "DIR"]
-    if manifest.get("look") != "rich":
+    if manifest.get("look") != DEFAULT_LOOK:
         rebuild += ["--look", str(manifest.get("look"))]
-    if manifest.get("capture_every_m") != 10.0:
+    if manifest.get("capture_every_m") != DEFAULT_CAPTURE_EVERY_M:
         rebuild += ["--capture-every", f"{manifest.get('capture_every_m'):g}"]
     by_difficulty: dict[str, list[int]] = {}
     for e in manifest["episodes"].values():
@@ -166,7 +170,7 @@ def dataset_card(manifest: dict[str, Any], *, examples: int, export_bytes: int, 
         for i, key in enumerate(("decisions", "images", "bytes")):
             row[i + 1] += e[key]
         row[0] += 1
-    order = sorted(by_difficulty, key=lambda d: (["easy", "mid", "hard"] + [d]).index(d))
+    order = sorted(by_difficulty, key=lambda d: [*DIFFICULTIES, d].index(d))
     towns = sorted({e["town_id"] for e in manifest["episodes"].values()})
     rows = "\n".join(f"| {d} | {r[0]:,} | {r[1]:,} | {r[2]:,} | {r[3]:,} |" for d, r in
                      [(d, by_difficulty[d]) for d in order])

@@ -33,9 +33,10 @@ from pathlib import Path
 from typing import Any
 
 from agos.agents.dataset.writer import EPISODES
-from agos.deploy.dataset.build import EPISODE_FILE, EXPORT, HASHES, MANIFEST, ROLES
+from agos.deploy.dataset.build import EPISODE_FILE, EXPORT, HASHES, MANIFEST
+from agos.runtime.keys import ROLES
+from agos.runtime.schemas import DIFFICULTIES
 
-DIFFICULTIES = ("easy", "mid", "hard")
 DEFAULT_FIGURE = "stats.png"
 BAR_FROM = 500
 """Datasets of this many episodes or more are read under a progress bar (on stderr)."""

@@ -79,7 +79,7 @@ def _kind(key: str) -> str:
     """What a key of the stream carries, without the role: ``events``, ``coord``, ``frame``, ``full``,
     ``spec`` or ``result`` (``?`` for a key that is no viz key)."""
     try:
-        return keys.kind_of(key).split("/", 1)[0]
+        return keys.parse_slot(key).kind
     except ValueError:
         return "?"
 

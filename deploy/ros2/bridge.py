@@ -262,7 +262,7 @@ class Republisher:
 
 
 async def serve(bus: Bus, node: Node, run_id: str, stop: StopFlag, *, drive: tuple[Role, ...], worker: str = "*",
-                ns: str = "", reconnect_grace_s: float = 10.0) -> int:
+                ns: str = "", reconnect_grace_s: float) -> int:
     """Bridge run ``run_id`` (one worker's slot, or every slot) to ``node`` until ``stop``."""
     loop = asyncio.get_running_loop()
     decisions = Decisions(node, ns, loop)

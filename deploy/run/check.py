@@ -35,9 +35,10 @@ from rich.table import Table
 
 from agos.deploy.run.presence import elsewhere_line, who_is_here
 from agos.runtime.bus import ZenohBus
+from agos.runtime.keys import ROLES
 from agos.runtime.process import install_stop_handlers
 from agos.runtime.schemas import Action, EpisodeRecord, Observation, Role, StepEvent
-from agos.runtime.settings import AgosConfig
+from agos.runtime.settings import DEFAULT_POLICY, AgosConfig
 
 MESSAGE_LIMIT = 500
 CHECKS = ("subscribed", "answered", "legal", "arguments", "model", "message", "finished")
@@ -110,7 +111,7 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policies: dict[st
     """One check episode; 0 when every check passed, 1 otherwise. ``policies``: the policy each role's
     agent runs (default heuristic), for the world's tools; a name that names no policy raises
     ValueError before the bus is opened."""
-    from agos.deploy.run.configure import episode_config
+    from agos.deploy.run.configure import run_episode_config
     from agos.env import Env
     from agos.world.episodes.sampling import generate_episodes
     from agos.world.sim.scene import Scene
@@ -118,7 +119,7 @@ def run_check(cfg: AgosConfig, *, budget: int, town_name: str, policies: dict[st
     from agos.world.towns.asset import open_town
 
     console = console or Console(soft_wrap=True)  # paths and commands it prints are never cut at the width
-    config = episode_config(cfg, policies=policies or {"uav": "heuristic", "ugv": "heuristic"}, decision_budget=budget)
+    config = run_episode_config(cfg, policies=policies or dict.fromkeys(ROLES, DEFAULT_POLICY), decision_budget=budget)
     stop = install_stop_handlers()
     v = Verdicts()
     run_id = cfg.run.run_id

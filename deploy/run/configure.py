@@ -1,7 +1,7 @@
 """The one builder of a run's :class:`~agos.runtime.episode_config.EpisodeConfig`.
 
 ``agos eval``/``demo`` (the orchestrator), ``agos sweep`` and ``agos check`` all call
-:func:`episode_config`: the ``[world]`` settings as layered by :func:`agos.runtime.settings.load_config`
+:func:`run_episode_config`: the ``[world]`` settings as layered by :func:`agos.runtime.settings.load_config`
 (defaults < TOML file < ``AGOS_WORLD__…`` environment < flags), then the run's comm profile
 (``--comm``), the placement of its model (``--model-link``), each role's localisation error
 (``--pose-error``), timing mode (``--timing``) and the
@@ -20,9 +20,9 @@ from agos.runtime.sensing import load_pose_error
 from agos.runtime.settings import AgosConfig, config_error
 
 
-def episode_config(cfg: AgosConfig, *, policies: dict[str, str], comm: str | None = None,
-                   timing_mode: str | None = None, decision_budget: int | None = None,
-                   model_link: str | None = None, pose_error: str | None = None) -> EpisodeConfig:
+def run_episode_config(cfg: AgosConfig, *, policies: dict[str, str], comm: str | None = None,
+                       timing_mode: str | None = None, decision_budget: int | None = None,
+                       model_link: str | None = None, pose_error: str | None = None) -> EpisodeConfig:
     """The run's episode configuration. ``comm`` is a profile name (deploy/comm) or TOML file
     (raises :class:`~agos.runtime.links.ProfileError`); ``model_link`` a placement (deploy/model_link)
     or TOML file (:class:`~agos.runtime.model_link.ModelLinkError`); ``pose_error`` a localisation-error

@@ -13,12 +13,12 @@ from rich.console import Console
 from agos.deploy.run import evaluate
 from agos.deploy.run.local import Recording
 from agos.deploy.run.plan import new_plan
-from agos.runtime.settings import AgosConfig
+from agos.runtime.settings import DEFAULTS, AgosConfig
 
 
 def main(cfg: AgosConfig, *, config_path: Path | None = None, port: int | None = None, attach: bool = False,
-         console: Console | None = None, comm: str = "ideal", timing_mode: str = "lockstep", secure: bool = False,
-         recording: Recording | None = None) -> int:
+         console: Console | None = None, comm: str = DEFAULTS.world.comm.name, timing_mode: str = DEFAULTS.world.timing_mode,
+         secure: bool = False, recording: Recording | None = None) -> int:
     """``recording``: ``--record DIR``, a recorder writes each episode as a rerun file (deploy/recording/recorder.py)."""
     plan = new_plan(cfg, run_dir=None, comm=comm, timing_mode=timing_mode, stamp=not attach, check_vlm=not attach)
     return evaluate.run(cfg, plan, workers=cfg.run.workers, attach=attach, port=port, config_path=config_path,

@@ -59,6 +59,7 @@ from agos.runtime.schemas import (
     RunManifest,
     StepEvent,
 )
+from agos.runtime.settings import DEFAULTS
 from agos.runtime.traces import record_usage
 
 log = logging.getLogger("agos.orchestrator")
@@ -71,11 +72,6 @@ STUCK_AFTER_S = 180.0
 (``agos eval --stuck-after``), unless its decision timeout and ``STUCK_MARGIN_S`` are longer."""
 STUCK_MARGIN_S = 60.0
 """An episode counts as stuck only after its decision timeout and this much more without progress."""
-INFRA_WAIT_S = 60.0
-"""How long leasing pauses after a model endpoint outage (``[run] infra_wait_s``)."""
-MAX_INFRA_ATTEMPTS = 3
-"""Attempts an episode may lose to model endpoint outages before it is stored as ``infra_error``
-(``[run] max_infra_attempts``)."""
 
 
 def summary_of(record: EpisodeRecord) -> EpisodeRecord:
@@ -103,8 +99,9 @@ class Orchestrator:
     def __init__(self, bus: Bus, run_id: str, episodes: list[EpisodeSpec], *, policies: dict[str, str],
                  config: EpisodeConfig | None = None,
                  stuck_after_s: float = STUCK_AFTER_S, max_attempts: int = 3, already_stored: set[str] | None = None,
-                 resumed: bool = False, max_infra_attempts: int = MAX_INFRA_ATTEMPTS, infra_wait_s: float = INFRA_WAIT_S,
-                 reconnect_grace_s: float = 10.0, clock=time.monotonic) -> None:
+                 resumed: bool = False, max_infra_attempts: int = DEFAULTS.run.max_infra_attempts,
+                 infra_wait_s: float = DEFAULTS.run.infra_wait_s, reconnect_grace_s: float = DEFAULTS.run.reconnect_grace_s,
+                 clock=time.monotonic) -> None:
         self.bus, self.run_id = bus, run_id
         self.policies = policies
         self.config = config or EpisodeConfig()
@@ -195,7 +192,7 @@ class Orchestrator:
         self._read([sample] if sample else [])
         now = self._clock()
         for s in self._live.drain():
-            worker = s.key.rsplit("/", 1)[-1]
+            worker = keys.live_of(s.key).ident
             if s.payload == b"+":
                 self.live_workers.add(worker)
                 if self.vanished.pop(worker, None) is not None:
@@ -431,8 +428,8 @@ class Orchestrator:
         """Serve a town asset from the local asset cache; unknown hashes get no reply."""
         from agos.world.towns.asset import cache_dir
 
-        sha = query.key.rsplit("/", 1)[-1]
-        path = cache_dir() / keys.check_chunk(sha, what="asset hash") / "asset.msgpack"
+        sha = keys.asset_of(query.key)
+        path = cache_dir() / sha / "asset.msgpack"
         if path.exists():
             log.info("serving asset %s (%d bytes)", sha[:12], path.stat().st_size)
             query.reply(path.read_bytes())

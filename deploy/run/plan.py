@@ -22,7 +22,7 @@ from typing import Any
 from agos.agents.names import needs_vlm
 from agos.deploy.run.budget import Caps, check_prices
 from agos.deploy.run.card import run_card
-from agos.deploy.run.configure import episode_config
+from agos.deploy.run.configure import run_episode_config
 from agos.evaluator.cost import PriceError, PriceTable, prices_from_json
 from agos.evaluator.store import ResultStore
 from agos.runtime.episode_config import EpisodeConfig, StoredConfigError, read_config
@@ -189,8 +189,8 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
     if (run_dir / "results.sqlite").exists():
         raise RunDirError(f"{run_dir}: already holds results; resume it with: agos eval --resume {run_dir}")
     policies = {"uav": cfg.run.policy_uav, "ugv": cfg.run.policy_ugv}
-    config = episode_config(cfg, policies=policies, comm=comm, timing_mode=timing_mode,  # bad names fail here
-                            model_link=model_link, pose_error=pose_error)
+    config = run_episode_config(cfg, policies=policies, comm=comm, timing_mode=timing_mode,  # bad names fail here
+                                model_link=model_link, pose_error=pose_error)
     vlm = vlm_plan(cfg, policies, vlm_standin)
     caps = caps or Caps()
     check_prices(caps, prices, vlm.get("model"))

@@ -38,7 +38,8 @@ def who_is_here(bus: Bus, run_id: str, timeout_s: float = 1.0) -> Presence:
     agents: dict[str, int] = dict.fromkeys(keys.ROLES, 0)
     elsewhere: dict[str, list[str]] = {}
     for key in bus.alive_tokens(keys.live("*", "agent", "*"), timeout_s):
-        run, role = keys.run_of(key), key.rsplit("/", 1)[-1].split("-", 1)[0]
+        token = keys.live_of(key)
+        run, role = token.run, token.ident.split("-", 1)[0]  # an agent id starts with its role
         if run == run_id and role in agents:
             agents[role] += 1
         elif run != run_id:

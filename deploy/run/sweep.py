@@ -192,7 +192,7 @@ def run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, para
               progress: Callable[[], None] | None = None, vlm: VlmOptions | None = None,
               vlm_standin: str | None = None) -> list[dict]:
     """Run every episode at every (value, link seed) point: ``config`` (from
-    :func:`agos.deploy.run.configure.episode_config`) at the axis value (:func:`point_config`) and
+    :func:`agos.deploy.run.configure.run_episode_config`) at the axis value (:func:`point_config`) and
     ``link_seed`` at the seed. VLM policies ask ``vlm``'s endpoint, or, with ``vlm_standin`` (a
     fault string, "" for none), a stand-in server started here for the sweep's duration."""
     from agos.agents.names import needs_vlm

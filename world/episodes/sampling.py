@@ -29,7 +29,8 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from agos.runtime.schemas import Difficulty, EpisodeSpec, TownRef, VehicleSpec
+from agos.runtime.episode_config import DEFAULT_LOOK
+from agos.runtime.schemas import DIFFICULTIES, Difficulty, EpisodeSpec, TownRef, VehicleSpec
 from agos.world.episodes.files import EpisodeFileError as EpisodeFileError  # re-exported: read and write them from files.py
 from agos.world.episodes.files import read_episodes as read_episodes
 from agos.world.episodes.files import write_episodes as write_episodes
@@ -41,7 +42,6 @@ from agos.world.towns.look.vehicles import ATTRIBUTE_BODY_TYPES, RICH_BODY_TYPES
 from agos.world.towns.placement import ParkingSlot
 
 REGION_SIZE_M: dict[str, float] = {"easy": 150.0, "mid": 300.0, "hard": 300.0}
-DIFFICULTIES: tuple[Difficulty, ...] = ("easy", "mid", "hard")
 EPISODE_VERSION = 1
 MIN_START_DISTANCE_M = 60.0
 """The UGV starts at least this far from the target in a straight line, so farther by road: beyond
@@ -198,7 +198,7 @@ def _rich_vehicles(rng: np.random.Generator, difficulty: Difficulty, slots: list
 
 
 def unique_in_region(target: VehicleSpec, layout: TownLayout, region: tuple[float, float, float, float],
-                     look: str = "rich") -> bool:
+                     look: str = DEFAULT_LOOK) -> bool:
     """No parked vehicle of the town within ``UNIQUE_MARGIN_M`` of ``region`` can be taken for the
     target (:func:`confusable`), so the episode has one answer in everything the UAV can see."""
     slots = {s.slot_id: s for s in layout.slots}

@@ -30,8 +30,8 @@ from typing import TYPE_CHECKING
 from agos.runtime.codec import from_json, to_json
 from agos.runtime.episode_config import DEFAULT_LOOK
 from agos.runtime.process import interruptible_imap
-from agos.runtime.schemas import Difficulty, EpisodeSpec
-from agos.world.episodes.sampling import DIFFICULTIES, write_episodes
+from agos.runtime.schemas import DIFFICULTIES, Difficulty, EpisodeSpec
+from agos.world.episodes.sampling import write_episodes
 
 if TYPE_CHECKING:
     from agos.world.sim.scene import Scene

@@ -36,6 +36,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 
+from agos.runtime.keys import ROLES
 from agos.runtime.schemas import ExpertHints, ExpertStep, ExpertWaypoint, Role
 from agos.world.expert.closure import distances_to, uav_flight, uav_path
 from agos.world.expert.coverage import CoverageProblem
@@ -43,7 +44,7 @@ from agos.world.expert.evidence import Evidence, as_xy
 from agos.world.expert.fast import solve_fast
 from agos.world.expert.instance import episode_coverage, routing_problem
 from agos.world.expert.mtsp import MtspSolution
-from agos.world.expert.timeline import ROLES, Timeline
+from agos.world.expert.timeline import Timeline
 from agos.world.sim.options import heading_after, shortest_path, ugv_options
 from agos.world.sim.rules import approach_anchor
 from agos.world.sim.state import EpisodeState
@@ -115,7 +116,7 @@ def hints_of(st: EpisodeState, plan: ExpertPlan) -> dict[Role, ExpertHints]:
     return {role: ExpertHints(steps=plan.steps[role], raw_trajectory=points(role, plan.raw[role]),
                               trajectory=points(role, plan.trajectories[role]), t_f_s=round(plan.t_f_s, 3),
                               t_arr_s=round(plan.t_arr_s, 3), finder=plan.finder, wrong_candidates=plan.wrong_candidates)
-            for role in ("uav", "ugv")}
+            for role in ROLES}
 
 
 def plan_episode(st: EpisodeState, *, deterministic_time: float = 5.0) -> ExpertPlan:

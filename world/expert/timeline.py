@@ -22,9 +22,8 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 from agos.runtime.episode_config import EpisodeConfig
+from agos.runtime.keys import ROLES
 from agos.runtime.schemas import ExpertStep, Role
-
-ROLES: tuple[Role, Role] = ("uav", "ugv")
 
 
 class Agenda(Protocol):

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from agos.runtime.codec import encode
+from agos.runtime.keys import ROLES
 from agos.runtime.links import CommProfile, Delivery, corrupt_text, links_for
 from agos.runtime.schemas import Candidate, LedgerEntry, LinkStats, MessageRecord, Pose, Role
 
@@ -107,15 +108,14 @@ class Channel:
         self.links = links_for(profile, seed)
         self.views: dict[Role, RoleView] = {"uav": RoleView(), "ugv": RoleView()}
         # The paper's initial communication: both start knowing where the other is.
-        pairs: tuple[tuple[Role, Role], ...] = (("uav", "ugv"), ("ugv", "uav"))
-        for role, other in pairs:
+        for role, other in (ROLES, ROLES[::-1]):
             self.views[role].teammate_pose = start_poses[other]
             self.views[role].teammate_info_s = 0.0
         self.ledger: list[LedgerEntry] = []
         self._pending: list[_Pending] = []
         self._seq = 0
         beacons = not profile.ideal
-        self.next_beacon: dict[Role, float] = {r: (profile.beacon_s if beacons else float("inf")) for r in ("uav", "ugv")}
+        self.next_beacon: dict[Role, float] = {r: (profile.beacon_s if beacons else float("inf")) for r in ROLES}
         self._ages: dict[Role, list[float]] = {"uav": [], "ugv": []}
 
     # ----- sending ------------------------------------------------------------------------------

@@ -41,6 +41,7 @@ import msgspec
 import numpy as np
 
 from agos.runtime.episode_config import EpisodeConfig
+from agos.runtime.keys import ROLES
 from agos.runtime.schemas import (
     Action,
     ActionName,
@@ -70,7 +71,8 @@ from agos.world.towns.topdown import RegionMap
 __all__ = ["ROLE_ORDER", "DecisionSource", "EpisodeRunner", "EpisodeSink", "IllegalAction",
            "NullSink"]
 
-ROLE_ORDER: tuple[Role, Role] = ("uav", "ugv")
+ROLE_ORDER: tuple[Role, Role] = ROLES
+"""The order the world applies a round's actions in: :data:`~agos.runtime.keys.ROLES`' order."""
 
 
 class DecisionSource(Protocol):

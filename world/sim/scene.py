@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from agos.runtime.settings import DEFAULTS
 from agos.world.towns.catalog import CARGO_WHITE, GLASS, TYRE, body_type, colour_rgb
 from agos.world.towns.layout import TownLayout
 from agos.world.towns.look.city import City, build_city, vehicle_shadow_mesh
@@ -213,7 +214,7 @@ class RenderResult:
 class Scene:
     """A town in a private PyBullet DIRECT client; a context manager that disconnects it."""
 
-    def __init__(self, layout: TownLayout, *, look: str, renderer: str = "tiny") -> None:
+    def __init__(self, layout: TownLayout, *, look: str, renderer: str = DEFAULTS.world.renderer) -> None:
         if look not in LOOKS:
             raise ValueError(f"unknown look {look!r}; known: {', '.join(LOOKS)}")
         self.look = look

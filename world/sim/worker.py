@@ -41,7 +41,7 @@ from agos.runtime.schemas import (
     RunManifest,
     StepEvent,
 )
-from agos.runtime.settings import AgosConfig
+from agos.runtime.settings import DEFAULTS, AgosConfig
 from agos.runtime.viz import FrameStream, full_frames
 from agos.world.sim import egl_device
 from agos.world.sim.engine import EpisodeRunner
@@ -100,7 +100,7 @@ class AgentPresence:
 
     def put(self, change: Sample) -> None:
         """One change of a ``ready`` token, ``.../ready/<role>/<agent>``: ``+`` or ``-`` (zenoh's thread)."""
-        role, agent = change.key.rsplit("/", 2)[-2:]
+        role, agent = keys.ready_of(change.key)
         with self._changed:
             if role not in self.ready:
                 return
@@ -188,8 +188,8 @@ class BusDecisionSource:
     clock waits)."""
 
     def __init__(self, slot: WorkerSlot, episode_id: str, *, timeout_s: float, stop: StopFlag,
-                 agent_wait_s: float = 30.0, frames: FrameStream | None = None, attempt: int = 1,
-                 rejections: Rejections | None = None, reconnect_grace_s: float = 10.0) -> None:
+                 agent_wait_s: float = DEFAULTS.run.agent_wait_s, frames: FrameStream | None = None, attempt: int = 1,
+                 rejections: Rejections | None = None, reconnect_grace_s: float = DEFAULTS.run.reconnect_grace_s) -> None:
         """``attempt``: the lease's attempt number, stamped on every observation. An action counts only
         when it answers the decision asked of its role in this attempt and names this run, episode and
         the role of its key, with finite numbers; anything else (a late answer meant for an earlier

@@ -24,6 +24,7 @@ import msgspec
 import networkx as nx
 import numpy as np
 
+from agos.runtime.settings import local_dirs
 from agos.world.towns.dressing import DRESSING_VERSION, Dressing, Facade, Lamp, RoofUnit
 from agos.world.towns.lanes import Lane, LaneNetwork
 from agos.world.towns.layout import Deck, ParkedVehicle, TownLayout
@@ -238,7 +239,7 @@ def open_town(name: str | Path) -> Town:
 
 
 def cache_dir() -> Path:
-    return Path(os.environ.get("AGOS_ASSET_CACHE", Path.home() / ".cache" / "agos" / "assets"))
+    return local_dirs().asset_cache
 
 
 def town_for(generator: str, seed: int, expected_sha256: str | None = None, *, town_id: str | None = None,

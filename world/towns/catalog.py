@@ -35,7 +35,6 @@ COLOURS: dict[str, RGB] = {
     "yellow": (0.95, 0.80, 0.08),
     "orange": (0.96, 0.45, 0.04),
 }
-NEUTRAL_COLOURS: tuple[str, ...] = ("white", "black", "silver", "grey", "brown")
 VIVID_COLOURS: tuple[str, ...] = (
     "red", "maroon", "blue", "navy", "green", "olive", "yellow", "orange",
 )

@@ -212,11 +212,6 @@ class StandinServer:
         data = [{"id": m, "object": "model", "created": created, "owned_by": "agos-vlm-standin"} for m in self.models]
         return _json_response(200, {"object": "list", "data": data})
 
-    @property
-    def requires_key(self) -> bool:
-        """Whether ``/v1/*`` asks for ``Authorization: Bearer <key>`` (``api_key`` given)."""
-        return self._api_key is not None
-
     def unauthorized(self, authorization: str | None) -> Response | None:
         """The 401 a ``/v1/*`` request gets without the server's key (None: let it through). The key is
         never echoed: a wrong one is named by its length only."""
