@@ -168,3 +168,17 @@ def test_each_point_has_a_file_of_its_own() -> None:
     assert point_file_name("pose_error", "gnss-5m", 1) == "pose_error=gnss-5m_seed1.jsonl"
     assert point_file_name("pose_error", "my/urban.toml", 0) == "pose_error=urban_seed0.jsonl"
     assert point_file_name("loss.p", "0.25", 0) == "loss.p=0.25_seed0.jsonl"
+def test_a_numeric_axis_is_plotted_in_increasing_order(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Values given as 0,0.1,0.01 are drawn left to right, not back and forth."""
+    from matplotlib.axes import Axes
+
+    from agos.deploy.run import sweep
+
+    drawn: list[list[float]] = []
+    real = Axes.errorbar
+    monkeypatch.setattr(Axes, "errorbar", lambda self, x, *a, **k: drawn.append(list(x)) or real(self, x, *a, **k))
+    row = {name: 0.5 for name in sweep.METRICS} | {f"{n}_{end}": 0.5 for n in sweep.METRICS for end in ("low", "high")}
+    table = [row | {"value": v, "handoff_never_pct": 0.0} for v in ("0", "0.1", "0.01")]
+    sweep._plots(table, tmp_path, "corruption.char_error_rate")
+    assert drawn and all(x == [0.0, 0.01, 0.1] for x in drawn)
+    assert (tmp_path / "sweep.png").exists()

@@ -399,8 +399,10 @@ def _plots(table: list[dict], out_dir: Path, param: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    labels = [str(t["value"]) for t in table]
     numeric = param not in PROFILE_AXES
+    if numeric:  # a line drawn through the points in the order given would run back and forth
+        table = sorted(table, key=lambda t: float(t["value"]))
+    labels = [str(t["value"]) for t in table]
     xs = {t["value"]: (float(t["value"]) if numeric else float(i)) for i, t in enumerate(table)}
     x = np.array(list(xs.values()))
     log_x = numeric and len(x) > 1 and x.min() > 0 and x.max() / x.min() >= 50
