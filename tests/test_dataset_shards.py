@@ -188,3 +188,23 @@ def test_a_shard_of_another_split_is_refused(sharded: tuple[Path, Path, dict[str
 def test_merging_needs_the_plan(tmp_path: Path) -> None:
     with pytest.raises(shards.ShardError, match=r"no shards\.json; make the shards first"):
         shards.merge(tmp_path, tmp_path / "ds")
+
+
+def test_a_resumed_build_lists_a_failed_episode_once(tmp_path: Path) -> None:
+    """On resume the stored records come back to the assembler: a failure already listed stays one line."""
+    from rich.console import Console
+
+    from agos.deploy.dataset.build import FAILED, Assembler
+    from agos.runtime.schemas import EpisodeRecord
+
+    record = EpisodeRecord(
+        run_id="r", episode_id=IDS[0], difficulty="easy", status="finished", termination="budget_exhausted",
+        success=False, ground_observed=False, n_confirm=0, ugv_path_length_m=100.0, shortest_path_length_m=50.0,
+        final_distance_m=10.0, uav_budget=80, uav_first_visible_step=3, candidates=[], decisions_uav=10,
+        decisions_ugv=5, sim_time_s=60.0, wall_time_s=1.0, worker_id="w", town_id="t", asset_sha256="0" * 64, seed=1,
+        renderer="pybullet-tiny")
+    assembler = Assembler(tmp_path, {}, Console(quiet=True))
+    assembler(record)
+    assembler(record)  # the resumed build's pass over the stored records
+    lines = (tmp_path / FAILED).read_text().splitlines()
+    assert [json.loads(line)["episode_id"] for line in lines] == [IDS[0]]

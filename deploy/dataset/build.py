@@ -73,6 +73,8 @@ class Assembler:
         problem = self.assemble(record)
         if problem is not None:
             self.console.print(f"[red]dataset: {record.episode_id} not added: {problem}", highlight=False)
+            if record.episode_id in _failed_ids(self.out_dir):
+                return  # listed by the build this one resumes (its stored records come back on resume)
             with (self.out_dir / FAILED).open("a") as f:
                 f.write(json.dumps({"episode_id": record.episode_id, "difficulty": record.difficulty,
                                     "termination": record.termination, "problem": problem}) + "\n")
@@ -196,6 +198,11 @@ def _episode_doc(spec: EpisodeSpec, record: EpisodeRecord, expert: dict[str, dic
                    "trajectory": {"uav": uav["trajectory"], "ugv": ugv["trajectory"]},
                    "steps": {"uav": uav["steps"], "ugv": ugv["steps"]}},
     }
+
+
+def _failed_ids(out_dir: Path) -> set[str]:
+    path = out_dir / FAILED
+    return {json.loads(line)["episode_id"] for line in path.read_text().splitlines() if line} if path.exists() else set()
 
 
 def _write_manifest(out_dir: Path, plan: run_plan.RunPlan, split: Path, split_sha: str) -> dict[str, Any]:
