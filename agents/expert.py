@@ -24,7 +24,7 @@ TIME_TOLERANCE_S = 1e-6
 
 class ExpertPolicy(Policy):
     name = "expert"
-    inline = True  # a list lookup, no I/O: answered on the receiving thread (agents/service.py)
+    inline = True  # a list lookup, no I/O: answered on the receiving thread (agents/agent_service.py)
 
     def __init__(self, role: Role) -> None:
         self.role: Role = role

@@ -42,7 +42,7 @@ def _hints(obs: Observation) -> OracleHints:
 class OracleUav(Policy):
     role: Role = "uav"
     name = "oracle"
-    inline = True  # under a millisecond, no I/O: answered on the receiving thread (agents/service.py)
+    inline = True  # under a millisecond, no I/O: answered on the receiving thread (agents/agent_service.py)
 
     def __init__(self) -> None:
         self._tried: dict[str, set[str]] = {}

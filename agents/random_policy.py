@@ -15,7 +15,7 @@ from agos.runtime.schemas import Action, Observation, Role
 
 class RandomPolicy(Policy):
     name = "random"
-    inline = True  # microseconds, no I/O: answered on the receiving thread (agents/service.py)
+    inline = True  # microseconds, no I/O: answered on the receiving thread (agents/agent_service.py)
 
     def __init__(self, role: Role) -> None:
         self.role = role

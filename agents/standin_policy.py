@@ -20,7 +20,7 @@ class FixedLatencyPolicy(Policy):
 
     def __init__(self, role: Role, latency_s: float) -> None:
         self.role, self.latency_s = role, latency_s
-        self.inline = latency_s == 0  # standin-0ms: answered on the receiving thread (agents/service.py)
+        self.inline = latency_s == 0  # standin-0ms: answered on the receiving thread (agents/agent_service.py)
 
     def _choose(self, obs: Observation) -> Action:
         move = "MOVE_TO_UAV_WAYPOINT" if obs.role == "uav" else "MOVE_TO_ROAD_WAYPOINT"

@@ -93,20 +93,20 @@ TIMED_AGENT = """
 import asyncio, json, statistics, sys
 sys.path.insert(0, sys.argv[3])
 from bench_runtime import timed
-from agos.agents import service
+from agos.agents import agent_service
 from agos.agents.registry import make_policy
 from agos.runtime.bus import ZenohBus, zenoh_config
 from agos.runtime.process import StopFlag
 spent = {}
 policy = make_policy("standin-0ms", "uav")
-service._Dispatch.take = timed(service._Dispatch.take, spent, "agent: receive to answer sent")
-service.decode = timed(service.decode, spent, "agent: decode")
+agent_service._Dispatch.take = timed(agent_service._Dispatch.take, spent, "agent: receive to answer sent")
+agent_service.decode = timed(agent_service.decode, spent, "agent: decode")
 policy.act = timed(policy.act, spent, "agent: policy")
-service._stamped = timed(service._stamped, spent, "agent: encode and check action")
+agent_service._stamped = timed(agent_service._stamped, spent, "agent: encode and check action")
 ZenohBus.publish = timed(ZenohBus.publish, spent, "agent: publish action")
 async def main():
     bus = ZenohBus(zenoh_config(connect=[sys.argv[1]]))
-    serving = asyncio.ensure_future(service.serve_async(bus, policy, "bench", StopFlag(), concurrency=64))
+    serving = asyncio.ensure_future(agent_service.serve_async(bus, policy, "bench", StopFlag(), concurrency=64))
     while True:
         await asyncio.sleep(0.5)
         with open(sys.argv[2], "w") as out:

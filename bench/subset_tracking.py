@@ -18,8 +18,8 @@ import argparse
 import statistics
 from pathlib import Path
 
+from agos.evaluator.comparison import wilson_interval
 from agos.evaluator.metrics import aggregate
-from agos.evaluator.stats import wilson_interval
 from agos.evaluator.summary import read_run
 from agos.world.episodes.files import read_episodes
 from agos.world.episodes.subset import draw

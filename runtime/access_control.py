@@ -27,7 +27,7 @@ What each identity may say (the issue's rules):
 Which slot a world may publish on is not a key rule (worker ids are made at start, not certified):
 any ``world`` certificate may publish on any slot, and the evaluator stores a record only when it
 names the worker of its key's slot and that worker holds the episode's lease, as the orchestrator's
-lease notice names it (evaluator/service.py). The key space is bounded (runtime/keys.py), so these
+lease notice names it (evaluator/evaluator_service.py). The key space is bounded (runtime/keys.py), so these
 rules, generated from it, do not change with episodes either.
 
 How zenoh's rules read: a message *into* the router from a client is ``ingress``; one the router

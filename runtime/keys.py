@@ -104,7 +104,7 @@ def slot_prefix(run: str, worker: str) -> str:
 
 def slot_live(run: str, worker: str) -> str:
     """The liveliness token a world worker (or ``agos check agent``) declares for its session: agent
-    services subscribe to the slot's observation key exactly while one exists (agents/service.py)."""
+    services subscribe to the slot's observation key exactly while one exists (agents/agent_service.py)."""
     return f"{_slot(run, worker)}/live"
 
 

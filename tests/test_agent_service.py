@@ -1,4 +1,4 @@
-"""The agent service's dispatch (agents/service.py) over the in-memory bus: inline policies are
+"""The agent service's dispatch (agents/agent_service.py) over the in-memory bus: inline policies are
 answered on the publishing thread, the others on the asyncio loop; errors cost a WAIT."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import time
 
 import pytest
 
+from agos.agents.agent_service import serve_async
 from agos.agents.contract import Policy, action_for
 from agos.agents.registry import make_policy
-from agos.agents.service import serve_async
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, MemoryBus
 from agos.runtime.codec import decode, encode

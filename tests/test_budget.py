@@ -1,5 +1,5 @@
 """``agos eval``'s caps (deploy/run/budget.py): the "could cross" decision, the orchestrator's gate and the
-stop on a MemoryBus, resuming with a new cap, and the run card a new plan writes (deploy/run/card.py).
+stop on a MemoryBus, resuming with a new cap, and the run card a new plan writes (deploy/run/card_writer.py).
 Unit tests: no processes, no sockets."""
 
 from __future__ import annotations
@@ -121,7 +121,7 @@ def _plan(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, **kw):
 
 
 def test_a_new_plan_writes_the_run_card(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from agos.deploy.run.card import PROMPT_MODULES, prompts_text
+    from agos.deploy.run.card_writer import PROMPT_MODULES, prompts_text
 
     plan = _plan(tmp_path, monkeypatch, caps=Caps(max_tokens=1000), prices=flat_prices(1.0, 2.0))
     meta = json.loads((plan.run_dir / "run.json").read_text())

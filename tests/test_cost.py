@@ -1,4 +1,4 @@
-"""Tokens, cost and latency (evaluator/cost.py), Wilson intervals, run cards (evaluator/card.py) and
+"""Tokens, cost and latency (evaluator/cost.py), Wilson intervals, run cards (evaluator/card_reader.py) and
 what ``agos metrics``/``agos report`` print of them, from hand-made records: unit tests, no processes."""
 
 from __future__ import annotations
@@ -11,7 +11,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from agos.evaluator.card import card_lines
+from agos.evaluator.card_reader import card_lines
+from agos.evaluator.comparison import wilson_interval
 from agos.evaluator.cost import (
     PriceError,
     cost_by_group,
@@ -23,7 +24,6 @@ from agos.evaluator.cost import (
     prices_from_json,
     read_prices,
 )
-from agos.evaluator.stats import wilson_interval
 from agos.evaluator.summary import EpisodeSummary, UsageSummary, read_jsonl
 from agos.runtime.schemas import DecisionTrace, StoredTrace
 from agos.runtime.traces import trace_usage

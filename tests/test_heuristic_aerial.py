@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from agos.agents.heuristic.aerial import detect_vehicles_from_above, surface_heights
+from agos.agents.heuristic.colour_match import TargetProfile
 from agos.agents.heuristic.paint import shade_score
-from agos.agents.heuristic.perception import TargetProfile
 from agos.agents.heuristic.uav import ANNOTATE_SCORE
 from agos.runtime.camera import intrinsics_for
 

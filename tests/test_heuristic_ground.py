@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from agos.agents.heuristic import ground
+from agos.agents.heuristic.colour_match import TargetProfile, profile_from_references
 from agos.agents.heuristic.ground import (
     CONFIRM_RANGE_M,
     PROFILE_TOLERANCE_M,
@@ -30,7 +31,6 @@ from agos.agents.heuristic.ground import (
     profile_error,
     side_reference,
 )
-from agos.agents.heuristic.perception import TargetProfile, profile_from_references
 from agos.runtime.camera import intrinsics_for
 
 from support import boxcars

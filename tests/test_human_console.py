@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from agos.agents.human.board import MESSAGE_LIMIT, DecisionBoard
+from agos.agents.human.page_model import shown
 from agos.agents.human.server import ConsoleServer
-from agos.agents.human.view import shown
 from agos.deploy.run.human import parse_duration
 from agos.deploy.run.orchestrator import STUCK_AFTER_S, STUCK_MARGIN_S, Orchestrator
 from agos.evaluator.human_row import is_human_run

@@ -22,7 +22,7 @@ from agos.agents.vlm.cache import ReplyCache
 from agos.agents.vlm.client import VlmClient
 from agos.agents.vlm.images import as_sent, sized
 from agos.agents.vlm.standin.server import DEFAULT_MODELS, StandinServer
-from agos.deploy.run.card import model_link_card, sampling
+from agos.deploy.run.card_writer import model_link_card, sampling
 from agos.runtime.codec import decode_image, encode_jpeg, encode_png
 from agos.runtime.episode_config import EpisodeConfig, config_hash, with_model_link
 from agos.runtime.model_link import (

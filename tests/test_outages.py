@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from agos.agents.agent_service import answer, decide
 from agos.agents.contract import EndpointOutage, Policy
-from agos.agents.service import answer, decide
 from agos.deploy.run.evaluate import infra_error_line
 from agos.evaluator.metrics import by_difficulty
 from agos.runtime import keys

@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
+from agos.evaluator.comparison import compare
 from agos.evaluator.metrics import POOLED_IN_TOTAL, ablation_total, aggregate
-from agos.evaluator.reports import RunResults, write_report
-from agos.evaluator.stats import compare
+from agos.evaluator.paper_report import RunResults, write_report
 
 from support.synthetic import summary
 

@@ -19,7 +19,7 @@ from agos.deploy.run.local import ChildSettings, evaluator_settings
 from agos.deploy.run.orchestrator import Orchestrator
 from agos.deploy.run.plan import RunPlan
 from agos.deploy.run.presence import Presence, missing_lines, started_kinds, who_is_here
-from agos.evaluator.service import Evaluator, serve
+from agos.evaluator.evaluator_service import Evaluator, serve
 from agos.runtime import keys
 from agos.runtime.bus import MemoryBus
 from agos.runtime.codec import encode

@@ -21,7 +21,7 @@ from rich.console import Console
 from agos.deploy.run.evaluate import Absences
 from agos.deploy.run.orchestrator import LEASE_REPEAT_S, Orchestrator
 from agos.deploy.run.plan import RunPlan
-from agos.evaluator.service import Evaluator
+from agos.evaluator.evaluator_service import Evaluator
 from agos.evaluator.store import ResultStore, results_path
 from agos.runtime import keys
 from agos.runtime.bus import Inbox, MemoryBus, _MemoryQuery

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from agos.agents.heuristic.perception import TargetProfile
+from agos.agents.heuristic.colour_match import TargetProfile
 from agos.agents.vlm import protocol
 from agos.agents.vlm.agos_prompts import uav_prompt, ugv_prompt
 from agos.agents.vlm.request import Memory

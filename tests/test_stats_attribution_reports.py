@@ -1,4 +1,4 @@
-"""Paired comparison (stats.py), failure attribution (attribution.py) and paper-style reports (reports.py)."""
+"""Paired comparison (comparison.py), failure attribution (attribution.py) and paper-style reports (paper_report.py)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from agos.evaluator.attribution import OUTCOMES, attribute, outcome_counts
-from agos.evaluator.reports import RunResults, write_report
-from agos.evaluator.stats import COMPARED, Comparison, compare, pair, sign_test
+from agos.evaluator.comparison import COMPARED, Comparison, compare, pair, sign_test
+from agos.evaluator.paper_report import RunResults, write_report
 from agos.evaluator.summary import EpisodeSummary
 
 from support.synthetic import synthetic_summaries
@@ -250,7 +250,7 @@ def test_report_png(report_dir: Path) -> None:
 
 
 def test_compare_warns_when_a_difficulty_has_too_few_pairs() -> None:
-    from agos.evaluator.stats import MIN_PAIRS_PER_LEVEL
+    from agos.evaluator.comparison import MIN_PAIRS_PER_LEVEL
 
     few = compare(synthetic(6, 0.5, seed=1), synthetic(6, 0.7, seed=2), resamples=200)
     assert few.warnings and all("too narrow" in w for w in few.warnings)
@@ -264,7 +264,7 @@ def test_the_sensing_table_puts_pose_error_and_the_model_link_beside_sr() -> Non
     degraded share and the model link's time and bytes per decision; '-' where a run has none."""
     import dataclasses
 
-    from agos.evaluator.reports import sensing_rows
+    from agos.evaluator.paper_report import sensing_rows
 
     plain = synthetic(6, 0.5, seed=3)
     noisy = [dataclasses.replace(e, pose_error={"uav": {"mean_m": 2.0 + i, "max_m": 4.0 + i, "degraded_share": 0.0},

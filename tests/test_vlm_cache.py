@@ -13,8 +13,8 @@ import threading
 import httpx
 import pytest
 
+from agos.agents.agent_service import serve_async
 from agos.agents.contract import FatalPolicyError
-from agos.agents.service import serve_async
 from agos.agents.vlm.cache import (
     CACHE_FILE,
     CacheError,

@@ -14,7 +14,7 @@ image, intrinsics and pose give every pixel a place in the world, so
   building's shadow keeps its hue and saturation but loses value.
 
 Uses only the agent's own images, intrinsics, pose and the reference-derived
-:class:`~agos.agents.heuristic.perception.TargetProfile`; no ground truth.
+:class:`~agos.agents.heuristic.colour_match.TargetProfile`; no ground truth.
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from agos.agents.heuristic.colour_match import AerialDetection, TargetProfile
 from agos.agents.heuristic.paint import MEAN_HUE_TOLERANCE, PAINT_ONLY_TOP_M, hue_match, mean_hue_error, near_hue, shade_score
-from agos.agents.heuristic.perception import AerialDetection, TargetProfile
 from agos.runtime.camera import depth_to_world
 from agos.runtime.schemas import CameraIntrinsics
 

@@ -19,7 +19,7 @@ paint, the outline along the body, the paint's share per height band) and tells 
 whole and near) from leads (worth a closer look).
 
 Uses only the agent's images, intrinsics, poses and the reference-derived
-:class:`~agos.agents.heuristic.perception.TargetProfile`; no ground truth.
+:class:`~agos.agents.heuristic.colour_match.TargetProfile`; no ground truth.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from agos.agents.heuristic.colour_match import TargetProfile
 from agos.agents.heuristic.paint import MEAN_HUE_TOLERANCE, PAINT_ONLY_TOP_M, hue_match, mean_hue_error, near_hue, shade_score
-from agos.agents.heuristic.perception import TargetProfile
 from agos.runtime.camera import depth_to_world
 from agos.runtime.codec import decode_image
 from agos.runtime.schemas import CameraIntrinsics, ImageFrame
@@ -308,7 +308,7 @@ BAND_MIN_PX = 8
 REFERENCE_BAND_MIN_PX = 5
 PAINT_TOP_PERCENTILE = 98
 """The paint pixels' top: this percentile of their heights (the side reference's is the 97th of its
-paint pixels placed on the vehicle's near side, :func:`~agos.agents.heuristic.perception.profile_from_references`)."""
+paint pixels placed on the vehicle's near side, :func:`~agos.agents.heuristic.colour_match.profile_from_references`)."""
 OUTLINE_PERCENTILE = 90
 """An outline's top: this percentile of the heights of the highest pixel of each image column it
 spans. A roof box or a bus's roof unit spans a large share of the columns from any side, a lamp

@@ -14,10 +14,10 @@ import math
 import cv2
 import numpy as np
 
-from agos.agents.heuristic.perception import TargetProfile, circular_mean_hue, hue_distance
+from agos.agents.heuristic.colour_match import TargetProfile, circular_mean_hue, hue_distance
 
 HUE_TOLERANCE = 7
-"""OpenCV hue units (0-179) a paint pixel may be off, as the colour matcher of :mod:`perception`."""
+"""OpenCV hue units (0-179) a paint pixel may be off, as the colour matcher of :mod:`colour_match`."""
 DARK_HUE_TOLERANCE = 10
 """The same for dark pixels (paint in shade): JPEG chroma is coarser there."""
 SAT_TOLERANCE = 70

@@ -5,7 +5,7 @@ view spans about 92 m at 80 m, so their centres are in view). The UAV flies towa
 node not yet seen, one legal neighbour move at a time. Detection: standing objects (from the
 nadir depth) with the target's paint, footprint and height against the reference views (see
 :mod:`aerial`, the height against the side reference's outline top, :mod:`ground`; without a
-depth image, paint colour and footprint alone, :mod:`perception`).
+depth image, paint colour and footprint alone, :mod:`colour_match`).
 
 Annotations are few (five an episode) and each costs the UGV a drive, so during the first sweep
 the UAV annotates only a detection scoring ``ANNOTATE_SCORE`` or more and remembers weaker ones;
@@ -27,8 +27,8 @@ import numpy as np
 
 from agos.agents.contract import Policy, action_for
 from agos.agents.heuristic.aerial import MIN_SCORE, detect_vehicles_from_above
+from agos.agents.heuristic.colour_match import AerialDetection, TargetProfile, detect_from_above, profile_from_references
 from agos.agents.heuristic.ground import side_reference
-from agos.agents.heuristic.perception import AerialDetection, TargetProfile, detect_from_above, profile_from_references
 from agos.agents.navigation import uav_route
 from agos.runtime.camera import cell_of_pixel, pixel_to_ground
 from agos.runtime.codec import decode_image

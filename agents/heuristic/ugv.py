@@ -26,8 +26,8 @@ import re
 import numpy as np
 
 from agos.agents.contract import Policy, action_for
+from agos.agents.heuristic.colour_match import TargetProfile, profile_from_references
 from agos.agents.heuristic.ground import TOO_CLOSE_M, GroundView, SideReference, find_target, judge_views, side_reference
-from agos.agents.heuristic.perception import TargetProfile, profile_from_references
 from agos.agents.navigation import Navigator
 from agos.runtime.codec import decode_image
 from agos.runtime.geometry import point_in_polygon

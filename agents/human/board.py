@@ -35,7 +35,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from agos.agents.human.view import Shown, active_candidates, shown
+from agos.agents.human.page_model import Shown, active_candidates, shown
 from agos.agents.vlm.parse import to_action
 from agos.runtime.schemas import Action, DecisionTrace, Observation, Role
 

@@ -25,7 +25,7 @@ Each command's parser lives in one module, by command group: runs (demo, eval, s
 services (router, world, agent, human, evaluator, watch), recordings (record, view and the
 ``--record`` flags), reports (plot, metrics, compare, report, vlm-cache), datasets (dataset) and ops (health,
 certs), ros2 (the ROS 2 bridge). Two groups keep their parsers in their own layer, beside the code that runs them:
-``agos map``/``agos episodes`` in world/cli.py, and ``agos vlm-standin`` in agents/vlm/standin/cli.py,
+``agos map``/``agos episodes`` in world/commands.py, and ``agos vlm-standin`` in agents/vlm/standin/command.py,
 whose own ``main`` needs it. :data:`COMMANDS` is the table that dispatches a parsed command.
 """
 
@@ -48,27 +48,27 @@ except KeyboardInterrupt:
 
 
 def _add_world_parsers(sub: argparse._SubParsersAction) -> None:
-    from agos.world.cli import add_parsers
+    from agos.world.commands import add_parsers
 
     add_parsers(sub)
 
 
 def _world_cli(args: argparse.Namespace) -> int:
-    from agos.world import cli as world_cli
+    from agos.world import commands as world_commands
 
-    return world_cli.run(args)
+    return world_commands.run(args)
 
 
 def _add_standin_parser(sub: argparse._SubParsersAction) -> None:
-    from agos.agents.vlm.standin.cli import add_parser
+    from agos.agents.vlm.standin.command import add_parser
 
     add_parser(sub)
 
 
 def _standin(args: argparse.Namespace) -> int:
-    from agos.agents.vlm.standin import cli as standin_cli
+    from agos.agents.vlm.standin import command as standin_command
 
-    return standin_cli.run(args)
+    return standin_command.run(args)
 
 
 COMMANDS: tuple[Command, ...] = (

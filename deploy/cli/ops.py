@@ -26,7 +26,7 @@ def _add_health(sub: Any) -> None:
 
 
 def _health(args: argparse.Namespace, cfg: AgosConfig) -> int:
-    from agos.deploy.ops.health import main as health_main
+    from agos.deploy.ops.healthcheck import main as health_main
 
     return health_main(cfg, args.kind, ident=args.ident, run=args.run_id, timeout_s=args.timeout)
 

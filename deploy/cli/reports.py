@@ -1,5 +1,5 @@
 """The report commands' parsers: figures from a run's records (deploy/reports/) and the
-evaluator's metrics, comparisons and tables (evaluator/cli.py runs those).
+evaluator's metrics, comparisons and tables (evaluator/report_commands.py runs those).
 
     agos plot episode|compare ...   trajectory figures from a run's records
     agos metrics PATH [--json]      every metric of a run (run dir, sqlite or JSONL summaries), tokens, cost, latency
@@ -81,9 +81,9 @@ def _add_report(sub: Any) -> None:
 
 def _evaluator_cli(args: argparse.Namespace) -> int:
     """``agos metrics``, ``compare`` and ``report``: the evaluator's command runner."""
-    from agos.evaluator import cli as evaluator_cli
+    from agos.evaluator import report_commands
 
-    return evaluator_cli.run(args)
+    return report_commands.run(args)
 
 
 def _add_vlm_cache(sub: Any) -> None:

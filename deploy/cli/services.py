@@ -84,7 +84,7 @@ def _add_agent(sub: Any) -> None:
 
 
 def _agent(args: argparse.Namespace, cfg: AgosConfig) -> int:
-    from agos.agents import service
+    from agos.agents import agent_service
     from agos.agents.registry import make_policy
 
     try:
@@ -93,8 +93,8 @@ def _agent(args: argparse.Namespace, cfg: AgosConfig) -> int:
     except ValueError as exc:
         print(f"agent error: {exc}", file=sys.stderr)
         return 2
-    return service.main(cfg, role=args.role, policy_name=args.policy, concurrency=args.concurrency,
-                        dataset_out=args.dataset_out)
+    return agent_service.main(cfg, role=args.role, policy_name=args.policy, concurrency=args.concurrency,
+                              dataset_out=args.dataset_out)
 
 
 def _add_human(sub: Any) -> None:
@@ -112,7 +112,7 @@ def _add_human(sub: Any) -> None:
 
 
 def _human(args: argparse.Namespace, cfg: AgosConfig) -> int:
-    from agos.agents.human import service as human_service
+    from agos.agents.human import human_service
     from agos.deploy.run.human import CONSOLE_PORT, SPECTATOR_PORT
     from agos.runtime.schemas import Role
 
@@ -134,7 +134,7 @@ def _add_evaluator(sub: Any) -> None:
 
 
 def _evaluator(args: argparse.Namespace, cfg: AgosConfig) -> int:
-    from agos.evaluator import service as evaluator_service
+    from agos.evaluator import evaluator_service
 
     return evaluator_service.main(cfg)
 

@@ -10,9 +10,9 @@ one world worker's), each as a pose, its views and camera info, the reference vi
 transforms and the decision asked (deploy/ros2/topics.py), and the coordination truth after each
 tick, all in rmw_zenoh's key layout and CDR.
 
-With ``--drive ROLE`` it is that role's agent service (agents/service.py: the same slot
+With ``--drive ROLE`` it is that role's agent service (agents/agent_service.py: the same slot
 subscriptions, ``ready`` tokens, attempt handling and answer checks, through
-:func:`~agos.agents.service.serve_async` with :class:`Ros2Policy`): each decision of the role is
+:func:`~agos.agents.agent_service.serve_async` with :class:`Ros2Policy`): each decision of the role is
 published on ``ROLE/decision`` and answered by the first acceptable message on ``ROLE/action``
 (std_msgs/msg/String holding JSON: ``{"action": "MOVE_TO_ROAD_WAYPOINT", "waypoint_id": "...",
 "episode_id": "...", "decision_index": N}``, ``cell``, ``candidate_id``, ``message`` and
@@ -39,8 +39,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any
 
+from agos.agents.agent_service import serve_async
 from agos.agents.contract import Policy, action_for
-from agos.agents.service import serve_async
 from agos.deploy.ros2 import topics
 from agos.deploy.ros2.graph import Node, read_attachment, typestore
 from agos.runtime import keys

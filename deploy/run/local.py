@@ -19,7 +19,7 @@ from typing import Any
 from rich.console import Console
 
 from agos.deploy.ops.certs import RunCredentials
-from agos.deploy.run.card import models_answer, record_models_answer
+from agos.deploy.run.card_writer import models_answer, record_models_answer
 from agos.deploy.run.children import AGENT_CONCURRENCY, shared_settings, with_settings
 from agos.deploy.run.human import start_console
 from agos.deploy.run.launcher import ROUTER_START_S, SERVER_START_S, Launcher, free_port, wait_listening

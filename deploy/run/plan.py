@@ -3,7 +3,7 @@ read back for ``--resume``.
 
 A run directory holds ``run.json`` (policies, comm profile, timing mode, episode source, the whole
 episode configuration, and the provenance: agos commit, uv.lock hash and package versions, outside the
-configuration's hash: runtime/provenance.py; the run card, prices and caps: deploy/run/card.py,
+configuration's hash: runtime/provenance.py; the run card, prices and caps: deploy/run/card_writer.py,
 deploy/run/budget.py), ``episodes.jsonl`` (the exact episodes), ``prompts.txt`` (a VLM run's
 prompts), ``results.sqlite`` (written by the evaluator) and ``logs/``. ``agos eval --resume DIR``
 re-reads the first two and leases only the episodes not yet stored; caps and prices given to it
@@ -21,7 +21,7 @@ from typing import Any
 
 from agos.agents.names import needs_vlm
 from agos.deploy.run.budget import Caps, check_prices
-from agos.deploy.run.card import run_card
+from agos.deploy.run.card_writer import run_card
 from agos.deploy.run.configure import run_episode_config
 from agos.evaluator.cost import PriceError, PriceTable, prices_from_json
 from agos.evaluator.store import ResultStore
@@ -174,7 +174,7 @@ def new_plan(cfg: AgosConfig, *, run_dir: Path | None, comm: str, timing_mode: s
              vlm_standin: str | None = None, workers: int | str | None = None, dataset_out: Path | None = None,
              check_vlm: bool = False, caps: Caps | None = None, prices: PriceTable | None = None,
              model_link: str | None = None, pose_error: str | None = None) -> RunPlan:
-    """A new run directory with its run.json (the run card among it: deploy/run/card.py),
+    """A new run directory with its run.json (the run card among it: deploy/run/card_writer.py),
     episodes.jsonl and, for a VLM run, prompts.txt. ``workers``: the command's ``--workers`` (a count or
     ``auto``), stored for ``--resume``; ``dataset_out``: see :class:`RunPlan`. ``check_vlm``: the run
     starts its agents here, so its model endpoint is checked (:func:`check_endpoint`) before episodes

@@ -12,8 +12,8 @@ import asyncio
 import threading
 from types import TracebackType
 
+from agos.agents.agent_service import serve_async
 from agos.agents.registry import make_policy
-from agos.agents.service import serve_async
 from agos.runtime import keys
 from agos.runtime.bus import MemoryBus
 from agos.runtime.episode_config import EpisodeConfig

@@ -12,7 +12,7 @@ One concern per module:
 * :mod:`~agos.agents.vlm.standin.brain`: the default responder (OpenCV on the request, no ground truth);
 * :mod:`~agos.agents.vlm.standin.perception`: what the brain sees: the heuristic's detectors fed with
   the request's RGB images, camera poses and references (no depth image);
-* :mod:`~agos.agents.vlm.standin.cli`: the ``vlm-standin`` command's parser and run.
+* :mod:`~agos.agents.vlm.standin.command`: the ``vlm-standin`` command's parser and run.
 
 The transport half is the server; the decisions come from a *responder*: a callable that takes the
 request taken apart by :func:`agos.agents.vlm.protocol.split_request` and returns the reply object

@@ -22,7 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from agos.agents.heuristic.perception import TargetProfile, profile_from_references
+from agos.agents.heuristic.colour_match import TargetProfile, profile_from_references
 from agos.agents.vlm import protocol
 from agos.agents.vlm.protocol import SplitRequest
 from agos.agents.vlm.standin.perception import (

@@ -47,9 +47,9 @@ import cv2
 import numpy as np
 
 from agos.agents.heuristic.aerial import SHADE_PENALTY, SHADE_RELATIVE_VALUE, shade_tolerant_paint
+from agos.agents.heuristic.colour_match import HUE_TOLERANCE, SAT_MIN, AerialDetection, TargetProfile, hue_distance
 from agos.agents.heuristic.ground import MIN_PAINT_VALUE, GroundObject, GroundView, find_target
 from agos.agents.heuristic.paint import MEAN_HUE_TOLERANCE, hue_match, mean_hue_error, near_hue, shade_score
-from agos.agents.heuristic.perception import HUE_TOLERANCE, SAT_MIN, AerialDetection, TargetProfile, hue_distance
 from agos.runtime.schemas import CameraIntrinsics
 
 ORIENTATIONS = 24

@@ -3,7 +3,7 @@
     agos human --role uav|ugv|both --connect tcp/HOST:PORT --run RUN [--port 8765] [--host 127.0.0.1]
     agos human --spectate --connect tcp/HOST:PORT [--run RUN] [--port 8766]
 
-Playing, it is an agent service like ``agos agent`` for each role it plays (agents/service.py:
+Playing, it is an agent service like ``agos agent`` for each role it plays (agents/agent_service.py:
 the same episode subscriptions, ``ready`` tokens, attempt handling and answer checks), but each
 observation goes on a :class:`~agos.agents.human.board.DecisionBoard` and the answer is what the
 person chooses on the page. The world re-sends an unanswered observation every 5 s: a repeated
@@ -26,11 +26,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from agos.agents.agent_service import _Dispatch, _SlotSubscriptions
 from agos.agents.contract import Policy
 from agos.agents.human.board import DecisionBoard, PageBoard
 from agos.agents.human.server import ConsoleServer
 from agos.agents.human.spectator import SpectatorBoard
-from agos.agents.service import _Dispatch, _SlotSubscriptions
 from agos.runtime import keys
 from agos.runtime.bus import Bus, ZenohBus
 from agos.runtime.codec import encode

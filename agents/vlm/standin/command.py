@@ -1,6 +1,6 @@
 """``agos vlm-standin``: the command's parser and its run (serve until SIGINT or SIGTERM).
 
-``python -m agos.agents.vlm.standin.cli [options]`` is the same as ``agos vlm-standin [options]``.
+``python -m agos.agents.vlm.standin.command [options]`` is the same as ``agos vlm-standin [options]``.
 """
 
 from __future__ import annotations
@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m agos.agents.vlm.standin.cli [options]``: the same as ``agos vlm-standin``."""
+    """``python -m agos.agents.vlm.standin.command [options]``: the same as ``agos vlm-standin``."""
     return run(build_parser().parse_args(["vlm-standin", *(sys.argv[1:] if argv is None else argv)]))
 
 

@@ -1,7 +1,7 @@
 """A run's card: what produced its numbers, read from its ``run.json`` and shown by ``agos report``
 above its tables (and written to ``card.md``).
 
-``agos eval`` writes the card (deploy/run/card.py): ``provenance`` (agos version, commit and whether
+``agos eval`` writes the card (deploy/run/card_writer.py): ``provenance`` (agos version, commit and whether
 the tree was dirty, uv.lock's sha256, Python and package versions), ``card`` (the prompts' sha256 and
 the ``prompts.txt`` copied beside it, the model, its endpoint and that endpoint's ``/models`` answer,
 the sampling parameters, the cache mode, the split file's and the run's ``episodes.jsonl``'s sha256),

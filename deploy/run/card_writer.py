@@ -1,6 +1,6 @@
 """A run's card: what ``agos eval`` writes into ``run.json`` (key ``card``, beside ``provenance``,
 ``prices`` and ``caps``) so that a number can be traced to what produced it; ``agos report`` prints
-it (evaluator/card.py).
+it (evaluator/card_reader.py).
 
     "card": {
       "model": "Qwen/Qwen2.5-VL-7B-Instruct" | null,     # null: no policy asks a model

@@ -10,14 +10,14 @@ from pathlib import Path
 
 from rich.console import Console
 
-from agos.evaluator.card import card_lines, run_meta, run_prices
+from agos.evaluator.card_reader import card_lines, run_meta, run_prices
+from agos.evaluator.comparison import compare
 from agos.evaluator.cost import TOTAL, PriceError, PriceTable, cost_by_group, price_table, unpriced
 from agos.evaluator.human_row import LABEL as HUMAN_LABEL
 from agos.evaluator.human_row import is_human_run
 from agos.evaluator.metrics import aggregate, as_json, group_key
+from agos.evaluator.paper_report import COST_HEADER, RunResults, cost_cells, cost_rows, sr_rows, write_report
 from agos.evaluator.pooling import require_one_configuration
-from agos.evaluator.reports import COST_HEADER, RunResults, cost_cells, cost_rows, sr_rows, write_report
-from agos.evaluator.stats import compare
 from agos.evaluator.summary import EpisodeSummary, SummaryError, read_run
 from agos.evaluator.table import comparison_table, metrics_table, rows_table
 

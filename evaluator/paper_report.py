@@ -10,11 +10,11 @@ distance FD and CErr, then the run's ``total`` row as the paper's ablation table
 rest averaged over the levels). Rates are printed in %, distances in metres, DS in decisions;
 undefined is ``--``. The stage-wise chart shows the macro overall of each run, as the paper's figure.
 
-Each SR cell of the main table carries its Wilson 95 % interval (evaluator/stats.py::wilson_interval:
+Each SR cell of the main table carries its Wilson 95 % interval (evaluator/comparison.py::wilson_interval:
 md and tex in brackets after the rate, csv in two columns of its own). The cost table gives, per run
 and difficulty and for the run's total, the tokens, their cost at the run's prices, the cost per
 success and the decisions' latency p50/p95 (evaluator/cost.py); the card of each run
-(evaluator/card.py) goes to ``card.md``.
+(evaluator/card_reader.py) goes to ``card.md``.
 """
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from agos.evaluator.attribution import OUTCOMES, outcome_counts
+from agos.evaluator.comparison import wilson_interval
 from agos.evaluator.cost import CostSummary, PriceTable, cost_by_group
 from agos.evaluator.metrics import DIFFICULTY_ORDER, Summary, ablation_total, aggregate
-from agos.evaluator.stats import wilson_interval
 from agos.evaluator.summary import EpisodeSummary
 
 MAIN_METRICS = ("SR", "OSR", "SPL", "NE", "DS")
@@ -49,7 +49,7 @@ class RunResults:
     prices: PriceTable | None = None
     """What the run's tokens cost (None: cost is undefined, ``--``)."""
     card: list[str] | None = None
-    """The run's card as lines (evaluator/card.py); None: none to show."""
+    """The run's card as lines (evaluator/card_reader.py); None: none to show."""
 
     @property
     def indented(self) -> bool:
