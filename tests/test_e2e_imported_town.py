@@ -31,7 +31,7 @@ def test_imported_town_runs_with_the_asset_fetched_over_zenoh(tmp_path: Path) ->
     sampled = run("episodes", "sample", "--town", str(tmp_path / "town02"), "--difficulty", "easy", "-n", "2",
                   "--out", str(tmp_path / "eps.jsonl"))
     assert sampled.returncode == 0, sampled.stderr
-    sha = next(p.name for p in orchestrator_cache.iterdir())
+    sha = next(p.name for p in orchestrator_cache.iterdir() if (p / "asset.msgpack").exists())  # not build/ or textures/
 
     port = free_port(18700)
     endpoint = f"tcp/127.0.0.1:{port}"

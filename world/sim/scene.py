@@ -20,7 +20,7 @@ import numpy as np
 from agos.runtime.settings import DEFAULTS
 from agos.world.towns.catalog import CARGO_WHITE, GLASS, TYRE, body_type, colour_rgb
 from agos.world.towns.layout import TownLayout
-from agos.world.towns.look.city import City, build_city, vehicle_shadow_mesh
+from agos.world.towns.look.city import City, stored_city, vehicle_shadow_mesh
 from agos.world.towns.look.meshes import chunks, slab_mesh, strip_mesh, surface_mesh, vertex_normals
 from agos.world.towns.look.texmesh import TexMesh, chunked
 from agos.world.towns.look.vehicles import FIXED_RGB, VehicleAttributes, vehicle_mesh
@@ -375,10 +375,11 @@ class Scene:
 
     def _build_rich(self, layout: TownLayout) -> None:
         """The textured city (world/towns/look/city.py): one body per material and chunk, the buildings'
-        collision boxes in compound bodies, then the parked traffic with shadows."""
+        collision boxes in compound bodies, then the parked traffic with shadows. The city's meshes come
+        from the build cache where an earlier process built them for this layout and code."""
         from agos.world.towns.asset import cache_dir
 
-        city = build_city(layout, texture_root=cache_dir() / "textures")
+        city = stored_city(layout, texture_root=cache_dir() / "textures", cache_root=cache_dir())
         self._city = city
         rank = 0
         while city.parts:  # PyBullet copies each mesh: let go of ours as we go (peak memory)

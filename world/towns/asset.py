@@ -25,6 +25,7 @@ import networkx as nx
 import numpy as np
 
 from agos.runtime.settings import local_dirs
+from agos.world.towns.buildcache import entry_path, read_entry, write_entry
 from agos.world.towns.dressing import DRESSING_VERSION, Dressing, Facade, Lamp, RoofUnit
 from agos.world.towns.lanes import Lane, LaneNetwork
 from agos.world.towns.layout import Deck, ParkedVehicle, TownLayout
@@ -171,11 +172,34 @@ def freeze(layout: TownLayout) -> Town:
 
 
 # ----- procedural towns, files and the local cache -----------------------------------------------
-@functools.lru_cache(maxsize=8)
-def build_town(generator: str, seed: int) -> Town:
+_INVALID = (ValueError, KeyError, TypeError, IndexError, RecursionError, nx.NetworkXException)
+"""What parsing a document that is not a valid town raises."""
+
+
+def generate_town(generator: str, seed: int) -> Town:
+    """A procedural town built from its recipe, here and now (no cache)."""
     from agos.world.towns.procedural import build_layout
 
     return freeze(build_layout(generator, seed))
+
+
+@functools.lru_cache(maxsize=8)
+def build_town(generator: str, seed: int) -> Town:
+    """:func:`generate_town`'s town, through the build cache (world/towns/buildcache.py): a document an
+    earlier process froze from the same code is rebuilt into the town (what :func:`freeze` does with the
+    document it encodes, so the town is the same), else the town is generated and its document stored."""
+    entry = entry_path(cache_dir(), f"town-{generator}-s{seed}.msgpack")
+    data = read_entry(entry)
+    if data is not None:
+        try:
+            town = town_from_document(data)
+        except _INVALID:
+            town = None
+        if town is not None and (town.layout.generator, town.layout.seed) == (generator, seed):
+            return town
+    town = generate_town(generator, seed)
+    write_entry(entry, town.document)
+    return town
 
 
 def manifest(town: Town) -> dict[str, Any]:
@@ -193,7 +217,7 @@ def save_town(town: Town, out_dir: Path) -> Path:
     out_dir.mkdir(parents=True, exist_ok=True)
     for name, data in (("asset.msgpack", town.document),
                        ("manifest.json", (json.dumps(manifest(town), indent=2) + "\n").encode())):
-        part = out_dir / f".{name}.part"
+        part = out_dir / f".{name}.{os.getpid()}.part"  # workers caching the same town each write their own
         part.write_bytes(data)
         os.replace(part, out_dir / name)
     return out_dir
@@ -215,7 +239,7 @@ def load_town(path: Path, expected_sha256: str | None = None) -> Town:
             raise AssetError(f"{data_path}: content hash {digest[:12]} differs from manifest {str(recorded)[:12]}")
     try:
         town = town_from_document(data)
-    except (ValueError, KeyError, TypeError, IndexError, RecursionError, nx.NetworkXException) as exc:
+    except _INVALID as exc:
         raise AssetError(f"{data_path}: not a valid agos town asset ({type(exc).__name__}: {exc})") from None
     if expected_sha256 is not None and town.sha256 != expected_sha256:
         raise AssetMismatch(f"{data_path}: asset {town.town_id} has sha256 {town.sha256[:12]}..., "
@@ -265,7 +289,7 @@ def town_for(generator: str, seed: int, expected_sha256: str | None = None, *, t
             raise AssetMismatch(f"town {town_id}: fetched asset does not hash to {expected_sha256[:12]}")
         try:
             save_town(town_from_document(data), cached)
-        except (ValueError, KeyError, TypeError, IndexError, RecursionError, nx.NetworkXException) as exc:
+        except _INVALID as exc:
             raise AssetError(f"town {town_id}: fetched asset is not valid ({type(exc).__name__}: {exc})") from None
     return _load_cached(str(cached), expected_sha256)
 

@@ -13,11 +13,18 @@ the frozen asset) or is derived from it: two towns with the same asset hash buil
 
 from __future__ import annotations
 
+import hashlib
+import io
+import json
+import pickle
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from agos.world.towns.buildcache import entry_path, read_entry, write_entry
 from agos.world.towns.dressing import Dressing
 from agos.world.towns.layout import TownLayout
 from agos.world.towns.look.decorate import dress
@@ -134,6 +141,52 @@ def build_city(layout: TownLayout, *, texture_root: Path) -> City:
     files = {name: texture_file(name, dressing.texture_seed, texture_root) for name in sorted(set(texture_of.values()))}
     return City(parts, texture_of, files, dressing, ShadowSet(building_polys),
                 triangles=sum(p.mesh.triangle_count for p in parts))
+
+
+def stored_city(layout: TownLayout, *, texture_root: Path, cache_root: Path) -> City:
+    """:func:`build_city`'s city through the build cache (world/towns/buildcache.py), keyed by the layout's
+    content: the sha256 of its pickle (the same bytes, the same layout; a layout pickled differently only
+    misses). A hit gives the parts' meshes (npz), materials and colours as stored, and the textures' files,
+    which must still be in ``texture_root``; anything missing or unreadable, and the city is built again."""
+    key = hashlib.sha256(pickle.dumps(layout, protocol=5)).hexdigest()[:32]
+    entry = entry_path(cache_root, f"city-{key}.npz")
+    payload = read_entry(entry)
+    city = None if payload is None else _city_from_entry(payload, layout, texture_root)
+    if city is None:
+        city = build_city(layout, texture_root=texture_root)
+        write_entry(entry, _city_entry(city, texture_root))
+    return city
+
+
+def _city_entry(city: City, texture_root: Path) -> bytes:
+    arrays: dict[str, Any] = {}  # np.savez's keywords (its stubs type them as its own options)
+    parts = []
+    for k, part in enumerate(city.parts):
+        mesh = part.mesh
+        arrays |= {f"v{k}": mesh.vertices, f"i{k}": mesh.indices, f"n{k}": mesh.normals, f"u{k}": mesh.uvs}
+        parts.append([part.material, part.semantic, list(part.rgb), part.specular, part.shadow])
+    meta = {"parts": parts, "texture_of": city.texture_of, "triangles": city.triangles,
+            "texture_files": {name: str(path.relative_to(texture_root)) for name, path in city.texture_files.items()}}
+    buf = io.BytesIO()
+    np.savez(buf, meta=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
+    return buf.getvalue()
+
+
+def _city_from_entry(payload: bytes, layout: TownLayout, texture_root: Path) -> City | None:
+    try:
+        with np.load(io.BytesIO(payload), allow_pickle=False) as stored:
+            meta = json.loads(stored["meta"].tobytes())
+            parts = [CityPart(material, TexMesh(stored[f"v{k}"], stored[f"i{k}"], stored[f"n{k}"], stored[f"u{k}"]),
+                              (rgb[0], rgb[1], rgb[2]), semantic, specular, shadow)
+                     for k, (material, semantic, rgb, specular, shadow) in enumerate(meta["parts"])]
+        files = {name: texture_root / file for name, file in meta["texture_files"].items()}
+    except (ValueError, KeyError, TypeError, IndexError, OSError, EOFError, zipfile.BadZipFile):
+        return None
+    if not all(path.is_file() for path in files.values()):
+        return None
+    dressing = layout.dressing if layout.dressing is not None else dress(layout)
+    shadows = ShadowSet([building_shadow(b, dressing.sun_direction) for b in layout.buildings])
+    return City(parts, meta["texture_of"], files, dressing, shadows, triangles=meta["triangles"])
 
 
 _LAYER_RANK = {"marking_white": 2, "marking_yellow": 2, "paving": 3, "kerb": 3, "asphalt": 4, "grass": 5, "lot": 6}
