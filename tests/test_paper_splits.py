@@ -2,8 +2,8 @@
 
 Same arguments, same files, byte for byte, whatever the number of workers: the sha256 of every file
 a split writes (train/val/test.jsonl and manifest.json) are pinned in
-``world/episodes/pinned_splits.json``. The full ``--preset paper`` build (7,910 episodes, about 20
-minutes on 2 cores) is too long for a test, so the test runs the same command at a small size over two
+``world/episodes/pinned_splits.json``. The full ``--preset paper`` build (7,910 episodes, about 50
+CPU-minutes) is too long for a test, so the test runs the same command at a small size over two
 CARLA towns and a procedural test town (needs ``../shared/maps/carla``, skipped without it), with
 1 and 2 workers; the full build's hashes are pinned beside them and checked when
 ``AGOS_PAPER_SPLIT_DIR`` names a directory that build wrote.
