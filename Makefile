@@ -40,8 +40,8 @@ demo: $(STAMP)
 # The test tiers (README, Development). A test's marks say what it may do, and tests/process_guard.py
 # fails one that does more: unmarked (unit) starts no process and opens no socket; loopback opens
 # sockets in its own process; e2e starts processes.
-# check: ruff, the layer contracts, mypy and the unit tests but the slow ones (marked slow: they play
-# or sample rendered episodes by the dozen), the four at once; make test runs the slow ones too.
+# check: ruff, the layer contracts, mypy and the unit tests but the slow ones (marked slow: they play,
+# sample or render episodes: seconds of CPU each), the four at once; make test runs the slow ones too.
 check: $(STAMP)
 	$(MAKE) --no-print-directory -j4 --output-sync=target lint contracts typecheck unit-quick
 

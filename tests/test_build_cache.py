@@ -70,6 +70,7 @@ def test_a_city_from_the_cache_is_the_city_built_fresh(cache, fresh, monkeypatch
     assert _city_fields(again) == expected
 
 
+@pytest.mark.slow
 def test_a_scene_from_the_cache_renders_the_same_pixels(cache, fresh, monkeypatch):
     cam = CameraConfig()
     slot = next(s for s in fresh.layout.slots if not s.plaza)
@@ -84,6 +85,7 @@ def test_a_scene_from_the_cache_renders_the_same_pixels(cache, fresh, monkeypatc
                 assert len(np.unique(a.instance)) > 3  # a view of the town, not of the sky
 
 
+@pytest.mark.slow
 def test_a_damaged_entry_is_built_again(cache, fresh):
     entry = entry_path(cache, TOWN_ENTRY)
     assert entry is not None

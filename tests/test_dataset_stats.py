@@ -47,6 +47,7 @@ def dataset(tmp_path_factory) -> Path:
     return root
 
 
+@pytest.mark.slow
 def test_the_counts_are_those_of_the_files(dataset: Path) -> None:
     stats = read_dataset(dataset)
     assert sorted(e.difficulty for e in stats.episodes) == ["easy", "mid"]
@@ -64,6 +65,7 @@ def test_the_counts_are_those_of_the_files(dataset: Path) -> None:
     assert stats.export_lines == sum(e.total_decisions for e in stats.episodes)
 
 
+@pytest.mark.slow
 def test_the_command_prints_the_table_and_writes_the_figure(dataset: Path, tmp_path: Path, capsys,
                                                             monkeypatch) -> None:
     monkeypatch.setenv("AGOS_WORLD__UAV_SPEED_MPS", "fast")  # settings that cannot load: stats never reads them
@@ -83,6 +85,7 @@ def test_the_command_prints_the_table_and_writes_the_figure(dataset: Path, tmp_p
     assert figure.read_bytes()[:8] == PNG_MAGIC and figure.stat().st_size > 20_000
 
 
+@pytest.mark.slow
 def test_the_figure_goes_into_the_dataset_by_default(dataset: Path, capsys) -> None:
     assert main(["dataset", "stats", str(dataset)]) == 0
     out = " ".join(capsys.readouterr().out.split())  # rich wraps at the terminal's width
@@ -114,6 +117,7 @@ def test_bins_are_round_and_cover_every_value() -> None:
     assert counts[0] == 3.5 and all(float(e).is_integer() is False for e in counts)  # whole numbers sit mid-bin
 
 
+@pytest.mark.slow
 def test_the_behaviour_cloning_example_learns_from_the_datasets_files(dataset: Path, monkeypatch) -> None:
     """examples/bc_data_loop.py (docs/LIBRARY.md): one example per decision the files hold, each labelled
     with the expert's action and drawn from the image its decision names; the numpy fit runs."""

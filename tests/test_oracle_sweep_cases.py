@@ -93,6 +93,7 @@ def _play(town: Town, spec: EpisodeSpec) -> tuple[EpisodeRecord, list[StepEvent]
     return record, sink.steps
 
 
+@pytest.mark.slow
 def test_town04_mid_003_oracle_drives_the_shortest_road_path_to_a_verifying_pose() -> None:
     spec = from_json(TOWN04_MID_003, EpisodeSpec)
     record, steps = _play(_carla("Town04", spec), spec)
@@ -106,6 +107,7 @@ def test_town04_mid_003_oracle_drives_the_shortest_road_path_to_a_verifying_pose
     assert record.decisions_uav + record.decisions_ugv < 30
 
 
+@pytest.mark.slow
 def test_town01_hard_006_oracle_uav_flies_round_a_hole_in_the_active_nodes() -> None:
     spec = from_json(TOWN01_HARD_006, EpisodeSpec)
     record, steps = _play(_carla("Town01", spec), spec)

@@ -55,6 +55,7 @@ def _pixels(image: np.ndarray, colour: str | tuple[int, int, int], tol: int = 12
     return int(np.count_nonzero(np.all(np.abs(px - np.array(rgb)) <= tol, axis=-1)))
 
 
+@pytest.mark.slow
 def test_the_step_log_holds_both_paths(runs) -> None:
     _, _, records = runs
     for record in records:
@@ -69,6 +70,7 @@ def test_the_step_log_holds_both_paths(runs) -> None:
         assert all(len(s.candidate_polygon_world_m) == 4 for s in annotated)
 
 
+@pytest.mark.slow
 def test_plot_episode_draws_both_paths_the_target_and_the_map(runs, tmp_path: Path, capsys) -> None:
     dirs, episode, _ = runs
     out = tmp_path / "one.png"
@@ -81,6 +83,7 @@ def test_plot_episode_draws_both_paths_the_target_and_the_map(runs, tmp_path: Pa
     assert _pixels(image, COLOURS["confirmed"]) + _pixels(image, COLOURS["false_confirm"]) > 50  # the CONFIRM marker
 
 
+@pytest.mark.slow
 def test_plot_compare_puts_two_policies_side_by_side(runs, tmp_path: Path) -> None:
     dirs, _, _ = runs
     out = tmp_path / "two.png"
@@ -94,6 +97,7 @@ def test_plot_compare_puts_two_policies_side_by_side(runs, tmp_path: Path) -> No
             assert _pixels(half, colour) > 100, colour
 
 
+@pytest.mark.slow
 def test_plot_says_what_is_missing(runs, tmp_path: Path, capsys) -> None:
     dirs, episode, _ = runs
     assert main(["plot", "episode", str(dirs["heuristic"]), "no-such-episode", "--out", str(tmp_path / "x.png")]) == 2

@@ -78,6 +78,7 @@ def _run(world, config: EpisodeConfig, source: AnnotateThenHold) -> Log:
     return log
 
 
+@pytest.mark.slow
 def test_active_uav_may_only_move_or_wait_while_its_candidate_is_verified(world) -> None:
     source = AnnotateThenHold()
     log = _run(world, EpisodeConfig(look="flat", uav_during_verification="active"), source)
