@@ -1,5 +1,5 @@
 """`agos sweep`: Ctrl-C keeps every finished episode, and the next run of the same sweep plays only the
-rest and writes what an uninterrupted sweep writes. One worker process (the same pool as with several)
+rest and writes what an uninterrupted sweep writes; a finished sweep given another value plays only it. One worker process (the same pool as with several)
 plays the two points in order, so Ctrl-C after the first episode is stored interrupts the second.
 The pool of a sweep's workers names one that dies (issue 39, item 2): its signal and its log's last lines."""
 
@@ -23,15 +23,22 @@ pytestmark = pytest.mark.e2e
 AGOS = [sys.executable, "-m", "agos.deploy.cli"]
 
 
-def _sweep(split: Path, out: Path) -> list[str]:
-    return [*AGOS, "sweep", "--split", str(split), "--param", "loss.p", "--values", "0,0.5", "--seeds", "0",
+def _sweep(split: Path, out: Path, values: str = "0,0.5") -> list[str]:
+    return [*AGOS, "sweep", "--split", str(split), "--param", "loss.p", "--values", values, "--seeds", "0",
             "--workers", "1", "--out", str(out)]
 
 
 def test_interrupted_sweep_resumes_to_the_same_table(tmp_path, sample_mid_episodes) -> None:
     split = sample_mid_episodes(1, 11)  # 2 points x 1 episode, in order on one worker process
+    # The clean table comes from a finished one-value sweep given a second value: it plays only that one.
+    first = subprocess.run(_sweep(split, tmp_path / "clean", "0"), capture_output=True, text=True, timeout=300)
+    assert first.returncode == 0, first.stderr
+    (played,) = (tmp_path / "clean" / ".episodes").glob("*.jsonl")
+    stamp = played.stat().st_mtime_ns
     clean = subprocess.run(_sweep(split, tmp_path / "clean"), capture_output=True, text=True, timeout=300)
     assert clean.returncode == 0, clean.stderr
+    assert played.stat().st_mtime_ns == stamp  # the point already played was not played again
+    assert len(list((tmp_path / "clean" / ".episodes").glob("*.jsonl"))) == 2
 
     out = tmp_path / "cut"
     proc = subprocess.Popen(_sweep(split, out), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -49,7 +56,6 @@ def test_interrupted_sweep_resumes_to_the_same_table(tmp_path, sample_mid_episod
     again = subprocess.run(_sweep(split, out), capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
     assert (out / "sweep.csv").read_text() == (tmp_path / "clean" / "sweep.csv").read_text()
-    assert not (out / ".episodes").exists()
 
 
 def test_a_pool_worker_that_dies_is_named_with_its_signal_and_its_log(tmp_path) -> None:

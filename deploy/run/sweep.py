@@ -32,7 +32,6 @@ import csv
 import hashlib
 import json
 import math
-import shutil
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -230,7 +229,8 @@ def _run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, par
     points = [Point(v, s) for v in values for s in seeds]
     point_configs = [point_config(config, param, p.value).model_copy(update={"link_seed": p.seed}) for p in points]
     # Each finished episode is appended to its point's file in OUT/.episodes at once, so Ctrl-C loses
-    # only the episodes in flight and the next run of the same sweep plays only what is missing.
+    # only the episodes in flight and the next run of the same sweep plays only what is missing;
+    # the store outlives the sweep, so a finished sweep given another value plays only that value.
     # A file's name is the hash of everything that shapes its records (never reused wrongly), and only
     # that: a point already played is found again when the next run lists other values beside it.
     done_dir = out_dir / ".episodes"
@@ -263,9 +263,8 @@ def _run_sweep(episodes_file: Path, out_dir: Path, *, config: EpisodeConfig, par
         label = value_label(param, point.value)
         (out_dir / "points" / point_file_name(param, label, point.seed)).write_text("\n".join(lines) + "\n")
         rows.append({"value": label, "seed": point.seed, "records": lines})
-    table = summarize(rows, out_dir, param)
-    shutil.rmtree(done_dir, ignore_errors=True)
-    return table
+    # The store stays after a finished sweep: the same command with a value added plays only that value.
+    return summarize(rows, out_dir, param)
 
 
 def _point_key(config_json: str, policies: tuple[str, str], extra: str = "") -> str:
