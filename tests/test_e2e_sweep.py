@@ -1,6 +1,7 @@
 """`agos sweep`: Ctrl-C keeps every finished episode, and the next run of the same sweep plays only the
-rest and writes what an uninterrupted sweep writes; a finished sweep given another value plays only it. One worker process (the same pool as with several)
-plays the two points in order, so Ctrl-C after the first episode is stored interrupts the second.
+rest and writes what an uninterrupted sweep writes; a finished sweep given another value plays only
+it. One worker process (the same pool as with several) plays the two points in order, so Ctrl-C after
+the first episode is stored interrupts the second.
 The pool of a sweep's workers names one that dies (issue 39, item 2): its signal and its log's last lines."""
 
 from __future__ import annotations
