@@ -5,6 +5,10 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+# Python may cache its compiled modules here even where the environment says not to: the tests start
+# hundreds of Python processes, and each compiling numpy, pydantic and agos afresh cost about a third
+# of an end-to-end test's CPU (tests/test_e2e_faults.py: 233 -> 157 CPU s).
+unexport PYTHONDONTWRITEBYTECODE
 # Installs come from uv.lock (every package pinned, with hashes). uv itself is a pinned wheel from
 # PyPI in its own folder inside .venv, where `uv sync` leaves it alone.
 UV_VERSION := 0.13.9
