@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import base64
 import binascii
+import fcntl
 import hashlib
 import json
 import sqlite3
@@ -242,17 +243,26 @@ def _connect(path: Path) -> sqlite3.Connection:
     """The cache file opened (created with its tables when missing) in WAL mode; CacheError for a
     file that is not an agos VLM cache of this version."""
     where = f"--vlm-cache {path.parent}"
+    # Processes opening one new file at once take turns: SQLite answers "database is locked" at once,
+    # without waiting out the busy timeout, to a switch to WAL or a schema write that races another.
     try:
-        db = sqlite3.connect(path, timeout=BUSY_TIMEOUT_MS / 1000, isolation_level=None, check_same_thread=False)
-        db.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
-        if db.execute("PRAGMA journal_mode").fetchone()[0] != "wal":
-            db.execute("PRAGMA journal_mode = WAL")
-        db.execute("PRAGMA synchronous = NORMAL")  # WAL: a crash may lose the last replies, never corrupt the file
-        db.executescript(SCHEMA)
-        db.execute("INSERT OR IGNORE INTO meta VALUES ('format', ?), ('version', ?)", (FORMAT_NAME, str(FORMAT_VERSION)))
-        meta = dict(db.execute("SELECT name, value FROM meta").fetchall())
-    except sqlite3.DatabaseError as exc:
-        raise CacheError(f"{where}: {path.name} is not a readable SQLite file ({exc})") from None
+        lock = (path.parent / f"{path.name}.open-lock").open("a")
+    except OSError as exc:
+        raise CacheError(f"{where}: cannot write beside {path.name} ({exc.strerror}); give a writable folder") from None
+    with lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        try:
+            db = sqlite3.connect(path, timeout=BUSY_TIMEOUT_MS / 1000, isolation_level=None, check_same_thread=False)
+            db.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
+            if db.execute("PRAGMA journal_mode").fetchone()[0] != "wal":
+                db.execute("PRAGMA journal_mode = WAL")
+            db.execute("PRAGMA synchronous = NORMAL")  # WAL: a crash may lose the last replies, never corrupt the file
+            db.executescript(SCHEMA)
+            db.execute("INSERT OR IGNORE INTO meta VALUES ('format', ?), ('version', ?)",
+                       (FORMAT_NAME, str(FORMAT_VERSION)))
+            meta = dict(db.execute("SELECT name, value FROM meta").fetchall())
+        except sqlite3.DatabaseError as exc:
+            raise CacheError(f"{where}: {path.name} is not a readable SQLite file ({exc})") from None
     if meta.get("format") != FORMAT_NAME or meta.get("version") != str(FORMAT_VERSION):
         db.close()
         raise CacheError(f"{where}: {path.name} is format {meta.get('format')!r} version {meta.get('version')!r}; this "
