@@ -2,9 +2,9 @@
 clear line for a directory that is not a dataset.
 
 The dataset is made in-process the way a build makes it: the expert plays two episodes of grid-s7
-(easy, mid) with the dataset writer as both agents and views every 10 m, and each record is
-assembled by the build's own Assembler; ``export.jsonl`` is the roles' examples joined, as the build
-writes it at its end (about 15 s).
+(easy, mid) with the dataset writer as both agents and views every 25 m (the default is 10: fewer
+renders, the same code), and each record is assembled by the build's own Assembler;
+``export.jsonl`` is the roles' examples joined, as the build writes it at its end (about 7 s).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def dataset(tmp_path_factory) -> Path:
         # seed 4: both UGVs drive (one that starts where it can confirm passes nothing on the way)
         specs = [sample_episode(town, scene, d, 0, seed=4, stream=k) for k, d in enumerate(("easy", "mid"))]
         assembler = Assembler(root, {s.episode_id: s for s in specs}, Console(quiet=True))
-        config = EpisodeConfig(look="flat", tools=ToolConfig(expert=True), capture_every_m=10.0)
+        config = EpisodeConfig(look="flat", tools=ToolConfig(expert=True), capture_every_m=25.0)
         for spec in specs:
             with Env(spec, config, run_id="t", scene=scene, town=town) as env:
                 record = env.play({r: DatasetWriter(r, root) for r in ("uav", "ugv")})
