@@ -182,3 +182,21 @@ def test_a_numeric_axis_is_plotted_in_increasing_order(tmp_path: Path, monkeypat
     sweep._plots(table, tmp_path, "corruption.char_error_rate")
     assert drawn and all(x == [0.0, 0.01, 0.1] for x in drawn)
     assert (tmp_path / "sweep.png").exists()
+
+
+
+@pytest.mark.parametrize(("values", "scale"), [(("0", "0.001", "0.1"), "symlog"), (("0.001", "0.1"), "log"),
+                                               (("0", "0.1", "0.2"), "linear")])
+def test_values_over_decades_get_a_log_axis_with_zero_on_it(tmp_path: Path, values: tuple[str, ...],
+                                                            scale: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A rate swept over decades (0, 0.001, 0.1) would crowd at the left of a linear axis."""
+    import matplotlib.pyplot as plt
+
+    from agos.deploy.run import sweep
+
+    closed: list = []
+    monkeypatch.setattr(plt, "close", closed.append)  # keep the figure to look at its axes
+    row = {name: 0.5 for name in sweep.METRICS} | {f"{n}_{end}": 0.5 for n in sweep.METRICS for end in ("low", "high")}
+    sweep._plots([row | {"value": v, "handoff_never_pct": 0.0} for v in values], tmp_path, "corruption.char_error_rate")
+    (figure,) = closed
+    assert {ax.get_xscale() for ax in figure.axes} == {scale}

@@ -404,7 +404,10 @@ def _plots(table: list[dict], out_dir: Path, param: str) -> None:
     labels = [str(t["value"]) for t in table]
     xs = {t["value"]: (float(t["value"]) if numeric else float(i)) for i, t in enumerate(table)}
     x = np.array(list(xs.values()))
-    log_x = numeric and len(x) > 1 and x.min() > 0 and x.max() / x.min() >= 50
+    # Values over decades (a rate of 0.001 to 0.1) would crowd at the left of a linear axis: log, or
+    # symmetric log, linear from 0 to the smallest positive value, when 0 is one of them.
+    positive = x[x > 0]
+    log_x = numeric and len(positive) > 1 and x.min() >= 0 and positive.max() / positive.min() >= 50
     panels = [*METRICS, "handoff_never_pct"]
     fig, axes = plt.subplots(2, 4, figsize=(14, 6), dpi=140)
     for ax, name in zip(axes.flat, panels, strict=True):
@@ -428,8 +431,12 @@ def _plots(table: list[dict], out_dir: Path, param: str) -> None:
                 ax.set_ylim(bottom=0)
         ax.set_xlabel(param)
         ax.grid(alpha=0.3)
-        if log_x:
+        if log_x and x.min() > 0:
             ax.set_xscale("log")
+        elif log_x:
+            ax.set_xscale("symlog", linthresh=float(positive.min()))
+            ax.set_xlim(-0.5 * positive.min(), 1.6 * positive.max())
+            ax.set_xticks(x, labels, fontsize=8)
         if not numeric:
             ax.set_xticks(x, labels, fontsize=8)
     fig.tight_layout()
