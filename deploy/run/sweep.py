@@ -429,6 +429,9 @@ def _plots(table: list[dict], out_dir: Path, param: str) -> None:
                 ax.set_ylim(0, 105)
             else:
                 ax.set_ylim(bottom=0)
+        if not rows:  # e.g. CErr of a policy that sends no structured candidates: say so, not a blank
+            ax.text(0.5, 0.5, "no value at any point", transform=ax.transAxes, ha="center", va="center",
+                    color="0.4", fontsize=9)
         ax.set_xlabel(param)
         ax.grid(alpha=0.3)
         if log_x and x.min() > 0:
