@@ -126,6 +126,7 @@ def _map(args: argparse.Namespace) -> int:
         layout = imported_layout(args.file, seed=args.seed)
         town = freeze(layout)
         save_town(town, args.out)
+        open_town(args.out)  # and into this host's asset cache, where workers and split files look it up by hash
         for warning in layout.network.warnings[:20]:
             print(f"warning: {warning}", file=sys.stderr)
         if len(layout.network.warnings) > 20:

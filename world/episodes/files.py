@@ -172,7 +172,7 @@ def _town(spec: EpisodeSpec, where: str) -> Town:
         town = town_for(ref.generator, ref.seed, spec.asset_sha256, town_id=ref.town_id)
     except AssetError as exc:
         raise EpisodeFileError(one_line(f"{where}: {exc}; import the map on this host first (agos map import "
-                                        "FILE.xodr)")) from None
+                                        "FILE.xodr --out DIR)")) from None
     except ValueError as exc:  # a build that hashes otherwise
         raise EpisodeFileError(one_line(f"{where}: {exc}")) from None
     if town.town_id != ref.town_id:
