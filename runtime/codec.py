@@ -12,6 +12,7 @@ payloads into the same maps (tests/test_codec.py).
 from __future__ import annotations
 
 import re
+import threading
 from typing import Any, TypeVar
 
 import cv2
@@ -54,7 +55,7 @@ def _live(message: T) -> T:
 def _other_version(payload: bytes | bytearray | memoryview) -> WireVersionError | None:
     """For a payload that did not decode: a :class:`WireVersionError` when it says another version."""
     try:
-        version = msgspec.msgpack.decode(payload, type=_Versioned).v
+        version = _decoder(_Versioned).decode(payload).v
     except (ValueError, RecursionError):
         return None
     return WireVersionError(version) if version is not None and version != SCHEMA_VERSION else None
@@ -85,13 +86,22 @@ def encode_into(message: Any, buffer: bytearray) -> None:
 
 
 _DECODERS: dict[tuple[str, Any], Any] = {}
+_MAKING_DECODERS = threading.Lock()
 
 
 def _decoder(kind: Any, syntax: str = "msgpack") -> Any:
-    """The msgspec decoder of ``kind`` for ``syntax`` (``msgpack`` or ``json``), made once."""
+    """The msgspec decoder of ``kind`` for ``syntax`` (``msgpack`` or ``json``), made once. Made under
+    a lock: msgspec (0.22) fills in the type information of the structs while it makes a decoder, and
+    two threads doing so at once for the same structs crashed the process (a segmentation fault in
+    the human console, whose two subscriber threads decoded their first observations together; about
+    1 process in 200 when six threads decode their first message at once). Using a decoder needs no
+    lock."""
     found = _DECODERS.get((syntax, kind))
     if found is None:
-        found = _DECODERS[(syntax, kind)] = (msgspec.msgpack if syntax == "msgpack" else msgspec.json).Decoder(kind)
+        with _MAKING_DECODERS:
+            found = _DECODERS.get((syntax, kind))
+            if found is None:
+                found = _DECODERS[(syntax, kind)] = (msgspec.msgpack if syntax == "msgpack" else msgspec.json).Decoder(kind)
     return found
 
 
