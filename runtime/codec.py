@@ -93,9 +93,10 @@ def _decoder(kind: Any, syntax: str = "msgpack") -> Any:
     """The msgspec decoder of ``kind`` for ``syntax`` (``msgpack`` or ``json``), made once. Made under
     a lock: msgspec (0.22) fills in the type information of the structs while it makes a decoder, and
     two threads doing so at once for the same structs crashed the process (a segmentation fault in
-    the human console, whose two subscriber threads decoded their first observations together; about
-    1 process in 200 when six threads decode their first message at once). Using a decoder needs no
-    lock."""
+    the human console, whose two subscriber threads decoded their first observations together; 47
+    processes in 400 when six threads decode their first message at once). Using a decoder needs no
+    lock. Decoders made at import elsewhere (runtime/viz.py, world/episodes/files.py) are made under
+    the import lock instead."""
     found = _DECODERS.get((syntax, kind))
     if found is None:
         with _MAKING_DECODERS:
