@@ -95,8 +95,8 @@ def _decoder(kind: Any, syntax: str = "msgpack") -> Any:
     two threads doing so at once for the same structs crashed the process (a segmentation fault in
     the human console, whose two subscriber threads decoded their first observations together; 47
     processes in 400 when six threads decode their first message at once). Using a decoder needs no
-    lock. Decoders made at import elsewhere (runtime/viz.py, world/episodes/files.py) are made under
-    the import lock instead."""
+    lock. The decoders made at import elsewhere (runtime/viz.py, world/episodes/files.py) are not
+    covered: they are made when their module is first imported."""
     found = _DECODERS.get((syntax, kind))
     if found is None:
         with _MAKING_DECODERS:
