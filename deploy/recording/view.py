@@ -16,6 +16,7 @@ too (a viewer left behind would keep both ports).
 from __future__ import annotations
 
 import contextlib
+import importlib.metadata
 import importlib.util
 import os
 import shutil
@@ -107,8 +108,6 @@ def _signal_group(proc: subprocess.Popen, signum: int) -> None:
 
 
 def main(path: Path, *, web: bool = False, web_port: int = 9090, grpc_port: int = 9876) -> int:
-    import rerun
-
     if not path.is_file():
         print(f"agos view: no file {path}", file=sys.stderr)
         return 2
@@ -132,6 +131,7 @@ def main(path: Path, *, web: bool = False, web_port: int = 9090, grpc_port: int 
                            "--port", str(grpc_port)])
     if not has_display() or command is None:
         print(f"no display here: `agos view --web {path}` serves it to a browser, or on a desktop "
-              f"`pip install rerun-sdk=={rerun.__version__}` and run `rerun {path.name}` (copy {path.resolve()} there first)")
+              f"`pip install rerun-sdk=={importlib.metadata.version('rerun-sdk')}` and run `rerun {path.name}` "
+              f"(copy {path.resolve()} there first)")
         return 0
     return run_viewer([command, str(path)])
