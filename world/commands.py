@@ -117,7 +117,7 @@ def map_info(town) -> dict:
 
 
 def _map(args: argparse.Namespace) -> int:
-    from agos.world.towns.asset import freeze, open_town, save_town
+    from agos.world.towns.asset import cache_town, freeze, open_town, save_town
 
     if args.map_command == "import":
         from agos.world.towns.imported import imported_layout
@@ -126,7 +126,7 @@ def _map(args: argparse.Namespace) -> int:
         layout = imported_layout(args.file, seed=args.seed)
         town = freeze(layout)
         save_town(town, args.out)
-        open_town(args.out)  # and into this host's asset cache, where workers and split files look it up by hash
+        cache_town(town)
         for warning in layout.network.warnings[:20]:
             print(f"warning: {warning}", file=sys.stderr)
         if len(layout.network.warnings) > 20:

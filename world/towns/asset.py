@@ -253,9 +253,7 @@ def open_town(name: str | Path) -> Town:
     path = Path(name)
     if (path / "asset.msgpack").exists() or path.suffix == ".msgpack":
         town = load_town(path)
-        cached = cache_dir() / town.sha256
-        if not (cached / "asset.msgpack").exists():
-            save_town(town, cached)
+        cache_town(town)
         return town
     from agos.world.towns.procedural import resolve
 
@@ -264,6 +262,14 @@ def open_town(name: str | Path) -> Town:
 
 def cache_dir() -> Path:
     return local_dirs().asset_cache
+
+
+def cache_town(town: Town) -> None:
+    """Put ``town`` in this host's asset cache (unless it is there), where workers and split files
+    find it by its hash."""
+    cached = cache_dir() / town.sha256
+    if not (cached / "asset.msgpack").exists():
+        save_town(town, cached)
 
 
 def town_for(generator: str, seed: int, expected_sha256: str | None = None, *, town_id: str | None = None,
