@@ -59,6 +59,20 @@ class Serving:
         self.stop.set()
         self.thread.join(5)
 
+    def tell(self, index: int, attempt: int, worker: str = "w1") -> None:
+        """Publish observation ``index`` of attempt ``attempt`` on ``worker``'s slot: MemoryBus hands it
+        over before this returns, so it is taken or dropped by then."""
+        obs = _obs(index=index)
+        obs.attempt = attempt
+        self.bus.publish(keys.obs(RUN, worker, "uav"), encode(obs))
+
+    def ask(self, index: int, attempt: int, worker: str = "w1") -> Action:
+        """:meth:`tell`, and the answer."""
+        self.tell(index, attempt, worker)
+        sample = self.actions.get(ANSWER_HANG_BOUND_S)
+        assert sample is not None, "no answer"
+        return decode(sample.payload)
+
 
 def test_inline_policy_is_answered_on_the_publishing_thread() -> None:
     with Serving(make_policy("standin-0ms", "uav")) as svc:
@@ -241,22 +255,12 @@ def test_a_new_attempt_starts_afresh_and_late_observations_of_the_old_one_are_ig
     """A re-leased episode (attempt 2) is a fresh episode for the policy; an observation of attempt 1
     arriving after it (a world that was thought dead) is not answered; answers carry the attempt."""
     with Serving(_Remembering(inline)) as svc:
-        def tell(index: int, attempt: int) -> None:
-            obs = _obs(index=index)
-            obs.attempt = attempt
-            svc.bus.publish(keys.obs(RUN, "w1", "uav"), encode(obs))  # taken or dropped before it returns
-
-        def ask(index: int, attempt: int) -> Action:
-            tell(index, attempt)
-            sample = svc.actions.get(ANSWER_HANG_BOUND_S)
-            assert sample is not None, "no answer"
-            return decode(sample.payload)
-
-        assert [(a.waypoint_id, a.attempt) for a in (ask(1, 1), ask(2, 1), ask(3, 1))] == [("U1", 1), ("U2", 1), ("U3", 1)]
-        first = ask(1, 2)
+        asked = [svc.ask(1, 1), svc.ask(2, 1), svc.ask(3, 1)]
+        assert [(a.waypoint_id, a.attempt) for a in asked] == [("U1", 1), ("U2", 1), ("U3", 1)]
+        first = svc.ask(1, 2)
         assert (first.waypoint_id, first.attempt, first.decision_index) == ("U1", 2, 1)  # memory of attempt 1 gone
-        tell(4, 1)  # late, of the old attempt: had the policy seen it, the next answer would name U3
-        second = ask(2, 2)
+        svc.tell(4, 1)  # late, of the old attempt: had the policy seen it, the next answer would name U3
+        second = svc.ask(2, 2)
         assert (second.waypoint_id, second.attempt, second.decision_index) == ("U2", 2, 2)
         assert svc.actions.get(0) is None
 
@@ -268,21 +272,10 @@ def test_an_episode_re_leased_to_another_worker_starts_afresh_there() -> None:
         svc.bus.declare_token(keys.slot_live(RUN, "w2"))
         assert wait_until(lambda: svc.bus.wait_for_subscriber(keys.obs(RUN, "w2", "uav"), 0))
 
-        def tell(worker: str, index: int, attempt: int) -> None:
-            obs = _obs(index=index)
-            obs.attempt = attempt
-            svc.bus.publish(keys.obs(RUN, worker, "uav"), encode(obs))  # taken or dropped before it returns
-
-        def ask(worker: str, index: int, attempt: int) -> Action:
-            tell(worker, index, attempt)
-            sample = svc.actions.get(ANSWER_HANG_BOUND_S)
-            assert sample is not None, "no answer"
-            return decode(sample.payload)
-
-        assert [ask("w1", i, 1).waypoint_id for i in (1, 2)] == ["U1", "U2"]
-        assert ask("w2", 1, 2).waypoint_id == "U1"
-        tell("w1", 3, 1)  # late, on the old slot: had the policy seen it, the next answer would name U3
-        assert (ask("w2", 2, 2).waypoint_id, svc.actions.get(0)) == ("U2", None)
+        assert [svc.ask(i, 1).waypoint_id for i in (1, 2)] == ["U1", "U2"]
+        assert svc.ask(1, 2, worker="w2").waypoint_id == "U1"
+        svc.tell(3, 1)  # late, on the old slot: had the policy seen it, the next answer would name U3
+        assert (svc.ask(2, 2, worker="w2").waypoint_id, svc.actions.get(0)) == ("U2", None)
         assert svc.policy.memory == {"e1": 2}
 
 
