@@ -102,7 +102,7 @@ def test_map_import_at_start_up(tmp_path: Path) -> None:
     xodr = tmp_path / "tiny.xodr"
     xodr.write_text(TINY_XODR)
     run = Interruptible(tmp_path, ["map", "import", str(xodr), "--out", "town"])
-    run.wait_for(run.after(0.5))
+    run.wait_for(run.after(0.1))
     TIMINGS["map import start-up"] = run.ctrl_c()
     assert not (tmp_path / "town" / "asset.msgpack").exists() or (tmp_path / "town" / "manifest.json").exists()
 
