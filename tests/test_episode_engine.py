@@ -11,12 +11,15 @@ from agos import Env
 from agos.agents.contract import action_for
 from agos.agents.inprocess import InProcessAgents
 from agos.agents.registry import make_policy
-from agos.runtime.episode_config import EpisodeConfig
+from agos.runtime.episode_config import CameraConfig, EpisodeConfig
 from agos.runtime.schemas import Action, EpisodeRecord, EpisodeSpec, Observation, Role, StepEvent
 from agos.world.episodes.sampling import generate_episodes
 from agos.world.sim.engine import EpisodeRunner, NullSink
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import build_town
+
+SMALL = CameraConfig(nadir_px=64, ground_px=64, reference_px=32, map_px=64)
+"""Scripted sources do not look at the images: small ones keep their episodes to a second."""
 
 
 @pytest.fixture(scope="module")
@@ -46,9 +49,11 @@ class Scripted:
 
 
 def run(world, key: str, source, sink=None, *, budget: int | None = None) -> EpisodeRecord:
-    """``source`` plays episode ``key``; ``budget`` shortens the decision budget (the paper's 80 by default)."""
+    """``source`` plays episode ``key``; ``budget`` shortens the decision budget (the paper's 80 by default).
+    A scripted source gets small images."""
     town, scene, episodes = world
-    config = None if budget is None else EpisodeConfig(look="flat", decision_budget=budget)
+    config = EpisodeConfig(look="flat", cameras=CameraConfig() if isinstance(source, InProcessAgents) else SMALL,
+                           **({} if budget is None else {"decision_budget": budget}))
     return EpisodeRunner(scene, town, episodes[key], run_id="t", worker_id="w", sink=sink, config=config).run(source)
 
 
