@@ -284,8 +284,9 @@ def test_a_satellite_link_delays_every_decision_and_the_records_carry_it(world, 
 
 
 def test_scripted_policies_pay_nothing_and_the_robot_link_is_untouched(world) -> None:
-    onboard = play(world, VlmOptions(), policy="heuristic", comm="lossy")
-    sat = play(world, VlmOptions(), policy="heuristic", comm="lossy", model_link="satellite")
+    small = {"nadir_px": 64, "ground_px": 64, "reference_px": 32, "map_px": 64}  # what they see does not matter here
+    onboard = play(world, VlmOptions(), policy="heuristic", comm="lossy", cameras=small)
+    sat = play(world, VlmOptions(), policy="heuristic", comm="lossy", model_link="satellite", cameras=small)
     assert sat.model_link is not None and sat.model_link.decisions == 0
     assert sat.step_log == onboard.step_log and sat.ledger == onboard.ledger and sat.sim_time_s == onboard.sim_time_s
 
