@@ -70,8 +70,6 @@ class _Viewer:
         self.signum, self.terminated, self.returncode = signum, 0, None
 
     def wait(self, timeout: float | None = None) -> int:
-        if self.returncode is None and self.signum == signal.SIGINT:
-            raise KeyboardInterrupt
         if self.returncode is None:
             signal.raise_signal(self.signum)  # agos view's handler terminates us
         assert self.returncode is not None
@@ -97,6 +95,24 @@ def test_sigterm_and_ctrl_c_stop_the_viewer_too(monkeypatch: pytest.MonkeyPatch,
     viewers: list[_Viewer] = []
     monkeypatch.setattr(view.subprocess, "Popen", lambda argv, **_: viewers.append(_Viewer(signum)) or viewers[-1])
     monkeypatch.setattr(view, "_signal_group", lambda proc, _signum: proc.terminate())  # its process group
-    before = signal.getsignal(signal.SIGTERM)
+    before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
     assert view.run_viewer(["rerun", "x.rrd"]) == code
-    assert viewers[0].terminated and signal.getsignal(signal.SIGTERM) == before
+    assert viewers[0].terminated and (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)) == before
+
+
+def test_a_signal_while_the_viewer_starts_stops_it_once_started(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Ctrl-C inside Popen (after the fork) used to raise there and lose the child: now it is noted, and
+    the viewer is stopped as soon as Popen returns it."""
+    from agos.deploy.recording import view
+
+    viewers: list[_Viewer] = []
+
+    def popen(argv, **_):
+        signal.raise_signal(signal.SIGINT)  # the user's Ctrl-C, while the child starts
+        viewers.append(_Viewer(signal.SIGINT))
+        return viewers[-1]
+
+    monkeypatch.setattr(view.subprocess, "Popen", popen)
+    monkeypatch.setattr(view, "_signal_group", lambda proc, _signum: proc.terminate())
+    assert view.run_viewer(["rerun", "x.rrd"]) == 130
+    assert viewers[0].terminated

@@ -70,27 +70,32 @@ def run_viewer(argv: list[str]) -> int:
     runs in a process group of its own, and the whole group is stopped (a wrapper's child too). A viewer
     that fails on its own has its last line of output printed."""
     stopped: list[int] = []
+    proc: subprocess.Popen | None = None
 
     def stop(signum: int, _frame: object) -> None:
         stopped.append(signum)
-        _signal_group(proc, signal.SIGTERM)
+        if proc is not None:
+            _signal_group(proc, signal.SIGTERM)
 
+    # Both signals are noted rather than raised from before the viewer starts: a KeyboardInterrupt inside
+    # Popen, after the fork, would lose the child, which runs in a session of its own and keeps both ports.
+    previous = {signum: signal.signal(signum, stop) for signum in (signal.SIGINT, signal.SIGTERM)}
     with tempfile.TemporaryFile() as log:
-        proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=log, start_new_session=True)
-        previous = signal.signal(signal.SIGTERM, stop)
         try:
+            proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=log, start_new_session=True)
+            if stopped:  # told to stop while it started
+                _signal_group(proc, signal.SIGTERM)
             code = proc.wait()
-        except KeyboardInterrupt:
-            stopped.append(signal.SIGINT)
-            code = 130
         finally:
-            signal.signal(signal.SIGTERM, previous)
-            _signal_group(proc, signal.SIGTERM)  # what the viewer started goes too, even once it has exited
-            try:
-                proc.wait(STOP_GRACE_S)
-            except subprocess.TimeoutExpired:
-                _signal_group(proc, signal.SIGKILL)
-                proc.wait()
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+            if proc is not None:
+                _signal_group(proc, signal.SIGTERM)  # what the viewer started goes too, even once it has exited
+                try:
+                    proc.wait(STOP_GRACE_S)
+                except subprocess.TimeoutExpired:
+                    _signal_group(proc, signal.SIGKILL)
+                    proc.wait()
         if stopped:
             return 128 + stopped[0]
         if code != 0:
