@@ -68,9 +68,11 @@ contracts: $(STAMP) typecheck-links
 	cd .typecheck && ../$(BIN)/lint-imports --no-cache ../pyproject.toml
 
 # mypy sees the top-level folders under their agos.* names through a folder of links (and examples/ as
-# a user's code would import it).
+# a user's code would import it); then the scripts that draw docs/images, which no test runs (a second
+# call: mypy takes packages or files, not both; it reuses the first call's cache).
 typecheck: $(STAMP) typecheck-links
 	cd .typecheck && ../$(BIN)/mypy --config-file ../pyproject.toml -p agos -p examples
+	cd .typecheck && ../$(BIN)/mypy --config-file ../pyproject.toml ../docs/*.py
 
 # .typecheck/agos: the package as installed, made of links: agos/*.py (the package's own modules) and
 # one link per subpackage folder; a link whose file is gone is removed.

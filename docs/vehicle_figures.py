@@ -81,7 +81,7 @@ def sheet(rich: Scene, flat: Scene) -> np.ndarray:
 
 def main() -> None:
     layout = open_town("grid-s7").layout
-    with Scene(layout, look="rich") as rich, Scene(layout) as flat:
+    with Scene(layout, look="rich") as rich, Scene(layout, look="flat") as flat:
         img = sheet(rich, flat)
     OUT.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(OUT / "vehicles_rich.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
