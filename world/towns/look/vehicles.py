@@ -348,7 +348,7 @@ def _rect_x(b: _Builder, material: str, x: float, y0: float, y1: float, z0: floa
     b.add(material, np.array([[x, y0, z0], [x, y1, z0], [x, y1, z1], [x, y0, z1]]), np.array([facing, 0, 0]))
 
 
-def _wheel(b: _Builder, x: float, y_centre: float, radius: float, width: float, segments: int = 16) -> None:
+def _wheel(b: _Builder, x: float, y_centre: float, radius: float, width: float, segments: int = 8) -> None:
     a = 2 * math.pi * (np.arange(segments) + 0.5) / segments
     ring = np.column_stack([radius * np.cos(a), radius * np.sin(a)])  # (x, z) around the hub
     sign = 1.0 if y_centre > 0 else -1.0
