@@ -19,6 +19,7 @@ from agos.world.episodes.sampling import sample_episode
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import open_town
 
+from support.episodes import SMALL_CAMERAS
 from support.stalling import Stalling
 
 pytestmark = pytest.mark.e2e
@@ -31,7 +32,7 @@ def small() -> dict[str, Any]:
     with Scene(town.layout, look="flat") as scene:
         specs = [sample_episode(town, scene, "easy", k, seed=5) for k in range(2)]
     config = episode_config(look="flat", decision_budget=4,
-                            cameras={"nadir_px": 64, "ground_px": 64, "reference_px": 32, "map_px": 64})
+                            cameras=SMALL_CAMERAS)
     return {"role": "ugv", "episodes": specs, "config": config, "text": False}
 
 

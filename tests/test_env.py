@@ -27,8 +27,8 @@ from agos.world.sim.scene import Scene, pb
 from agos.world.towns.asset import open_town
 
 from support.bus_path import BusPath
+from support.episodes import SMALL_CAMERAS
 
-SMALL = {"nadir_px": 64, "ground_px": 64, "reference_px": 32, "map_px": 64}
 BUDGET = 10
 VOLATILE = ("run_id", "worker_id", "wall_time_s", "provenance")
 """What differs between two plays of one episode anywhere (docs/LIBRARY.md), and what made the record (the
@@ -58,8 +58,8 @@ def _summary(record: EpisodeRecord) -> dict:
 @pytest.mark.parametrize("policy", ["heuristic", "oracle", "expert", "random"])
 def test_the_env_gives_the_record_of_the_process_path(policy: str, link: str, world, bus_path: BusPath) -> None:
     town, scene, spec = world
-    config = episode_config(policies=policy, comm=link, look="flat", decision_budget=BUDGET, cameras=SMALL)
-    settings = AgosConfig(world=EpisodeConfig(look="flat", cameras=SMALL))  # what agos eval builds from them
+    config = episode_config(policies=policy, comm=link, look="flat", decision_budget=BUDGET, cameras=SMALL_CAMERAS)
+    settings = AgosConfig(world=EpisodeConfig(look="flat", cameras=SMALL_CAMERAS))  # what agos eval builds from them
     assert config == eval_config(settings, policies={"uav": policy, "ugv": policy}, comm=link, decision_budget=BUDGET)
     with Env(spec, config, scene=scene, town=town) as env:
         record = env.play({r: make_policy(policy, r) for r in ("uav", "ugv")})
@@ -72,7 +72,7 @@ def test_the_env_gives_the_record_of_the_process_path(policy: str, link: str, wo
 def test_an_episode_played_again_gives_the_same_record(world) -> None:
     """The second play reuses the first one's setup renders (references, SPL's path): the same record."""
     town, scene, spec = world
-    with Env(spec, episode_config(policies="oracle", look="flat", decision_budget=BUDGET, cameras=SMALL), scene=scene,
+    with Env(spec, episode_config(policies="oracle", look="flat", decision_budget=BUDGET, cameras=SMALL_CAMERAS), scene=scene,
              town=town) as env:
         first, second = (_summary(env.play({r: make_policy("oracle", r) for r in ("uav", "ugv")})) for _ in range(2))
     assert first == second and first["termination"] == "confirmed"
@@ -83,7 +83,7 @@ def test_play_takes_one_source_for_both_roles_keeps_what_was_asked_and_abandons_
     ``worker_id``; a policy's exception abandons the episode: propagated, its vehicles out of the
     scene, each policy told the end, the Env ready for the next reset."""
     town, scene, spec = world
-    config = episode_config(look="flat", decision_budget=4, cameras=SMALL)
+    config = episode_config(look="flat", decision_budget=4, cameras=SMALL_CAMERAS)
 
     class Both:  # a central controller: WAIT for every role asked
         def decide(self, observations: dict[Role, Observation]) -> dict[Role, Action | None]:
@@ -113,7 +113,7 @@ def test_play_takes_one_source_for_both_roles_keeps_what_was_asked_and_abandons_
 
 def test_calls_out_of_order_say_which_call_comes_next(world) -> None:
     town, scene, spec = world
-    env = Env(spec, episode_config(look="flat", decision_budget=2, cameras=SMALL), scene=scene, town=town)
+    env = Env(spec, episode_config(look="flat", decision_budget=2, cameras=SMALL_CAMERAS), scene=scene, town=town)
     with pytest.raises(EnvStateError, match=r"step\(\) before reset\(\): call reset\(\) first"):
         env.step({})
     with pytest.raises(EnvStateError, match="no episode has ended yet"):
@@ -136,7 +136,7 @@ def test_calls_out_of_order_say_which_call_comes_next(world) -> None:
 
 def test_an_illegal_action_is_refused_in_one_line_and_nothing_is_applied(world) -> None:
     town, scene, spec = world
-    with Env(spec, episode_config(look="flat", cameras=SMALL), scene=scene, town=town) as env:
+    with Env(spec, episode_config(look="flat", cameras=SMALL_CAMERAS), scene=scene, town=town) as env:
         obs = env.reset()
         uav, ugv = env.action("uav", "WAIT"), env.action("ugv", "WAIT")
         refusals = {
@@ -166,7 +166,7 @@ def test_an_illegal_action_is_refused_in_one_line_and_nothing_is_applied(world) 
 
 def test_with_illegal_wait_an_illegal_action_is_the_worlds_counted_wait(world) -> None:
     town, scene, spec = world
-    with Env(spec, episode_config(look="flat", decision_budget=2, cameras=SMALL), scene=scene, town=town,
+    with Env(spec, episode_config(look="flat", decision_budget=2, cameras=SMALL_CAMERAS), scene=scene, town=town,
              illegal="wait") as env:
         env.reset()
         result = env.step({"uav": env.action("uav", "CONFIRM"), "ugv": env.action("ugv", "WAIT")})
@@ -180,7 +180,7 @@ def test_an_episode_file_and_an_index(world, tmp_path: Path) -> None:
     town, scene, spec = world
     other = msgspec.structs.replace(spec, episode_id="grid-s7-mid-001-v1", seed=spec.seed + 1)
     write_episodes(tmp_path / "eps.jsonl", [spec, other])
-    config = episode_config(look="flat", decision_budget=1, cameras=SMALL)
+    config = episode_config(look="flat", decision_budget=1, cameras=SMALL_CAMERAS)
     with Env(tmp_path / "eps.jsonl", config, index=1, scene=scene, town=town) as env:
         assert env.spec == other and env.reset()["uav"].episode_id == other.episode_id
     with pytest.raises(IndexError, match=r"eps.jsonl: episode index 2 out of range \(the file has 2 episodes: 0..1\)"):
@@ -199,7 +199,7 @@ def test_a_noisy_robot_on_a_faulty_link_gives_the_record_of_the_process_path(wor
     town, scene, spec = world
     faulty = tmp_path / "faulty.toml"
     faulty.write_text("[latency]\nmean_s = 0.05\n[duplicate]\np = 0.2\n[corruption]\nchar_error_rate = 0.05\n")
-    config = episode_config(policies="heuristic", comm=faulty, look="flat", decision_budget=BUDGET, cameras=SMALL,
+    config = episode_config(policies="heuristic", comm=faulty, look="flat", decision_budget=BUDGET, cameras=SMALL_CAMERAS,
                             pose_error="urban-gnss")
     with Env(spec, config, scene=scene, town=town) as env:
         record = env.play({r: make_policy("heuristic", r) for r in ("uav", "ugv")})

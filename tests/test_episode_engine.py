@@ -18,8 +18,7 @@ from agos.world.sim.engine import EpisodeRunner, NullSink
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import build_town
 
-SMALL = CameraConfig(nadir_px=64, ground_px=64, reference_px=32, map_px=64)
-"""Scripted sources do not look at the images: small ones keep their episodes to a second."""
+from support.episodes import SMALL_CAMERAS
 
 
 @pytest.fixture(scope="module")
@@ -48,12 +47,14 @@ class Scripted:
         return {role: self.choose(obs) for role, obs in observations.items()}
 
 
-def run(world, key: str, source, sink=None, *, budget: int | None = None) -> EpisodeRecord:
+SMALL = CameraConfig(**SMALL_CAMERAS)
+
+
+def run(world, key: str, source, sink=None, *, budget: int | None = None, cameras: CameraConfig = SMALL) -> EpisodeRecord:
     """``source`` plays episode ``key``; ``budget`` shortens the decision budget (the paper's 80 by default).
-    A scripted source gets small images."""
+    Small images unless ``cameras`` says otherwise: scripted sources do not look at them."""
     town, scene, episodes = world
-    config = EpisodeConfig(look="flat", cameras=CameraConfig() if isinstance(source, InProcessAgents) else SMALL,
-                           **({} if budget is None else {"decision_budget": budget}))
+    config = EpisodeConfig(look="flat", cameras=cameras, **({} if budget is None else {"decision_budget": budget}))
     return EpisodeRunner(scene, town, episodes[key], run_id="t", worker_id="w", sink=sink, config=config).run(source)
 
 
@@ -66,7 +67,7 @@ def without_wall_time(record: EpisodeRecord) -> EpisodeRecord:
 
 
 def test_heuristic_confirms_an_easy_target(world) -> None:
-    record = run(world, "easy000", heuristic())
+    record = run(world, "easy000", heuristic(), cameras=CameraConfig())
     assert record.status == "finished" and record.termination == "confirmed" and record.success
     assert record.ground_observed and record.n_confirm == 1
     # The confirmed candidate is near the target; not always its cell: since parked traffic carries vivid
@@ -78,8 +79,8 @@ def test_heuristic_confirms_an_easy_target(world) -> None:
 
 @pytest.mark.slow
 def test_same_episode_and_policy_give_identical_records(world) -> None:
-    first = run(world, "mid000", heuristic())
-    second = run(world, "mid000", heuristic())
+    first = run(world, "mid000", heuristic(), cameras=CameraConfig())
+    second = run(world, "mid000", heuristic(), cameras=CameraConfig())
     assert without_wall_time(first) == without_wall_time(second)
 
 

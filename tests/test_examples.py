@@ -17,9 +17,11 @@ import pytest
 
 from agos import episode_config
 
+from support.episodes import SMALL_CAMERAS
+
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = episode_config(look="flat", decision_budget=10,
-                        cameras={"nadir_px": 64, "ground_px": 64, "reference_px": 32, "map_px": 64})
+                        cameras=SMALL_CAMERAS)
 
 
 @pytest.fixture

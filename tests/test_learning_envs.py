@@ -27,7 +27,8 @@ from agos.world.episodes.sampling import sample_episode
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import open_town
 
-SMALL = {"nadir_px": 64, "ground_px": 64, "reference_px": 32, "map_px": 64}
+from support.episodes import SMALL_CAMERAS
+
 ASKED = STATE_FIELDS.index("asked")
 
 
@@ -45,7 +46,7 @@ def episodes(scene):
 
 
 def _config(budget: int = 12, **tools):
-    return episode_config(look="flat", decision_budget=budget, cameras=SMALL, **tools)
+    return episode_config(look="flat", decision_budget=budget, cameras=SMALL_CAMERAS, **tools)
 
 
 def test_pettingzoo_parallel_api_test_passes(episodes, scene) -> None:

@@ -39,8 +39,9 @@ from agos.world.sim.scene import Scene
 from agos.world.sim.worker import BusSink
 from agos.world.towns.asset import open_town
 
+from support.episodes import SMALL_CAMERAS
+
 RUN, WORKER = "mcap", "w"
-SMALL = {"nadir_px": 64, "ground_px": 64, "reference_px": 32, "map_px": 64}
 JSON_TOPICS = {"/agos/episode", "/agos/steps", "/agos/coordination", "/agos/messages", "/agos/link", "/agos/record"}
 
 
@@ -66,7 +67,7 @@ def played() -> Played:
             run_id=RUN, episode_id=spec.episode_id, difficulty=spec.difficulty, worker_id=WORKER, town_id=town.town_id,
             asset_sha256=town.sha256))
         bus.publish_viz(keys.viz_spec(RUN, WORKER), spec)
-        config = episode_config(policies="oracle", look="flat", decision_budget=12, cameras=SMALL)
+        config = episode_config(policies="oracle", look="flat", decision_budget=12, cameras=SMALL_CAMERAS)
         with Env(spec, config, run_id=RUN, worker_id=WORKER, scene=scene, town=town,
                  sink=BusSink(bus, RUN, WORKER)) as env:
             asked = env.reset()

@@ -37,6 +37,8 @@ from agos.world.episodes.sampling import sample_episode
 from agos.world.sim.scene import Scene
 from agos.world.towns.asset import open_town
 
+from support.episodes import SMALL_CAMERAS
+
 VOLATILE = ("run_id", "worker_id", "wall_time_s", "provenance")
 
 
@@ -284,9 +286,9 @@ def test_a_satellite_link_delays_every_decision_and_the_records_carry_it(world, 
 
 
 def test_scripted_policies_pay_nothing_and_the_robot_link_is_untouched(world) -> None:
-    small = {"nadir_px": 64, "ground_px": 64, "reference_px": 32, "map_px": 64}  # what they see does not matter here
-    onboard = play(world, VlmOptions(), policy="heuristic", comm="lossy", cameras=small)
-    sat = play(world, VlmOptions(), policy="heuristic", comm="lossy", model_link="satellite", cameras=small)
+    # what the heuristic sees does not matter here: small images
+    onboard = play(world, VlmOptions(), policy="heuristic", comm="lossy", cameras=SMALL_CAMERAS)
+    sat = play(world, VlmOptions(), policy="heuristic", comm="lossy", model_link="satellite", cameras=SMALL_CAMERAS)
     assert sat.model_link is not None and sat.model_link.decisions == 0
     assert sat.step_log == onboard.step_log and sat.ledger == onboard.ledger and sat.sim_time_s == onboard.sim_time_s
 

@@ -1,8 +1,13 @@
-"""A minimal episode specification for tests that need one to carry, not to play."""
+"""A minimal episode specification for tests that need one to carry, not to play; small cameras for tests
+that play one but do not depend on what its images show."""
 
 from __future__ import annotations
 
 from agos.runtime.schemas import EpisodeSpec, TownRef, VehicleSpec
+
+SMALL_CAMERAS = {"nadir_px": 64, "ground_px": 64, "reference_px": 32, "map_px": 64}
+"""``cameras=`` for ``episode_config`` (or ``CameraConfig(**SMALL_CAMERAS)``): 64 px views and 32 px
+references, a render about a quarter of the default's cost; for tests whose promise is not about the images."""
 
 
 def minimal_spec(episode_id: str) -> EpisodeSpec:
